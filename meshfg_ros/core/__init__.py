@@ -1,0 +1,1 @@
+"""ROS-free core: mesh, FEM, simulator, factors, solver, metrics. Never imports rclpy."""

@@ -1,0 +1,1 @@
+"""rosbag2 recordings and message <-> array conversion, without rclpy (via rosbags)."""
