@@ -10,7 +10,7 @@ STAMP="$VENV/.meshfg-setup-stamp"
 cd "$ROOT"
 
 inputs_hash() {
-  cat requirements.txt scripts/setup_env.sh setup.py setup.cfg package.xml \
+  cat requirements.txt requirements-core.txt scripts/setup_env.sh setup.py setup.cfg package.xml \
       meshfg_msgs/CMakeLists.txt meshfg_msgs/package.xml meshfg_msgs/msg/*.msg | sha256sum | cut -d' ' -f1
 }
 
@@ -48,7 +48,7 @@ log "installing pinned packages (requirements.txt)"
 # Only files inside this project's venv are touched.
 PY_INCLUDE="$("$PY" -c 'import sysconfig; print(sysconfig.get_paths()["include"])')"
 NUMPY_INCLUDE="$("$PY" -c 'import numpy; print(numpy.get_include())')"
-grep -rlZ --include='*.cmake' '/opt/python/cp311-cp311' "$VENV" 2>/dev/null | xargs -0 -r sed -i \
+{ grep -rlZ --include='*.cmake' '/opt/python/cp311-cp311' "$VENV" 2>/dev/null || true; } | xargs -0 -r sed -i \
   -e "s#/opt/python/cp311-cp311/lib/python3.11/site-packages/numpy/_core/include#${NUMPY_INCLUDE}#g" \
   -e "s#/opt/python/cp311-cp311/include/python3.11#${PY_INCLUDE}#g"
 
@@ -64,7 +64,8 @@ cmake --build "$BUILD" -j "$(nproc)" >"$BUILD/build.log" 2>&1 || { tail -50 "$BU
 cmake --install "$BUILD" >"$BUILD/install.log" 2>&1 || { tail -50 "$BUILD/install.log" >&2; exit 1; }
 
 log "installing meshfg_ros (editable) into the venv"
-"$PY" -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e .
+"$PY" -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e . \
+  >"$BUILD/pip-editable.log" 2>&1 || { cat "$BUILD/pip-editable.log" >&2; exit 1; }
 
 "$PY" -c 'import rclpy, meshfg_msgs.msg, meshfg_ros' || { echo "[setup] error: import check failed" >&2; exit 1; }
 inputs_hash >"$STAMP"
