@@ -16,7 +16,6 @@ setup(
         (f"share/{PACKAGE}/launch", glob("launch/*.py")),
         (f"share/{PACKAGE}/bags", glob("bags/*.mcap")),
     ],
-    package_data={PACKAGE: ["msg/*.msg"]},
     install_requires=["setuptools"],
     zip_safe=True,
     maintainer="meshfg_ros maintainers",

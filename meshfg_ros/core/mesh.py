@@ -1,0 +1,432 @@
+"""Tetrahedral mesh: vertices + fixed connectivity, validation, topology and file IO.
+
+A `TetMesh` holds one geometric state (`vertices`) of a fixed connectivity (`tetrahedra`)
+plus the set of vertices that are held fixed (boundary conditions). The connectivity never
+changes while tissue deforms, so the topology derived from it (boundary surface, edges,
+vertex sets) is computed lazily once and shared by every mesh made with `with_vertices` or
+`with_fixed`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+__all__ = [
+    "DegenerateMeshError",
+    "InvalidMeshError",
+    "MeshFileError",
+    "TetMesh",
+    "check_degenerate",
+    "load_mesh",
+    "orient_tetrahedra",
+    "save_mesh",
+    "signed_volumes",
+]
+
+# |signed volume| below this times (mean edge length)^3 counts as a degenerate element.
+DEGENERATE_VOLUME_TOLERANCE = 1e-12
+
+# Faces of a positively oriented tetrahedron (v0, v1, v2, v3), each listed counter-clockwise
+# seen from outside, i.e. with its normal pointing away from the opposite vertex.
+_OUTWARD_TET_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]], dtype=np.int64)
+_TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]], dtype=np.int64)
+
+_MAX_NAMED_ELEMENTS = 5
+
+
+class InvalidMeshError(ValueError):
+    """Mesh arrays with a wrong shape, dtype, index range or unused vertices."""
+
+
+class DegenerateMeshError(ValueError):
+    """Tetrahedra with (near) zero volume or repeated vertex indices; names the elements."""
+
+    def __init__(self, element_indices: np.ndarray, reason: str):
+        self.element_indices = np.asarray(element_indices, dtype=np.int64)
+        shown = ", ".join(str(i) for i in self.element_indices[:_MAX_NAMED_ELEMENTS])
+        more = ", ..." if self.element_indices.size > _MAX_NAMED_ELEMENTS else ""
+        super().__init__(
+            f"{self.element_indices.size} degenerate tetrahedra ({reason}): "
+            f"elements [{shown}{more}]"
+        )
+
+
+class MeshFileError(ValueError):
+    """A mesh file that cannot be read as (or written from) a tetrahedral mesh."""
+
+
+def signed_volumes(vertices: np.ndarray, tetrahedra: np.ndarray) -> np.ndarray:
+    """Signed volume of each tetrahedron, (M,); positive when (v1-v0, v2-v0, v3-v0) is right-handed."""
+    corners = np.asarray(vertices, dtype=np.float64)[np.asarray(tetrahedra)]
+    edge_vectors = corners[:, 1:, :] - corners[:, :1, :]
+    return np.linalg.det(edge_vectors) / 6.0
+
+
+def _mean_edge_length(vertices: np.ndarray, tetrahedra: np.ndarray) -> float:
+    """Mean tetrahedron edge length (each edge counted once per element), the degeneracy scale."""
+    corners = vertices[tetrahedra]
+    edge_vectors = corners[:, _TET_EDGES[:, 1], :] - corners[:, _TET_EDGES[:, 0], :]
+    return float(np.linalg.norm(edge_vectors, axis=2).mean())
+
+
+def check_degenerate(vertices: np.ndarray, tetrahedra: np.ndarray) -> np.ndarray:
+    """Raise DegenerateMeshError for repeated indices or |volume| < tol * mean_edge^3; return volumes."""
+    sorted_tets = np.sort(tetrahedra, axis=1)
+    repeated = np.flatnonzero(np.any(sorted_tets[:, 1:] == sorted_tets[:, :-1], axis=1))
+    if repeated.size:
+        raise DegenerateMeshError(repeated, "repeated vertex indices")
+    volumes = signed_volumes(vertices, tetrahedra)
+    tolerance = DEGENERATE_VOLUME_TOLERANCE * _mean_edge_length(vertices, tetrahedra) ** 3
+    flat = np.flatnonzero(np.abs(volumes) <= tolerance)
+    if flat.size:
+        raise DegenerateMeshError(flat, f"|volume| <= {tolerance:.3g}")
+    return volumes
+
+
+def orient_tetrahedra(vertices: np.ndarray, tetrahedra: np.ndarray) -> tuple[np.ndarray, int]:
+    """Swap two indices of every negatively oriented tetrahedron; return (tets, count fixed).
+
+    Raises DegenerateMeshError first, as a flat element has no orientation to fix.
+    """
+    tetrahedra = np.array(tetrahedra, dtype=np.int64, copy=True)
+    volumes = check_degenerate(np.asarray(vertices, dtype=np.float64), tetrahedra)
+    inverted = volumes < 0.0
+    tetrahedra[inverted, 2], tetrahedra[inverted, 3] = (
+        tetrahedra[inverted, 3].copy(),
+        tetrahedra[inverted, 2].copy(),
+    )
+    return tetrahedra, int(np.count_nonzero(inverted))
+
+
+class _Topology:
+    """Connectivity-derived data, computed on first use and shared between mesh states."""
+
+    def __init__(self, tetrahedra: np.ndarray, vertex_count: int):
+        self.tetrahedra = tetrahedra
+        self.vertex_count = vertex_count
+        self._surface_triangles: np.ndarray | None = None
+        self._surface_vertices: np.ndarray | None = None
+        self._internal_vertices: np.ndarray | None = None
+        self._edges: np.ndarray | None = None
+
+    @property
+    def surface_triangles(self) -> np.ndarray:
+        if self._surface_triangles is None:
+            faces = self.tetrahedra[:, _OUTWARD_TET_FACES].reshape(-1, 3)
+            _, first_index, counts = np.unique(
+                np.sort(faces, axis=1), axis=0, return_index=True, return_counts=True
+            )
+            if np.any(counts > 2):
+                raise InvalidMeshError(
+                    f"{np.count_nonzero(counts > 2)} faces are shared by more than two tetrahedra"
+                )
+            boundary = np.sort(first_index[counts == 1])
+            self._surface_triangles = _read_only(faces[boundary])
+        return self._surface_triangles
+
+    @property
+    def surface_vertices(self) -> np.ndarray:
+        if self._surface_vertices is None:
+            self._surface_vertices = _read_only(np.unique(self.surface_triangles))
+        return self._surface_vertices
+
+    @property
+    def internal_vertices(self) -> np.ndarray:
+        if self._internal_vertices is None:
+            is_internal = np.ones(self.vertex_count, dtype=bool)
+            is_internal[self.surface_vertices] = False
+            self._internal_vertices = _read_only(np.flatnonzero(is_internal).astype(np.int64))
+        return self._internal_vertices
+
+    @property
+    def edges(self) -> np.ndarray:
+        if self._edges is None:
+            pairs = np.sort(self.tetrahedra[:, _TET_EDGES].reshape(-1, 2), axis=1)
+            self._edges = _read_only(np.unique(pairs, axis=0))
+        return self._edges
+
+
+def _read_only(array: np.ndarray) -> np.ndarray:
+    array.setflags(write=False)
+    return array
+
+
+def _as_vertices(vertices, expected_count: int | None = None) -> np.ndarray:
+    array = np.array(vertices, dtype=np.float64, copy=True)
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise InvalidMeshError(f"vertices must have shape (N, 3), got {array.shape}")
+    if expected_count is not None and array.shape[0] != expected_count:
+        raise InvalidMeshError(
+            f"vertices must have {expected_count} rows to match the mesh, got {array.shape[0]}"
+        )
+    if not np.all(np.isfinite(array)):
+        raise InvalidMeshError("vertices contain NaN or infinite coordinates")
+    return _read_only(array)
+
+
+def _as_index_array(values, vertex_count: int, what: str) -> np.ndarray:
+    raw = np.asarray(values)
+    if raw.size and not np.issubdtype(raw.dtype, np.integer):
+        raise InvalidMeshError(f"{what} must be integer indices, got dtype {raw.dtype}")
+    indices = raw.astype(np.int64)
+    if indices.size and (indices.min() < 0 or indices.max() >= vertex_count):
+        raise InvalidMeshError(
+            f"{what} index out of range [0, {vertex_count}): min {indices.min()}, max {indices.max()}"
+        )
+    return indices
+
+
+def _as_fixed(fixed_vertices, vertex_count: int) -> np.ndarray:
+    fixed = _as_index_array(fixed_vertices, vertex_count, "fixed_vertices").reshape(-1)
+    return _read_only(np.unique(fixed))
+
+
+class TetMesh:
+    """Immutable tetrahedral mesh state with positively oriented elements.
+
+    The constructor validates, orients negative elements (counted in `flipped_count`) and
+    rejects degenerate ones. `with_vertices` / `with_fixed` make new states sharing topology
+    without re-checking orientation, since a deformed state may legitimately invert elements.
+    """
+
+    def __init__(self, vertices, tetrahedra, fixed_vertices=(), name: str = ""):
+        vertices = _as_vertices(vertices)
+        tets = _as_index_array(tetrahedra, vertices.shape[0], "tetrahedra")
+        if tets.ndim != 2 or tets.shape[1] != 4 or tets.shape[0] == 0:
+            raise InvalidMeshError(f"tetrahedra must have shape (M>0, 4), got {tets.shape}")
+        used = np.zeros(vertices.shape[0], dtype=bool)
+        used[tets.reshape(-1)] = True
+        if not used.all():
+            unused = np.flatnonzero(~used)
+            raise InvalidMeshError(
+                f"{unused.size} vertices belong to no tetrahedron, "
+                f"first {unused[:_MAX_NAMED_ELEMENTS].tolist()}"
+            )
+        tets, self.flipped_count = orient_tetrahedra(vertices, tets)
+        self._vertices = vertices
+        self._fixed = _as_fixed(fixed_vertices, vertices.shape[0])
+        self._topology = _Topology(_read_only(tets), vertices.shape[0])
+        self.name = name
+
+    @classmethod
+    def _from_parts(cls, vertices, fixed, topology, name, flipped_count) -> TetMesh:
+        mesh = cls.__new__(cls)
+        mesh._vertices = vertices
+        mesh._fixed = fixed
+        mesh._topology = topology
+        mesh.name = name
+        mesh.flipped_count = flipped_count
+        return mesh
+
+    def with_vertices(self, vertices) -> TetMesh:
+        """Same connectivity, fixed set and cached topology at new vertex positions (N, 3)."""
+        new_vertices = _as_vertices(vertices, self.vertex_count)
+        return TetMesh._from_parts(new_vertices, self._fixed, self._topology, self.name, 0)
+
+    def with_fixed(self, fixed_vertices) -> TetMesh:
+        """Same geometry and topology with a new set of fixed vertex indices."""
+        fixed = _as_fixed(fixed_vertices, self.vertex_count)
+        return TetMesh._from_parts(self._vertices, fixed, self._topology, self.name, 0)
+
+    @property
+    def vertices(self) -> np.ndarray:
+        return self._vertices
+
+    @property
+    def tetrahedra(self) -> np.ndarray:
+        return self._topology.tetrahedra
+
+    @property
+    def fixed_vertices(self) -> np.ndarray:
+        return self._fixed
+
+    @property
+    def free_vertices(self) -> np.ndarray:
+        """Sorted indices of vertices that are not fixed."""
+        is_free = np.ones(self.vertex_count, dtype=bool)
+        is_free[self._fixed] = False
+        return np.flatnonzero(is_free).astype(np.int64)
+
+    @property
+    def vertex_count(self) -> int:
+        return self._vertices.shape[0]
+
+    @property
+    def tetrahedron_count(self) -> int:
+        return self._topology.tetrahedra.shape[0]
+
+    @property
+    def surface_triangles(self) -> np.ndarray:
+        return self._topology.surface_triangles
+
+    @property
+    def surface_vertices(self) -> np.ndarray:
+        return self._topology.surface_vertices
+
+    @property
+    def internal_vertices(self) -> np.ndarray:
+        return self._topology.internal_vertices
+
+    @property
+    def edges(self) -> np.ndarray:
+        return self._topology.edges
+
+    def signed_volumes(self, vertices=None) -> np.ndarray:
+        """Per-element signed volumes (M,) at `vertices` (default: this state)."""
+        return signed_volumes(self._state(vertices), self.tetrahedra)
+
+    def volume(self, vertices=None) -> float:
+        """Total signed volume at `vertices` (default: this state)."""
+        return float(self.signed_volumes(vertices).sum())
+
+    def triangle_normals(self, vertices=None) -> np.ndarray:
+        """Unit outward normals (F, 3) of the surface triangles at `vertices` (default: this state)."""
+        normals = self._triangle_area_normals(self._state(vertices))
+        lengths = np.linalg.norm(normals, axis=1, keepdims=True)
+        return normals / np.where(lengths > 0.0, lengths, 1.0)
+
+    def vertex_normals(self, vertices=None) -> np.ndarray:
+        """Unit outward area-weighted normals (N, 3) at surface vertices; zero rows for internal ones."""
+        area_normals = self._triangle_area_normals(self._state(vertices))
+        corner_vertices = self.surface_triangles.reshape(-1)
+        corner_normals = np.repeat(area_normals, 3, axis=0)
+        accumulated = np.stack(
+            [np.bincount(corner_vertices, corner_normals[:, axis], self.vertex_count) for axis in range(3)],
+            axis=1,
+        )
+        lengths = np.linalg.norm(accumulated, axis=1, keepdims=True)
+        return accumulated / np.where(lengths > 0.0, lengths, 1.0)
+
+    def _triangle_area_normals(self, vertices: np.ndarray) -> np.ndarray:
+        corners = vertices[self.surface_triangles]
+        return np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+
+    def _state(self, vertices) -> np.ndarray:
+        if vertices is None:
+            return self._vertices
+        return _as_vertices(vertices, self.vertex_count)
+
+    def __repr__(self) -> str:
+        return (
+            f"TetMesh(name={self.name!r}, vertices={self.vertex_count}, "
+            f"tetrahedra={self.tetrahedron_count}, fixed={self._fixed.size})"
+        )
+
+
+def _read_gmsh_v1(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices and tetrahedra (type 4) of a legacy Gmsh v1 ($NOD/$ELM) file.
+
+    Hand-written because meshio has no reader for the v1 format.
+    """
+    lines = path.read_text().split("\n")
+    stripped = [line.strip() for line in lines]
+    try:
+        node_start = stripped.index("$NOD") + 1
+        element_start = stripped.index("$ELM") + 1
+        node_count = int(stripped[node_start])
+        element_count = int(stripped[element_start])
+        node_table = np.array(
+            [line.split() for line in stripped[node_start + 1 : node_start + 1 + node_count]],
+            dtype=np.float64,
+        )
+        element_tokens = [
+            line.split() for line in stripped[element_start + 1 : element_start + 1 + element_count]
+        ]
+        # Tetra lines are 'id type reg_phys reg_elem 4 a b c d'; other element types differ in length.
+        nine_token_rows = np.array([tokens for tokens in element_tokens if len(tokens) == 9], dtype=np.int64)
+    except (ValueError, IndexError) as error:
+        raise MeshFileError(f"{path} is not a readable Gmsh v1 mesh: {error}") from None
+    if node_table.shape != (node_count, 4):
+        raise MeshFileError(f"{path}: $NOD block must have {node_count} rows 'id x y z'")
+    node_ids = node_table[:, 0].astype(np.int64)
+    nine_token_rows = nine_token_rows.reshape(-1, 9)
+    tet_rows = nine_token_rows[(nine_token_rows[:, 1] == 4) & (nine_token_rows[:, 4] == 4)]
+    if tet_rows.shape[0] == 0:
+        raise MeshFileError(f"{path} is not a tetrahedral mesh (no tetra cells)")
+    tet_node_ids = tet_rows[:, 5:9]
+    order = np.argsort(node_ids)
+    positions = np.searchsorted(node_ids, tet_node_ids, sorter=order)
+    positions = np.clip(positions, 0, node_ids.size - 1)
+    tets = order[positions]
+    if not np.array_equal(node_ids[tets], tet_node_ids):
+        raise MeshFileError(f"{path}: $ELM references node ids missing from $NOD")
+    return node_table[:, 1:], tets
+
+
+def _is_gmsh_v1(path: Path) -> bool:
+    if path.suffix.lower() != ".msh":
+        return False
+    with path.open("rb") as stream:
+        for raw_line in stream:
+            line = raw_line.strip()
+            if line:
+                return line == b"$NOD"
+    return False
+
+
+def _drop_unused_vertices(vertices, tetrahedra, fixed_flags):
+    """Compact away vertices no tetrahedron uses (e.g. nodes of dropped non-tet cells)."""
+    used = np.unique(tetrahedra)
+    new_index = np.full(vertices.shape[0], -1, dtype=np.int64)
+    new_index[used] = np.arange(used.size)
+    fixed = np.flatnonzero(fixed_flags[used]) if fixed_flags is not None else ()
+    return vertices[used], new_index[tetrahedra], fixed
+
+
+def load_mesh(path) -> TetMesh:
+    """Read a tetrahedral mesh (Gmsh v1/v2/v4 .msh, .vtu, .vtk); point data "fixed" marks fixed vertices.
+
+    Only tetra cells are kept; vertices used by no tetrahedron are dropped.
+    """
+    import meshio
+
+    path = Path(path)
+    if not path.is_file():
+        raise MeshFileError(f"{path} does not exist")
+    fixed_flags = None
+    if _is_gmsh_v1(path):
+        vertices, tets = _read_gmsh_v1(path)
+    else:
+        try:
+            data = meshio.read(path)
+        except Exception as error:  # meshio raises many unrelated types for bad files
+            raise MeshFileError(f"{path} could not be read by meshio: {error}") from None
+        tet_blocks = [block.data for block in data.cells if block.type == "tetra"]
+        if not tet_blocks:
+            raise MeshFileError(f"{path} is not a tetrahedral mesh (no tetra cells)")
+        vertices = np.asarray(data.points, dtype=np.float64)[:, :3]
+        tets = np.concatenate(tet_blocks).astype(np.int64)
+        if "fixed" in data.point_data:
+            fixed_flags = np.asarray(data.point_data["fixed"]).reshape(-1) != 0
+    vertices, tets, fixed = _drop_unused_vertices(vertices, tets, fixed_flags)
+    return TetMesh(vertices, tets, fixed, name=path.stem)
+
+
+def save_mesh(mesh: TetMesh, path) -> None:
+    """Write `mesh` by extension: .msh (Gmsh 4.1 binary), .vtu or .vtk, with point data "fixed"."""
+    import meshio
+
+    path = Path(path)
+    suffix = path.suffix.lower()
+    fixed_flags = np.zeros(mesh.vertex_count, dtype=np.int32)
+    fixed_flags[mesh.fixed_vertices] = 1
+    cell_data = {}
+    if suffix == ".msh":
+        # Gmsh requires physical/geometrical tags on each element.
+        element_tags = np.ones(mesh.tetrahedron_count, dtype=np.int32)
+        cell_data = {"gmsh:physical": [element_tags], "gmsh:geometrical": [element_tags]}
+    elif suffix not in (".vtu", ".vtk"):
+        raise MeshFileError(f"{path}: unsupported mesh format {suffix!r} (use .msh, .vtu or .vtk)")
+    data = meshio.Mesh(
+        mesh.vertices,
+        [("tetra", np.asarray(mesh.tetrahedra))],
+        point_data={"fixed": fixed_flags},
+        cell_data=cell_data,
+    )
+    if suffix == ".msh":
+        # Binary: meshio's ASCII $NodeData writer prints numpy-2 scalar reprs it cannot read back.
+        meshio.write(path, data, file_format="gmsh", binary=True)
+    else:
+        meshio.write(path, data)

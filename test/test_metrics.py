@@ -1,0 +1,176 @@
+"""Evaluation metrics: known answers for vertex RMSE, surface distances, observable split."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from meshfg_ros.core import metrics
+from meshfg_ros.core.camera import PinholeCamera, capture
+
+UNIT_SQUARE = (
+    np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]]),
+    np.array([[0, 1, 2], [0, 2, 3]]),
+)
+
+
+def test_vertex_rmse_hand_computed():
+    truth = np.zeros((3, 3))
+    estimate = np.array([[3.0, 4.0, 0.0], [0.0, 0.0, 0.0], [1.0, 2.0, 2.0]])  # errors 5, 0, 3
+    assert metrics.vertex_rmse(estimate, truth) == pytest.approx(np.sqrt(34 / 3), rel=1e-15)
+    assert metrics.vertex_rmse(estimate, truth, indices=[0, 2]) == pytest.approx(np.sqrt(17), rel=1e-15)
+    assert metrics.vertex_rmse(estimate, truth, indices=[1]) == 0.0
+    with pytest.raises(ValueError, match="differ in shape"):
+        metrics.vertex_rmse(estimate, truth[:2])
+    with pytest.raises(ValueError, match="at least one"):
+        metrics.vertex_rmse(estimate, truth, indices=np.array([], dtype=int))
+
+
+def test_sample_surface_is_uniform_by_area_and_deterministic():
+    vertices = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [3, 0, 0], [0, 3, 0]])
+    triangles = np.array([[0, 1, 2], [0, 3, 4]])  # areas 0.5 and 4.5 (nested, overlapping)
+    count = 20000
+    points, faces = metrics.sample_surface(vertices, triangles, count, seed=5, return_faces=True)
+    assert points.shape == (count, 3) and faces.shape == (count,)
+    np.testing.assert_array_equal(points, metrics.sample_surface(vertices, triangles, count, seed=5))
+    assert not np.array_equal(points, metrics.sample_surface(vertices, triangles, count, seed=6))
+    # Every point lies in the triangle it is attributed to.
+    scale = np.where(faces == 0, 1.0, 3.0)
+    assert (points[:, 2] == 0).all() and (points[:, :2] >= 0).all()
+    assert (points[:, 0] + points[:, 1] <= scale + 1e-12).all()
+    # Face 0 holds 10% of the area: binomial count within 5 standard deviations.
+    small = (faces == 0).sum()
+    assert abs(small - 0.1 * count) < 5 * np.sqrt(count * 0.1 * 0.9)
+    with pytest.raises(ValueError, match="zero area"):
+        metrics.sample_surface(np.zeros((3, 3)), [[0, 1, 2]], 10)
+
+
+def test_shifted_plane_distances_equal_the_shift():
+    """Two independent uniform samples of a unit square, one shifted by d along the normal.
+
+    Every nearest-neighbour distance is sqrt(d^2 + r^2), r the in-plane gap to the nearest
+    sample, so each metric is >= d. For uniform density rho, pi*rho*r^2 ~ Exp(1): the mean
+    of r^2 is 1/(pi*rho) and its 95th percentile ln(20)/(pi*rho). Since sqrt(d^2+r^2) <=
+    d + r^2/(2d), the means and the RMSE exceed d by at most about 1/(2*pi*rho*d); the bound
+    below doubles that for the square's border (samples there have neighbours on one side
+    only). H95 should be sqrt(d^2 + ln(20)/(pi*rho)) up to the border and sampling effects.
+    """
+    count, shift = 20000, 0.05
+    rho = count / 1.0
+    excess = 1 / (2 * np.pi * rho * shift)  # 1.6e-4, 0.3% of the shift
+    reference = metrics.sample_surface(*UNIT_SQUARE, count, seed=1)
+    estimate = metrics.sample_surface(*UNIT_SQUARE, count, seed=2) + [0.0, 0.0, shift]
+    result = metrics.surface_distances(estimate, reference)
+    for value in (
+        result.estimate_to_reference_mean,
+        result.reference_to_estimate_mean,
+        result.chamfer,
+        result.rmse,
+    ):
+        assert shift <= value <= shift + 2 * excess
+    expected_h95 = np.sqrt(shift**2 + np.log(20) / (np.pi * rho))
+    assert shift < result.h95
+    assert abs(result.h95 - expected_h95) < 0.1 * (expected_h95 - shift)
+
+
+def test_identical_clouds_have_zero_distances():
+    points = np.random.default_rng(0).normal(size=(500, 3))
+    result = metrics.surface_distances(points, points.copy())
+    assert result == metrics.SurfaceDistances(0.0, 0.0, 0.0, 0.0, 0.0)
+
+
+def test_subset_against_superset_is_one_sided():
+    reference = np.column_stack((np.arange(10.0), np.zeros(10), np.zeros(10)))
+    estimate = reference[:5]
+    result = metrics.surface_distances(estimate, reference)
+    # estimate -> reference: all 0; reference -> estimate: 0,0,0,0,0,1,2,3,4,5.
+    assert result.estimate_to_reference_mean == 0.0
+    assert result.reference_to_estimate_mean == pytest.approx(1.5, rel=1e-15)
+    assert result.chamfer == pytest.approx(0.75, rel=1e-15)
+    assert result.rmse == 0.0
+    # 95th percentile, linear interpolation at rank 0.95 * 9 = 8.55: 4 + 0.55 * (5 - 4).
+    assert result.h95 == pytest.approx(4.55, rel=1e-12)
+    swapped = metrics.surface_distances(reference, estimate)
+    assert swapped.rmse == pytest.approx(np.sqrt(55 / 10), rel=1e-15)
+    assert swapped.chamfer == result.chamfer
+
+
+def test_surface_distances_reject_empty_clouds():
+    with pytest.raises(ValueError, match="non-empty"):
+        metrics.surface_distances(np.zeros((0, 3)), np.zeros((4, 3)))
+
+
+def test_observable_region_of_sphere_is_visible_cap():
+    """A camera at distance D from a unit sphere sees the cap cos(theta) >= 1/D, a fraction
+    (1 - 1/D)/2 of the area. On the icosphere the cap's rim cuts through triangles that are
+    in or out whole, so the marked fraction may differ from the analytic one by the area of a
+    strip one longest edge wide along the rim, sin(theta) * edge / 2 of the sphere."""
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
+    vertices, triangles = np.asarray(sphere.vertices), np.asarray(sphere.faces)
+    distance = 2.0
+    half_angle = np.arcsin(1 / distance)
+    camera = PinholeCamera.look_at([0, 0, -distance], [0, 0, 0], [0, 1, 0], 256, 256, 128 / np.tan(1.15 * half_angle))
+    measured = capture(camera, vertices, triangles, rng=0).points
+    observed = metrics.observable_triangles(camera.position, measured, vertices, triangles)
+
+    areas = sphere.area_faces
+    fraction = areas[observed].sum() / areas.sum()
+    analytic = (1 - 1 / distance) / 2
+    rim_strip = np.sqrt(1 - 1 / distance**2) * sphere.edges_unique_length.max() / 2
+    assert abs(fraction - analytic) < rim_strip
+
+    # First hits on a closed convex surface are front-facing; triangles clearly facing the
+    # camera span several pixels and must all be hit.
+    towards_camera = camera.position - sphere.triangles_center
+    towards_camera /= np.linalg.norm(towards_camera, axis=1)[:, None]
+    facing = np.einsum("ij,ij->i", sphere.face_normals, towards_camera)
+    assert not observed[facing < 0].any()
+    assert observed[facing > 0.3].all()
+
+    points, faces = metrics.sample_surface(vertices, triangles, 40000, seed=3, return_faces=True)
+    mask = metrics.observable_mask(points, camera.position, measured, vertices, triangles, point_faces=faces)
+    np.testing.assert_array_equal(mask, observed[faces])
+    assert abs(mask.mean() - fraction) < 5 * np.sqrt(fraction * (1 - fraction) / len(points))
+
+
+def test_observable_mask_by_dilation_radius():
+    vertices, triangles = UNIT_SQUARE
+    camera_center = np.array([0.5, 0.5, -1.0])
+    hits = np.array([[0.2, 0.2, 0.0], [0.3, 0.25, 0.0]])
+    measured = camera_center + 0.5 * (hits - camera_center)  # noisy depths: short of the surface
+    points = metrics.sample_surface(vertices, triangles, 5000, seed=0)
+    radius = 0.1
+    mask = metrics.observable_mask(points, camera_center, measured, vertices, triangles, dilation_radius=radius)
+    nearest = np.linalg.norm(points[:, None] - hits[None], axis=2).min(axis=1)
+    np.testing.assert_array_equal(mask, nearest <= radius)
+    assert 0 < mask.sum() < len(points)
+    with pytest.raises(ValueError, match="point_faces or a positive"):
+        metrics.observable_mask(points, camera_center, measured, vertices, triangles)
+
+
+def test_observable_triangles_respects_occlusion():
+    front = UNIT_SQUARE[0] * [0.5, 0.5, 0] + [0.0, 0.0, 1.0]  # covers x, y in [0, 0.5] at z = 1
+    back = UNIT_SQUARE[0] * [2, 2, 0] + [-0.5, -0.5, 2.0]
+    vertices = np.vstack((front, back))
+    triangles = np.vstack((UNIT_SQUARE[1], UNIT_SQUARE[1] + 4))
+    camera_center = np.zeros(3)
+    measured = np.array([[0.1, 0.1, 2.0], [0.2, 0.3, 2.0]])  # rays pass through the front square
+    observed = metrics.observable_triangles(camera_center, measured, vertices, triangles)
+    assert observed[:2].any() and not observed[2:].any()
+
+
+def test_unobserved_external_vertices():
+    triangles = np.array([[0, 1, 2], [1, 2, 3], [3, 4, 5]])
+    surface = np.array([0, 1, 2, 3, 4, 5, 6])
+    mask = np.array([True, False, False])
+    np.testing.assert_array_equal(metrics.observed_vertices(triangles, mask), [0, 1, 2])
+    np.testing.assert_array_equal(metrics.unobserved_external_vertices(surface, triangles, mask), [3, 4, 5, 6])
+    # Measurement associations as triangle ids, repeated as several points share a triangle.
+    np.testing.assert_array_equal(metrics.unobserved_external_vertices(surface, triangles, [2, 2, 1]), [0, 6])
+    with pytest.raises(ValueError, match="outside"):
+        metrics.observed_vertices(triangles, [3])
+
+
+def test_summarise():
+    assert metrics.summarise([1.0, 2.0, 3.0, 4.0]) == pytest.approx((2.5, np.sqrt(1.25)), rel=1e-15)
+    with pytest.raises(ValueError, match="at least one"):
+        metrics.summarise([])
