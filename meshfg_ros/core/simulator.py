@@ -1,0 +1,684 @@
+"""Position-based simulator for tetrahedral meshes: the predictor of the physics prior.
+
+`XpbdSimulator.predict(previous_state, tool_pose, dt)` moves the tool from its previous pose to
+`tool_pose` in `substeps` increments (linear position, slerp orientation) and returns the
+tissue near quasi-static equilibrium. Two solvers share the set-up, the tool and the API.
+
+"vbd" (default): quasi-static vertex block descent (Chen et al. 2024) on the stable
+    Neo-Hookean energy of Macklin & Mueller 2021,
+        Psi = mu/2 (I_C - 3) + lambda'/2 (J - gamma)^2,  lambda' = lambda + mu,  gamma = 1 + mu / lambda'.
+    I_C is quadratic and J affine in one vertex, so a vertex's energy is an exact quadratic
+    with SPD Hessian V (mu |g|^2 I + lambda' (cof F g)(cof F g)^T): each block solve is exact,
+    never raises the energy, and the largest move keeping every incident volume positive is
+    closed-form (J is affine along the move). Each iteration is one coloured vertex sweep, then
+    a quasi-Newton step with the rest Hessian K0 (factorised once; constrained at the tool) for
+    the smooth, global error that Gauss-Seidel alone removes in O(n^2) sweeps. The fixed point
+    is the true equilibrium whatever the iteration count.
+"xpbd" (Macklin et al. 2016): damped dynamics; per sub-step, Gauss-Seidel over per-element
+    Neo-Hookean constraints with compliance, solved as a coupled 2x2 system per element:
+        C_D = sqrt(I_C J^(-2/3) - 3),  alpha_D = 1 / (mu V)      (isochoric)
+        C_H = J - 1,                   alpha_H = 1 / (kappa V)   (volume, kappa = lambda + 2 mu / 3)
+    Both vanish at rest. The split of Macklin & Mueller 2021 (C_D = sqrt(I_C), C_H = J - gamma)
+    carries a rest pre-stress whose dropped geometric stiffness makes Gauss-Seidel diverge
+    once elements are stiff relative to inertia, i.e. in the quasi-static regime of 1 s steps.
+    XPBD restarts its multipliers each sub-step, so with finitely many iterations its fixed
+    point is not the equilibrium (the bias shrinks with iterations and sub-steps), and
+    settling depends on the physical time scale sqrt(density / E) * size.
+
+lambda' and kappa make both energies linearise to linear elasticity with the Lame parameters
+(mu, lambda) of (E, nu): core.fem's linear K0 is their small-strain Hessian. Gauss-Seidel is
+sequential, so vertices (vbd) or elements (xpbd) are coloured at set-up and each colour is one
+vectorised batch. Runs are bit-reproducible (fixed order, no threads, no randomness).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cholespy
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from .fem import ElasticModel
+from .mesh import TetMesh, signed_volumes
+
+__all__ = [
+    "SOLVERS",
+    "TOOL_CONTACTS",
+    "TOOL_MODES",
+    "ElementInversionError",
+    "SimulatorConfig",
+    "SimulatorConfigError",
+    "SimulatorInputError",
+    "XpbdSimulator",
+    "colour_tetrahedra",
+    "colour_vertices",
+]
+
+TOOL_MODES = ("sphere", "grasp")
+TOOL_CONTACTS = ("stick", "slide")
+SOLVERS = ("vbd", "xpbd")
+
+_MAX_NAMED_ELEMENTS = 5
+# Shape-function gradients of the 4 corners from the rows of Dm^-1 (corner 0: minus their sum).
+_CORNER_FROM_EDGES = np.array([[-1.0, -1.0, -1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+_DIAGONAL = np.arange(3)
+# vbd: one move may shrink an element's volume at most to this fraction of its current value.
+_MIN_VOLUME_FRACTION_PER_MOVE = 0.1
+# vbd: vertices within this factor of the tool radius touch the tool.
+_CONTACT_BAND = 1.0 + 1e-9
+# vbd: halvings of a global step before it is skipped; energy rise accepted as rounding.
+_MAX_STEP_HALVINGS = 6
+_ENERGY_ROUNDING = 1e-12
+# xpbd: the isochoric invariant uses max(J, this), a guard for (nearly) inverted elements.
+_MIN_VOLUME_RATIO = 0.05
+# xpbd: isochoric strain below which C_D counts as zero: its gradient direction at the tip of
+# the rest cone is rounding noise (sqrt of ~1e-16 is ~1e-8).
+_MIN_DEVIATORIC = 1e-6
+
+
+class SimulatorConfigError(ValueError):
+    """A simulator setting outside its valid range."""
+
+
+class SimulatorInputError(ValueError):
+    """A state, tool pose, time step or vertex set of the wrong shape or value."""
+
+
+class ElementInversionError(RuntimeError):
+    """A predicted state with non-positive (or NaN) tetrahedron volumes; names the elements."""
+
+    def __init__(self, element_indices: np.ndarray):
+        self.element_indices = np.asarray(element_indices, dtype=np.int64)
+        shown = ", ".join(str(i) for i in self.element_indices[:_MAX_NAMED_ELEMENTS])
+        more = ", ..." if self.element_indices.size > _MAX_NAMED_ELEMENTS else ""
+        super().__init__(
+            f"{self.element_indices.size} tetrahedra inverted (or not finite) after the simulation step: "
+            f"elements [{shown}{more}]"
+        )
+
+
+@dataclass(frozen=True)
+class SimulatorConfig:
+    """Material, tool and solver settings of `XpbdSimulator` (SI units)."""
+
+    youngs_modulus: float = 3.0e3  # Pa; soft tissue is of the order of kPa
+    poisson_ratio: float = 0.45
+    density: float = 1.0e3  # kg / m^3: the gravity load, and xpbd's inertia
+    tool_radius: float = 5.0e-3  # m, sphere mode
+    tool_mode: str = "sphere"  # "sphere": rigid contact sphere; "grasp": vertices follow the tool
+    tool_contact: str = "stick"  # sphere mode: "stick" (no slip while pushed) or "slide" (frictionless)
+    substeps: int = 2  # tool increments per predict
+    solver_iterations: int = 3  # per sub-step: vbd vertex sweep + global step; xpbd constraint sweep
+    damping: float = 1.0  # xpbd: fraction of the velocity removed each sub-step (1: quasi-static)
+    # m / s^2; xpbd moves (dt / substeps)^2 g per sub-step before solving: keep it << element size
+    gravity: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    deterministic: bool = True  # required: both solvers are bit-reproducible
+    solver: str = "vbd"  # "vbd" or "xpbd", see the module docstring
+
+    def __post_init__(self):
+        checks = [
+            (np.isfinite(self.youngs_modulus) and self.youngs_modulus > 0.0, "youngs_modulus must be > 0"),
+            (0.0 < self.poisson_ratio < 0.5, "poisson_ratio must lie in (0, 0.5)"),
+            (np.isfinite(self.density) and self.density > 0.0, "density must be > 0"),
+            (np.isfinite(self.tool_radius) and self.tool_radius > 0.0, "tool_radius must be > 0"),
+            (self.tool_mode in TOOL_MODES, f"tool_mode must be one of {TOOL_MODES}, got {self.tool_mode!r}"),
+            (
+                self.tool_contact in TOOL_CONTACTS,
+                f"tool_contact must be one of {TOOL_CONTACTS}, got {self.tool_contact!r}",
+            ),
+            (self.solver in SOLVERS, f"solver must be one of {SOLVERS}, got {self.solver!r}"),
+            (int(self.substeps) == self.substeps and self.substeps >= 1, "substeps must be an integer >= 1"),
+            (
+                int(self.solver_iterations) == self.solver_iterations and self.solver_iterations >= 1,
+                "solver_iterations must be an integer >= 1",
+            ),
+            (0.0 <= self.damping <= 1.0, "damping must lie in [0, 1]"),
+            (
+                np.shape(self.gravity) == (3,) and bool(np.all(np.isfinite(self.gravity))),
+                "gravity must be 3 finite numbers",
+            ),
+            (self.deterministic, "deterministic=False is not offered: every run is bit-reproducible"),
+        ]
+        for passed, message in checks:
+            if not passed:
+                raise SimulatorConfigError(message)
+
+    @property
+    def shear_modulus(self) -> float:
+        """Lame mu = E / (2 (1 + nu))."""
+        return self.youngs_modulus / (2.0 * (1.0 + self.poisson_ratio))
+
+    @property
+    def lame_lambda(self) -> float:
+        """Lame lambda = E nu / ((1 + nu)(1 - 2 nu))."""
+        nu = self.poisson_ratio
+        return self.youngs_modulus * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
+
+
+# ------------------------------------------------------------------------------ colouring
+
+
+def _lowest_free_bit(taken: int) -> int:
+    """The lowest zero bit of `taken`, as a one-bit mask."""
+    return ~taken & (taken + 1)
+
+
+def _group_by_colour(items: np.ndarray, colours: np.ndarray) -> list[np.ndarray]:
+    """Split `items` into lists of equal colour, lowest colour first, each in input order."""
+    order = np.argsort(colours, kind="stable")
+    boundaries = np.flatnonzero(np.diff(colours[order])) + 1
+    return np.split(np.asarray(items)[order], boundaries)
+
+
+def colour_tetrahedra(tetrahedra: np.ndarray, vertex_count: int) -> list[np.ndarray]:
+    """Greedy first-fit colouring: tetrahedron index lists, no two of a list share a vertex.
+
+    Hand-written set-up loop (about a microsecond per element, bit masks per vertex): graph
+    libraries would need the element conflict graph, which is far larger than the mesh.
+    """
+    vertex_colours = [0] * vertex_count  # bit c set: a tetrahedron of colour c uses the vertex
+    colours = np.empty(len(tetrahedra), dtype=np.int64)
+    for element, (a, b, c, d) in enumerate(np.asarray(tetrahedra).tolist()):
+        bit = _lowest_free_bit(vertex_colours[a] | vertex_colours[b] | vertex_colours[c] | vertex_colours[d])
+        colours[element] = bit.bit_length() - 1
+        for vertex in (a, b, c, d):
+            vertex_colours[vertex] |= bit
+    return _group_by_colour(np.arange(len(tetrahedra)), colours)
+
+
+def colour_vertices(vertices: np.ndarray, edges: np.ndarray, vertex_count: int) -> list[np.ndarray]:
+    """Greedy first-fit colouring of `vertices`: index lists, no two of a list share an edge.
+
+    Set-up loop over vertices and their neighbours, like `colour_tetrahedra`.
+    """
+    edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    directed = np.concatenate([edges, edges[:, ::-1]])
+    directed = directed[np.argsort(directed[:, 0], kind="stable")]
+    neighbours = np.split(directed[:, 1], np.searchsorted(directed[:, 0], np.arange(1, vertex_count)))
+    neighbour_lists = [part.tolist() for part in neighbours]
+    vertex_colours = [0] * vertex_count  # one-bit colour mask, 0 while uncoloured
+    members = np.asarray(vertices, dtype=np.int64)
+    colours = np.empty(members.size, dtype=np.int64)
+    for position, vertex in enumerate(members.tolist()):
+        taken = 0
+        for neighbour in neighbour_lists[vertex]:
+            taken |= vertex_colours[neighbour]
+        vertex_colours[vertex] = _lowest_free_bit(taken)
+        colours[position] = vertex_colours[vertex].bit_length() - 1
+    return _group_by_colour(members, colours)
+
+
+# ---------------------------------------------------------------------- per-colour data
+
+
+@dataclass
+class _VertexColour:
+    """vbd: one colour of vertices and the (vertex, tetrahedron) incidences of its vertices.
+
+    Per-incidence arrays are element-major (incidence index last): numpy's inner loops run long.
+    """
+
+    vertices: np.ndarray  # (n,) vertex indices, sorted
+    segment_starts: np.ndarray  # (n,) first incidence of each vertex (incidences sorted by vertex)
+    incidence_vertex: np.ndarray  # (P,) position in `vertices` of each incidence's vertex
+    corners: np.ndarray  # (4, P) vertex indices of the incident tetrahedron
+    rest_inverse: np.ndarray  # (3, 3, P) Dm^-1 of the incident tetrahedron
+    shape_gradient: np.ndarray  # (3, P) g: gradient of the vertex's shape function
+    volume_gradient: np.ndarray  # (3, P) V g
+    volumetric_stiffness: np.ndarray  # (P,) lambda' V
+    shear_diagonal: np.ndarray  # (n,) sum of mu V |g|^2: the isotropic part of the Hessian
+    gravity_force: np.ndarray  # (3, n) lumped mass times gravity
+
+
+@dataclass
+class _ElementColour:
+    """xpbd: constant data of one colour of tetrahedra (element-major), and their multipliers."""
+
+    corners: np.ndarray  # (4, B) vertex indices
+    rest_inverse: np.ndarray  # (3, 3, B) Dm^-1
+    weighted_metric: np.ndarray  # (3, 3, B) sum_k w_k g_k g_k^T: inverse-mass metric of gradients in F
+    corner_step: np.ndarray  # (4, 3, B) w_k g_k: corner moves from a gradient in F
+    compliance: np.ndarray  # (2, B) [1 / (mu V), 1 / (kappa V)]
+    multipliers: np.ndarray  # (2, B) XPBD multipliers of [C_D, C_H]
+
+
+def _cofactor_em(matrices: np.ndarray) -> np.ndarray:
+    """Cofactors cof(A) = det(A) A^-T of element-major A (3, 3, K): columns a1 x a2, a2 x a0, a0 x a1."""
+    first, second = matrices[:, [1, 2, 0]], matrices[:, [2, 0, 1]]
+    cofactor = np.empty_like(matrices)
+    cofactor[0] = first[1] * second[2] - first[2] * second[1]
+    cofactor[1] = first[2] * second[0] - first[0] * second[2]
+    cofactor[2] = first[0] * second[1] - first[1] * second[0]
+    return cofactor
+
+
+def _deformation_em(state: np.ndarray, corners: np.ndarray, rest_inverse: np.ndarray) -> np.ndarray:
+    """Deformation gradients F = Ds Dm^-1 (3, 3, K) of the tetrahedra `corners` (4, K) at `state`."""
+    positions = state.T[:, corners]  # (3, 4, K)
+    return np.einsum("akm,kjm->ajm", positions[:, 1:] - positions[:, :1], rest_inverse)
+
+
+def _as_pose(tool_pose) -> np.ndarray:
+    """Validated [x y z qx qy qz qw] with a unit quaternion."""
+    pose = np.asarray(tool_pose, dtype=np.float64)
+    if pose.shape != (7,) or not np.all(np.isfinite(pose)):
+        raise SimulatorInputError(
+            f"tool_pose must be 7 finite numbers [x y z qx qy qz qw], got shape {pose.shape}"
+        )
+    norm = np.linalg.norm(pose[3:])
+    if norm < 1e-9:
+        raise SimulatorInputError("tool_pose quaternion has zero norm")
+    return np.concatenate([pose[:3], pose[3:] / norm])
+
+
+# ---------------------------------------------------------------------------- simulator
+
+
+class XpbdSimulator:
+    """Quasi-static position-based prediction of a tetrahedral mesh pushed or held by a tool.
+
+    Fixed vertices (`rest_mesh.fixed_vertices`) never move. In "sphere" mode movable vertices
+    inside the tool sphere (radius `tool_radius` about the tool position) are pushed onto its
+    surface. With tool_contact "stick", vertices touching the sphere when a sub-step starts
+    move with it for that sub-step unless it moves away from them: frictionless contact of a
+    single vertex on a sphere is an unstable equilibrium (the tissue slides off the pole,
+    differently for every iteration count), which sticking removes. In "grasp" mode
+    `grasped_vertices` follow the tool rigidly: at pose T they sit at T T0^-1 applied to their
+    rest positions, T0 being the first tool pose (set by `reset`, or by the first `predict`).
+    """
+
+    def __init__(self, rest_mesh: TetMesh, config: SimulatorConfig, grasped_vertices=None):
+        self.rest_mesh = rest_mesh
+        self.config = config
+        self.grasped_vertices = self._checked_grasp(grasped_vertices, rest_mesh, config)
+        vertex_count = rest_mesh.vertex_count
+        kinematic = np.zeros(vertex_count, dtype=bool)
+        kinematic[rest_mesh.fixed_vertices] = True
+        kinematic[self.grasped_vertices] = True
+        self.movable_vertices = np.flatnonzero(~kinematic)
+
+        tets = rest_mesh.tetrahedra
+        rest_edges = rest_mesh.vertices[tets[:, 1:]] - rest_mesh.vertices[tets[:, :1]]  # rows = edges
+        volumes = np.linalg.det(rest_edges) / 6.0
+        rest_inverse = np.linalg.inv(np.transpose(rest_edges, (0, 2, 1)))  # Dm^-1, Dm columns = edges
+        corner_gradient = _CORNER_FROM_EDGES @ rest_inverse  # (M, 4, 3) shape-function gradients
+        corner_volumes = np.repeat(volumes / 4.0, 4)
+        vertex_mass = config.density * np.bincount(tets.reshape(-1), corner_volumes, vertex_count)
+        self._gravity = np.asarray(config.gravity, dtype=np.float64)
+        if config.solver == "vbd":
+            self._volumetric_modulus = config.lame_lambda + config.shear_modulus  # lambda'
+            self._rest_volume_ratio = 1.0 + config.shear_modulus / self._volumetric_modulus  # gamma
+            self._volumes = volumes
+            self._corners_em = np.ascontiguousarray(tets.T)
+            self._rest_inverse_em = np.ascontiguousarray(rest_inverse.transpose(1, 2, 0))
+            self._corner_volume_gradient_em = np.ascontiguousarray(
+                (volumes[:, None, None] * corner_gradient).transpose(1, 2, 0)
+            )
+            self._gravity_force = vertex_mass[:, None] * self._gravity
+            self._colours = self._vertex_colours(tets, volumes, rest_inverse, corner_gradient)
+            self._rest_stiffness = self._factorised_rest_stiffness() if self.movable_vertices.size else None
+        else:
+            inverse_mass = np.where(kinematic, 0.0, 1.0 / vertex_mass)
+            self._colours = self._element_colours(tets, volumes, rest_inverse, corner_gradient, inverse_mass)
+        self._first_pose: np.ndarray | None = None
+        self._previous_pose: np.ndarray | None = None
+
+    @staticmethod
+    def _checked_grasp(grasped_vertices, rest_mesh: TetMesh, config: SimulatorConfig) -> np.ndarray:
+        if config.tool_mode == "sphere":
+            if grasped_vertices is not None and np.size(grasped_vertices):
+                raise SimulatorInputError('grasped_vertices are only used with tool_mode="grasp"')
+            return np.zeros(0, dtype=np.int64)
+        if grasped_vertices is None or np.size(grasped_vertices) == 0:
+            raise SimulatorInputError('tool_mode="grasp" needs a non-empty grasped_vertices set')
+        raw = np.asarray(grasped_vertices)
+        if not np.issubdtype(raw.dtype, np.integer):
+            raise SimulatorInputError(f"grasped_vertices must be integer indices, got dtype {raw.dtype}")
+        grasped = np.unique(raw.astype(np.int64).reshape(-1))
+        if grasped[0] < 0 or grasped[-1] >= rest_mesh.vertex_count:
+            raise SimulatorInputError(f"grasped_vertices out of range [0, {rest_mesh.vertex_count})")
+        if np.intersect1d(grasped, rest_mesh.fixed_vertices).size:
+            raise SimulatorInputError("grasped_vertices must not include fixed vertices")
+        return grasped
+
+    def _vertex_colours(self, tets, volumes, rest_inverse, corner_gradient) -> list[_VertexColour]:
+        """vbd set-up: colours of the movable vertices with their incident-element data."""
+        element_count = tets.shape[0]
+        incidence_vertex = tets.reshape(-1)
+        by_vertex = np.argsort(incidence_vertex, kind="stable")
+        incidence_vertex = incidence_vertex[by_vertex]
+        incidence_element = np.repeat(np.arange(element_count), 4)[by_vertex]
+        incidence_corner = np.tile(np.arange(4), element_count)[by_vertex]
+        colours = []
+        vertex_count = self.rest_mesh.vertex_count
+        for members in colour_vertices(self.movable_vertices, self.rest_mesh.edges, vertex_count):
+            members = np.sort(members)
+            selected = np.flatnonzero(np.isin(incidence_vertex, members))
+            element = incidence_element[selected]
+            gradient = corner_gradient[element, incidence_corner[selected]]
+            local_vertex = np.searchsorted(members, incidence_vertex[selected])
+            segment_starts = np.flatnonzero(np.r_[True, local_vertex[1:] != local_vertex[:-1]])
+            shear = self.config.shear_modulus * volumes[element] * np.einsum("pi,pi->p", gradient, gradient)
+            colours.append(
+                _VertexColour(
+                    vertices=members,
+                    segment_starts=segment_starts,
+                    incidence_vertex=local_vertex,
+                    corners=np.ascontiguousarray(tets[element].T),
+                    rest_inverse=np.ascontiguousarray(rest_inverse[element].transpose(1, 2, 0)),
+                    shape_gradient=np.ascontiguousarray(gradient.T),
+                    volume_gradient=np.ascontiguousarray((volumes[element][:, None] * gradient).T),
+                    volumetric_stiffness=self._volumetric_modulus * volumes[element],
+                    shear_diagonal=np.add.reduceat(shear, segment_starts),
+                    gravity_force=np.ascontiguousarray(self._gravity_force[members].T),
+                )
+            )
+        return colours
+
+    def _factorised_rest_stiffness(self) -> cholespy.CholeskySolverD:
+        """Sparse Cholesky factor of K0 (small-strain stiffness: the Hessian at rest) on the movable dofs."""
+        mesh, config = self.rest_mesh, self.config
+        model = ElasticModel(mesh.vertices, mesh.tetrahedra, config.youngs_modulus, config.poisson_ratio)
+        dofs = (3 * self.movable_vertices[:, None] + np.arange(3)).reshape(-1)
+        block = model.stiffness(kind="linear")[dofs][:, dofs].tocoo()
+        rows, columns = block.row.astype(np.int32), block.col.astype(np.int32)
+        return cholespy.CholeskySolverD(block.shape[0], rows, columns, block.data, cholespy.MatrixType.COO)
+
+    def _rest_solve(self, right_hand_side: np.ndarray) -> np.ndarray:
+        """K0^-1 applied to a vector (3 n,) or to the columns (3 n, k) of a matrix on the movable dofs."""
+        right_hand_side = np.ascontiguousarray(right_hand_side)
+        solution = np.empty_like(right_hand_side)
+        if right_hand_side.size:
+            self._rest_stiffness.solve(right_hand_side, solution)
+        return solution
+
+    def _element_colours(self, tets, volumes, rest_inverse, corner_gradient, inverse_mass):
+        """xpbd set-up: tetrahedron colours with their constant metric and compliance data."""
+        corner_step = inverse_mass[tets][:, :, None] * corner_gradient  # (M, 4, 3)
+        weighted_metric = np.transpose(corner_gradient, (0, 2, 1)) @ corner_step
+        mu = self.config.shear_modulus
+        bulk_modulus = self.config.lame_lambda + 2.0 * mu / 3.0
+        compliance = np.stack([1.0 / (mu * volumes), 1.0 / (bulk_modulus * volumes)])
+        return [
+            _ElementColour(
+                corners=np.ascontiguousarray(tets[members].T),
+                rest_inverse=np.ascontiguousarray(rest_inverse[members].transpose(1, 2, 0)),
+                weighted_metric=np.ascontiguousarray(weighted_metric[members].transpose(1, 2, 0)),
+                corner_step=np.ascontiguousarray(corner_step[members].transpose(1, 2, 0)),
+                compliance=np.ascontiguousarray(compliance[:, members]),
+                multipliers=np.zeros((2, members.size)),
+            )
+            for members in colour_tetrahedra(tets, self.rest_mesh.vertex_count)
+        ]
+
+    @property
+    def colour_count(self) -> int:
+        """Number of colours: vectorised Gauss-Seidel batches per sweep."""
+        return len(self._colours)
+
+    @property
+    def previous_tool_pose(self) -> np.ndarray | None:
+        """Tool pose the next `predict` starts from (None before the first call)."""
+        return None if self._previous_pose is None else self._previous_pose.copy()
+
+    def reset(self, tool_pose=None) -> None:
+        """Set the tool's previous and first (grasp reference) pose; None forgets both."""
+        if tool_pose is None:
+            self._first_pose = self._previous_pose = None
+            return
+        pose = _as_pose(tool_pose)
+        self._first_pose = pose
+        self._previous_pose = pose.copy()
+
+    def predict(self, previous_state, tool_pose, dt: float) -> np.ndarray:
+        """State (N, 3) after the tool moves from its previous pose to `tool_pose` over dt seconds.
+
+        vbd is quasi-static (dt only validated); xpbd integrates damped dynamics over dt.
+        Raises ElementInversionError if the result has a non-positive element volume.
+        """
+        state = np.array(previous_state, dtype=np.float64, copy=True)
+        if state.shape != (self.rest_mesh.vertex_count, 3) or not np.all(np.isfinite(state)):
+            raise SimulatorInputError(
+                f"previous_state must be finite with shape ({self.rest_mesh.vertex_count}, 3), "
+                f"got {state.shape}"
+            )
+        if not (np.isfinite(dt) and dt > 0.0):
+            raise SimulatorInputError(f"dt must be > 0, got {dt}")
+        pose = _as_pose(tool_pose)
+        if self._previous_pose is None:
+            self.reset(pose)
+        substeps = int(self.config.substeps)
+        fractions = np.arange(1, substeps + 1) / substeps
+        centres, rotations = self._interpolated_poses(self._previous_pose, pose, fractions)
+        velocity = np.zeros_like(state)
+        previous_centre = self._previous_pose[:3]
+        for substep in range(substeps):
+            if self.config.tool_mode == "grasp":
+                state[self.grasped_vertices] = self._grasp_targets(centres[substep], rotations[substep])
+            held = self._carry_stuck_vertices(state, previous_centre, centres[substep])
+            previous_centre = centres[substep]
+            if self.movable_vertices.size == 0:
+                continue
+            if self.config.solver == "vbd":
+                self._vbd_substep(state, centres[substep], held)
+            else:
+                velocity = self._xpbd_substep(state, velocity, dt / substeps, centres[substep], held)
+        self._previous_pose = pose
+        inverted = np.flatnonzero(~(signed_volumes(state, self.rest_mesh.tetrahedra) > 0.0))  # NaN too
+        if inverted.size:
+            raise ElementInversionError(inverted)
+        return state
+
+    # ------------------------------------------------------------------------------ tool
+
+    @staticmethod
+    def _interpolated_poses(start_pose, end_pose, fractions):
+        """Tool centres (S, 3) (linear) and rotation matrices (S, 3, 3) (slerp) at the sub-steps."""
+        centres = start_pose[:3] + fractions[:, None] * (end_pose[:3] - start_pose[:3])
+        key_rotations = Rotation.from_quat(np.stack([start_pose[3:], end_pose[3:]]))
+        return centres, Slerp([0.0, 1.0], key_rotations)(fractions).as_matrix()
+
+    def _grasp_targets(self, centre: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+        """Grasped vertex positions for a tool at (centre, rotation), rigid w.r.t. the first pose."""
+        first_rotation = Rotation.from_quat(self._first_pose[3:]).as_matrix()
+        anchors = self.rest_mesh.vertices[self.grasped_vertices] - self._first_pose[:3]
+        return anchors @ (rotation @ first_rotation.T).T + centre
+
+    def _carry_stuck_vertices(self, state: np.ndarray, previous_centre, centre) -> np.ndarray:
+        """Stick contact: move the vertices touching the tool with it, in place; returns them (sorted).
+
+        A vertex is released when the tool moves away from it (negative normal motion).
+        """
+        if self.config.tool_mode != "sphere" or self.config.tool_contact != "stick":
+            return np.zeros(0, dtype=np.int64)
+        movable = self.movable_vertices
+        offsets = state[movable] - previous_centre
+        touching = np.einsum("ij,ij->i", offsets, offsets) <= (self.config.tool_radius * _CONTACT_BAND) ** 2
+        stuck = movable[touching & (offsets @ (centre - previous_centre) >= 0.0)]
+        state[stuck] += centre - previous_centre
+        return stuck
+
+    def _outside_tool(self, points: np.ndarray, centre: np.ndarray) -> np.ndarray:
+        """`points` (k, 3) with those inside the tool sphere moved radially onto its surface."""
+        offsets = points - centre
+        distances = np.sqrt(np.einsum("ij,ij->i", offsets, offsets))
+        inside = np.flatnonzero(distances < self.config.tool_radius)
+        if inside.size == 0:
+            return points
+        pushed = points.copy()
+        directions = offsets[inside] / np.maximum(distances[inside], np.finfo(float).tiny)[:, None]
+        pushed[inside] = centre + self.config.tool_radius * directions
+        return pushed
+
+    # ------------------------------------------------------------------------------- vbd
+
+    def _vbd_substep(self, state: np.ndarray, tool_centre: np.ndarray, held: np.ndarray) -> None:
+        """Quasi-static iterations of one sub-step in place: a vertex sweep, then a global K0 step.
+
+        `held` vertices (stuck to the tool) keep their positions during the sub-step.
+        """
+        held_mask = np.zeros(self.rest_mesh.vertex_count, dtype=bool)
+        held_mask[held] = True
+        held_rows = np.flatnonzero(held_mask[self.movable_vertices])
+        held_constraints = np.zeros((3 * self.movable_vertices.size, 3 * held_rows.size))
+        held_dofs = (3 * held_rows[:, None] + _DIAGONAL).reshape(-1)
+        held_constraints[held_dofs, np.arange(held_dofs.size)] = 1.0
+        held_responses = self._rest_solve(held_constraints)  # K0^-1 E for the sub-step's held dofs
+        for _ in range(int(self.config.solver_iterations)):
+            for colour in self._colours:
+                self._vertex_sweep(state, colour, tool_centre, held_mask[colour.vertices])
+            self._global_step(state, tool_centre, held_mask, held_constraints, held_responses)
+
+    def _energy_and_volume_ratios(self, state: np.ndarray):
+        """Total energy (elastic + gravity) and volume ratios J (M,) at `state`, with F and cof F."""
+        deformation = _deformation_em(state, self._corners_em, self._rest_inverse_em)
+        cofactor = _cofactor_em(deformation)
+        volume_ratio = np.einsum("am,am->m", deformation[:, 0], cofactor[:, 0])
+        frobenius_squared = np.einsum("ajm,ajm->m", deformation, deformation)
+        volume_change = volume_ratio - self._rest_volume_ratio
+        density = 0.5 * self.config.shear_modulus * (frobenius_squared - 3.0) + (
+            0.5 * self._volumetric_modulus * volume_change**2
+        )
+        energy = float(self._volumes @ density) - float(np.einsum("ij,ij->", self._gravity_force, state))
+        return energy, volume_ratio, deformation, cofactor
+
+    def _forces(self, state: np.ndarray, deformation, cofactor, volume_ratio) -> np.ndarray:
+        """Forces -dE/dx (N, 3), elastic + gravity, from the element F, cof F and J at `state`."""
+        pressure = self._volumetric_modulus * (volume_ratio - self._rest_volume_ratio)
+        stress = self.config.shear_modulus * deformation + pressure * cofactor  # P, (3, 3, M)
+        corner_forces = -np.einsum("ajm,kjm->kam", stress, self._corner_volume_gradient_em)  # -V P g
+        flat_corners = self._corners_em.reshape(-1)
+        elastic = [
+            np.bincount(flat_corners, corner_forces[:, axis].reshape(-1), state.shape[0]) for axis in range(3)
+        ]
+        return np.stack(elastic, axis=1) + self._gravity_force
+
+    def _global_step(self, state, tool_centre, held_mask, held_constraints, held_responses) -> None:
+        """Quasi-Newton step with the rest Hessian K0, in place: the smooth, global part of the error.
+
+        Held vertices (constraint columns `held_constraints`, K0^-1 of them `held_responses`) do
+        not move and other vertices touching the tool may only slide along it: the step is
+        constrained through a Schur complement on the K0 factor. It is halved until the energy
+        does not rise and no volume drops below a fraction of its value, and skipped if that fails.
+        """
+        energy, volume_ratio, deformation, cofactor = self._energy_and_volume_ratios(state)
+        forces = self._forces(state, deformation, cofactor, volume_ratio)
+        movable = self.movable_vertices
+        step = self._rest_solve(forces[movable].reshape(-1))
+        sliding = self._sliding_constraints(state[movable], tool_centre, held_mask[movable])
+        constraints = np.concatenate([held_constraints, sliding], axis=1)
+        if constraints.shape[1]:
+            responses = np.concatenate([held_responses, self._rest_solve(sliding)], axis=1)  # K0^-1 E
+            reactions = np.linalg.solve(constraints.T @ responses, constraints.T @ step)
+            step = step - responses @ reactions
+        step = step.reshape(-1, 3)
+        trial = state.copy()
+        for _ in range(_MAX_STEP_HALVINGS):
+            trial[movable] = state[movable] + step
+            trial_energy, trial_ratio, _, _ = self._energy_and_volume_ratios(trial)
+            if trial_energy <= energy + _ENERGY_ROUNDING * abs(energy) and np.all(
+                trial_ratio > _MIN_VOLUME_FRACTION_PER_MOVE * volume_ratio
+            ):
+                state[movable] = trial[movable]
+                return
+            step *= 0.5
+
+    def _sliding_constraints(self, positions: np.ndarray, tool_centre, held: np.ndarray) -> np.ndarray:
+        """Columns E (3 n, c) of zero normal motion for movable vertices touching the tool, not held."""
+        if self.config.tool_mode != "sphere":
+            return np.zeros((positions.size, 0))
+        offsets = positions - tool_centre
+        distances = np.sqrt(np.einsum("ij,ij->i", offsets, offsets))
+        touching = np.flatnonzero((distances <= self.config.tool_radius * _CONTACT_BAND) & ~held)
+        constraints = np.zeros((positions.size, touching.size))
+        normals = offsets[touching] / distances[touching, None]
+        constraints[3 * touching[:, None] + _DIAGONAL, np.arange(touching.size)[:, None]] = normals
+        return constraints
+
+    def _vertex_sweep(self, state: np.ndarray, colour: _VertexColour, tool_centre: np.ndarray, held) -> None:
+        """Exact energy minimisation over each vertex of a colour, tool contact, volume-safe move.
+
+        `held` (n,) marks the colour's vertices stuck to the tool, which stay where they are.
+        """
+        deformation = _deformation_em(state, colour.corners, colour.rest_inverse)
+        cofactor = _cofactor_em(deformation)
+        volume_ratio = np.einsum("ap,ap->p", deformation[:, 0], cofactor[:, 0])
+        pressure = self._volumetric_modulus * (volume_ratio - self._rest_volume_ratio)
+        stress = self.config.shear_modulus * deformation + pressure * cofactor  # P = mu F + p cof F
+        energy_gradient = np.einsum("ajp,jp->ap", stress, colour.volume_gradient)  # V P g, (3, P)
+        volume_slope = np.einsum("ajp,jp->ap", cofactor, colour.shape_gradient)  # dJ/dx = cof(F) g
+        weighted_slope = colour.volumetric_stiffness * volume_slope
+        hessian = np.add.reduceat(weighted_slope[:, None] * volume_slope[None], colour.segment_starts, axis=2)
+        hessian[_DIAGONAL, _DIAGONAL] += colour.shear_diagonal
+        force = colour.gravity_force - np.add.reduceat(energy_gradient, colour.segment_starts, axis=1)
+        adjugate = _cofactor_em(hessian)  # the Hessian is symmetric: its inverse is adjugate / det
+        determinant = np.einsum("an,an->n", hessian[:, 0], adjugate[:, 0])
+        positions = state[colour.vertices]
+        targets = positions + (np.einsum("abn,bn->an", adjugate, force) / determinant).T
+        if self.config.tool_mode == "sphere":
+            targets = self._outside_tool(targets, tool_centre)
+        targets[held] = positions[held]
+        moves = targets - positions
+        # J is affine along a vertex move: keep every incident J above a fraction of its value.
+        slope = np.einsum("ap,pa->p", volume_slope, moves[colour.incidence_vertex])
+        shrinking = (slope < 0.0) & (volume_ratio > 0.0)
+        allowed_drop = (1.0 - _MIN_VOLUME_FRACTION_PER_MOVE) * volume_ratio
+        limits = np.where(shrinking, allowed_drop / np.where(shrinking, -slope, 1.0), 1.0)
+        scale = np.minimum(np.minimum.reduceat(limits, colour.segment_starts), 1.0)
+        state[colour.vertices] = positions + scale[:, None] * moves
+
+    # ------------------------------------------------------------------------------ xpbd
+
+    def _xpbd_substep(self, state: np.ndarray, velocity, step: float, tool_centre, held) -> np.ndarray:
+        """One damped XPBD sub-step in place, `held` vertices kept in place; returns the new velocity."""
+        start = state.copy()
+        held_positions = state[held]
+        movable = self.movable_vertices
+        velocity = velocity * (1.0 - self.config.damping)
+        state[movable] += step * velocity[movable] + step * step * self._gravity
+        state[held] = held_positions
+        inverse_step_squared = 1.0 / (step * step)
+        for colour in self._colours:
+            colour.multipliers[:] = 0.0
+        for _ in range(int(self.config.solver_iterations)):
+            for colour in self._colours:
+                self._project_constraints(state, colour, inverse_step_squared)
+            if self.config.tool_mode == "sphere":
+                state[movable] = self._outside_tool(state[movable], tool_centre)
+            state[held] = held_positions
+        return (state - start) / step
+
+    @staticmethod
+    def _project_constraints(state: np.ndarray, colour: _ElementColour, inverse_step_squared: float) -> None:
+        """One coupled XPBD update (2x2 solve) of the isochoric + volume constraints of a colour."""
+        positions = state.T[:, colour.corners]  # (3, 4, B)
+        deformation = np.einsum("akb,kjb->ajb", positions[:, 1:] - positions[:, :1], colour.rest_inverse)
+        cofactor = _cofactor_em(deformation)  # dJ/dF
+        volume_ratio = np.einsum("ab,ab->b", deformation[:, 0], cofactor[:, 0])
+        frobenius_squared = np.einsum("ajb,ajb->b", deformation, deformation)
+        clamped_ratio = np.maximum(volume_ratio, _MIN_VOLUME_RATIO)
+        isochoric_scale = np.cbrt(clamped_ratio) ** -2
+        deviatoric = np.sqrt(np.maximum(frobenius_squared * isochoric_scale - 3.0, 0.0))
+        # dC_D/dF = J^(-2/3) (F - I_C / (3 J) cof F) / C_D; zero at the tip of the rest cone.
+        gradient_scale = np.where(
+            deviatoric > _MIN_DEVIATORIC, isochoric_scale / np.maximum(deviatoric, _MIN_DEVIATORIC), 0.0
+        )
+        cofactor_scale = gradient_scale * frobenius_squared / (3.0 * clamped_ratio)
+        deviatoric_gradient = gradient_scale * deformation - cofactor_scale * cofactor
+        metric_deviatoric = np.einsum("alb,jlb->ajb", deviatoric_gradient, colour.weighted_metric)
+        metric_cofactor = np.einsum("alb,jlb->ajb", cofactor, colour.weighted_metric)
+        compliance = colour.compliance * inverse_step_squared  # alpha tilde
+        a = np.einsum("ajb,ajb->b", deviatoric_gradient, metric_deviatoric) + compliance[0]
+        b = np.einsum("ajb,ajb->b", deviatoric_gradient, metric_cofactor)
+        d = np.einsum("ajb,ajb->b", cofactor, metric_cofactor) + compliance[1]
+        residual = -compliance * colour.multipliers
+        residual[0] -= deviatoric
+        residual[1] -= volume_ratio - 1.0
+        inverse_determinant = 1.0 / (a * d - b * b)
+        delta_deviatoric = (d * residual[0] - b * residual[1]) * inverse_determinant
+        delta_volume = (a * residual[1] - b * residual[0]) * inverse_determinant
+        colour.multipliers[0] += delta_deviatoric
+        colour.multipliers[1] += delta_volume
+        gradient = delta_deviatoric * deviatoric_gradient + delta_volume * cofactor
+        state.T[:, colour.corners] = positions + np.einsum("ajb,kjb->akb", gradient, colour.corner_step)
