@@ -159,6 +159,7 @@ def _ground_truth_solver(config: SimulatorConfig) -> SimulatorConfig:
 
 # --------------------------------------------------------------------------- airway (CAO)
 AIRWAY_TOOL_RADIUS = 2.0e-3
+AIRWAY_TOOL_CALIBRATION_ERROR = np.array([0.6e-3, 0.5e-3, -0.5e-3])  # reported minus true tool position (m)
 # Monocular depth: sigma = 0.3 mm + 0.4 mm at 0.1 m depth^2 scale (~0.33 mm at 25 mm), thinned at
 # grazing angles, 2% of the occluder hits leak through segmentation.
 AIRWAY_CAPTURE = CaptureOptions(stride=2, noise_constant=0.3e-3, noise_quadratic=0.04, grazing_exponent=1.0,
@@ -173,8 +174,10 @@ def _airway_geometry():
 def _airway_push(seed: int, steps: int) -> Scenario:
     """Central-airway-obstruction phantom: a tool pushes the tumour towards the wall at 1 Hz.
 
-    The truth differs from the estimator's model: stiffer, less compressible tissue, a sag
-    under gravity the model ignores, and a slightly larger effective tool tip.
+    The truth differs from the estimator's model as a real procedure would: less compressible
+    tissue, a sag under gravity the model ignores, a larger effective tool tip, and a robot
+    whose reported tool pose is off by a constant calibration error (continuum robots are
+    millimetre-accurate at best). Only the reported poses are recorded.
     """
     rng = np.random.default_rng(seed)
     phantom = _airway_geometry()
@@ -187,19 +190,20 @@ def _airway_push(seed: int, steps: int) -> Scenario:
     free_surface = np.setdiff1d(mesh.surface_vertices, mesh.fixed_vertices)
     reach = (mesh.vertices[free_surface] - np.array([0.0, 0.0, centre[2]])) @ radial
     contact = np.array([0.0, 0.0, centre[2]]) + radial * (reach.min() - AIRWAY_TOOL_RADIUS)
-    push_per_step = 0.4e-3
-    tool_poses = [pose(contact + radial * push_per_step * k) for k in range(steps + 1)]
+    push_per_step = 0.5e-3
+    true_tool_poses = [pose(contact + radial * push_per_step * k) for k in range(steps + 1)]
+    tool_poses = [p + np.concatenate([AIRWAY_TOOL_CALIBRATION_ERROR, np.zeros(4)]) for p in true_tool_poses]
 
     nominal = SimulatorConfig(youngs_modulus=3e3, poisson_ratio=0.45, tool_radius=AIRWAY_TOOL_RADIUS,
                               tool_mode="sphere")
     truth_config = replace(nominal, youngs_modulus=6e3, poisson_ratio=0.49,
-                           tool_radius=AIRWAY_TOOL_RADIUS * 1.15, gravity=(0.0, -9.81, 0.0))
-    truths = _simulate_truth(mesh, _ground_truth_solver(truth_config), tool_poses)
+                           tool_radius=AIRWAY_TOOL_RADIUS * 1.25, gravity=(0.0, -9.81, 0.0))
+    truths = _simulate_truth(mesh, _ground_truth_solver(truth_config), true_tool_poses)
 
     camera = _airway_camera(phantom)
     scenario_steps = []
     for k, truth in enumerate(truths, start=1):
-        tool_sphere = _sphere_surface(tool_poses[k][:3], truth_config.tool_radius)
+        tool_sphere = _sphere_surface(true_tool_poses[k][:3], truth_config.tool_radius)
         result = capture(camera, truth, mesh.surface_triangles,
                          occluders=[(phantom.wall_vertices, phantom.wall_triangles, 1), (*tool_sphere, 2)],
                          rng=rng, options=AIRWAY_CAPTURE)

@@ -1,0 +1,258 @@
+"""The `meshfg` console script: offline tools of meshfg_ros, one subcommand each.
+
+A subcommand is a pair of small functions, `add_arguments(parser)` and `run(args) -> exit code`,
+registered in the COMMANDS table at the end of this file. Run functions import what they need
+when called, so `meshfg --help` starts fast (the estimator pulls in torch).
+Bad input (a missing or wrong recording, topic, mesh, parameter, an existing output) ends with
+one line `meshfg <command>: error: <message>` on stderr and exit code 1, never a traceback;
+nothing existing is overwritten.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+REPOSITORY_ROOT = Path(__file__).resolve().parents[1]
+BUNDLED_RECORDING_DIRS = (REPOSITORY_ROOT / "bags", Path(sys.prefix) / "share" / "meshfg_ros" / "bags")
+DEMO_SCENARIO = "cao-push"
+DEMO_SEED = 0
+
+
+@dataclass(frozen=True)
+class Command:
+    """One subcommand: its name, one-line help, argument set-up and run function."""
+
+    name: str
+    help: str
+    add_arguments: Callable[[argparse.ArgumentParser], None]
+    run: Callable[[argparse.Namespace], int]
+
+
+# Exception classes that mean bad input, by module: reported in one line, without a traceback.
+# Looked up in sys.modules only: an exception's class is defined in a module already imported,
+# so the error path never imports anything (the estimator's modules pull in torch).
+_USER_ERRORS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("meshfg_ros.io.recording", ("RecordingError",)),
+    ("meshfg_ros.core.mesh", ("MeshFileError", "InvalidMeshError", "DegenerateMeshError")),
+    ("meshfg_ros.core.parameters", ("ParameterError", "FrameError")),
+    ("meshfg_ros.core.scenarios", ("ScenarioError",)),
+    ("meshfg_ros.core.simulator", ("SimulatorConfigError", "SimulatorInputError")),
+    ("meshfg_ros.core.estimator", ("EstimatorConfigError",)),
+    ("meshfg_ros.replay", ("ReplayError",)),
+    ("meshfg_ros.evaluation", ("EvaluationError",)),
+    ("meshfg_ros.render", ("OutputDirectoryError",)),
+)
+
+
+def is_user_error(error: BaseException) -> bool:
+    """Whether `error` reports bad input (a file, topic, mesh, parameter, existing output)."""
+    if isinstance(error, OSError):
+        return True
+    for module_name, class_names in _USER_ERRORS:
+        module = sys.modules.get(module_name)
+        if module is not None and isinstance(error, tuple(getattr(module, name) for name in class_names)):
+            return True
+    return False
+
+
+def _error_text(error: BaseException) -> str:
+    if isinstance(error, OSError) and error.strerror:
+        text = f"{error.strerror}: {error.filename}" if error.filename else error.strerror
+    else:
+        text = str(error) or type(error).__name__
+    return " ".join(text.split())
+
+
+def _progress(description: str):
+    """A progress(iterable, total) wrapper drawing a tqdm bar on stderr."""
+    from tqdm import tqdm
+
+    def wrap(iterable, total):
+        return tqdm(iterable, total=total, desc=description, unit="step", file=sys.stderr, dynamic_ncols=True)
+
+    return wrap
+
+
+def _positive_integer(text: str) -> int:
+    """argparse type: an integer >= 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{value} is not a positive integer")
+    return value
+
+
+def bundled_recording(name: str) -> Path | None:
+    """Path of the bundled recording `name` (repository bags/ or the installed share), if any."""
+    for directory in BUNDLED_RECORDING_DIRS:
+        if (directory / name / "metadata.yaml").is_file():
+            return directory / name
+    return None
+
+
+# --------------------------------------------------------------------------- synth
+def _synth_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("scenario", help="cube-translate, cube-shear-spd, cube-shear-nonspd, cao-push or liver-push")
+    parser.add_argument("--out", required=True, type=Path, help="new recording directory to write")
+    parser.add_argument("--seed", type=int, default=0, help="random seed of the scenario (default 0)")
+    parser.add_argument("--max-points", type=_positive_integer, default=None,
+                        help="cap on points per cloud (seeded subsample)")
+
+
+def run_synth(args: argparse.Namespace) -> int:
+    from meshfg_ros.synth import synthesize
+
+    counts = synthesize(args.scenario, args.out, seed=args.seed, max_points=args.max_points)
+    print(f"wrote {args.out}: " + ", ".join(f"{topic} x{count}" for topic, count in sorted(counts.items())))
+    return 0
+
+
+# --------------------------------------------------------------------------- replay
+def _replay_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("bag", type=Path, help="input recording (rosbag2 directory)")
+    parser.add_argument("--out", required=True, type=Path, help="new recording directory for the outputs")
+    parser.add_argument("--config", type=Path, help="YAML of parameters over the recording's scenario defaults "
+                                                    "(a flat mapping, or the /** section of a ROS 2 params file)")
+    parser.add_argument("--factors", help="factor configuration (overrides the config's 'factors')")
+    parser.add_argument("--mesh", type=Path, help="initial mesh file (.msh, .vtu, .vtk) instead of the recording's")
+
+
+def _replay_overrides(args: argparse.Namespace) -> dict:
+    from meshfg_ros.replay import config_overrides
+
+    overrides = config_overrides(args.config) if args.config is not None else {}
+    if args.factors is not None:
+        overrides["factors"] = args.factors
+    return overrides
+
+
+def run_replay(args: argparse.Namespace) -> int:
+    from meshfg_ros.replay import write_replay
+
+    counts = write_replay(args.bag, args.out, _replay_overrides(args), args.mesh, _progress("replay"))
+    print(f"wrote {args.out}: " + ", ".join(f"{topic} x{count}" for topic, count in sorted(counts.items())))
+    return 0
+
+
+# --------------------------------------------------------------------------- eval
+def _eval_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("outbag", type=Path, help="output recording of `meshfg replay`")
+    parser.add_argument("--truth", required=True, type=Path, help="recording with /meshfg/ground_truth")
+    parser.add_argument("--json", type=Path, help="new JSON file for the metrics (metres)")
+    parser.add_argument("--samples", type=_positive_integer, default=None,
+                        help="surface samples per mesh (default 10000)")
+
+
+def run_eval(args: argparse.Namespace) -> int:
+    from meshfg_ros.evaluation import DEFAULT_SAMPLES, evaluate_recordings, format_tables, write_json
+
+    if args.json is not None and (args.json.exists() or args.json.is_symlink()):
+        raise FileExistsError(17, "File exists (never overwritten)", str(args.json))
+    samples = DEFAULT_SAMPLES if args.samples is None else args.samples
+    evaluation = evaluate_recordings(args.outbag, args.truth, samples)
+    print(format_tables(evaluation))
+    if args.json is not None:
+        write_json(evaluation, args.json)
+        print(f"\nwrote {args.json}")
+    return 0
+
+
+# --------------------------------------------------------------------------- render
+def _render_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("outbag", type=Path, help="output recording of `meshfg replay`")
+    parser.add_argument("--out", required=True, type=Path, help="new (or empty) directory for the PNGs")
+    parser.add_argument("--truth", type=Path, help="recording with /meshfg/ground_truth (error colours and plots)")
+
+
+def run_render(args: argparse.Namespace) -> int:
+    from meshfg_ros.render import render
+
+    for path in render(args.outbag, args.out, args.truth):
+        print(f"wrote {path}")
+    return 0
+
+
+# --------------------------------------------------------------------------- demo
+def _demo_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--out", type=Path, help="new (or empty) output directory (default: the first free "
+                                                 "out/demo, out/demo-2, ... in the current directory)")
+
+
+def _free_directory(base: Path) -> Path:
+    candidate, index = base, 1
+    while candidate.exists() and (not candidate.is_dir() or any(candidate.iterdir())):
+        index += 1
+        candidate = base.with_name(f"{base.name}-{index}")
+    return candidate
+
+
+def run_demo(args: argparse.Namespace) -> int:
+    """The main job on bundled data: replay the airway push, evaluate, render, print the tables."""
+    from meshfg_ros.evaluation import evaluate_recordings, format_tables, write_json
+    from meshfg_ros.render import prepare_output_directory, render
+    from meshfg_ros.replay import write_replay
+    from meshfg_ros.synth import synthesize
+
+    started = time.perf_counter()
+    out = prepare_output_directory(args.out if args.out is not None else _free_directory(Path("out") / "demo"))
+    bag = bundled_recording(DEMO_SCENARIO)
+    if bag is None:
+        bag = out / DEMO_SCENARIO
+        print(f"no bundled {DEMO_SCENARIO} recording: synthesising {bag} (seed {DEMO_SEED})", file=sys.stderr)
+        synthesize(DEMO_SCENARIO, bag, seed=DEMO_SEED)
+    replay_bag = out / "replay"
+    write_replay(bag, replay_bag, progress=_progress("replay"))
+    evaluation = evaluate_recordings(replay_bag, bag)
+    write_json(evaluation, out / "evaluation.json")
+    pictures = render(replay_bag, out / "pictures", bag, evaluation)
+    print(format_tables(evaluation))
+    print(f"\ninput recording: {bag}\nreplay output:   {replay_bag}\nmetrics (JSON):  {out / 'evaluation.json'}")
+    print("pictures:        " + "\n                 ".join(str(p) for p in pictures))
+    print(f"demo finished in {time.perf_counter() - started:.1f} s")
+    return 0
+
+
+COMMANDS: tuple[Command, ...] = (
+    Command("synth", "write a synthetic scenario as a rosbag2 recording", _synth_arguments, run_synth),
+    Command("replay", "run simulator + estimator over a recording as the nodes would", _replay_arguments,
+            run_replay),
+    Command("eval", "the paper's metrics of a replay against the ground truth", _eval_arguments, run_eval),
+    Command("render", "PNG pictures of a replay", _render_arguments, run_render),
+    Command("demo", "replay, evaluate and render the bundled airway-push recording", _demo_arguments, run_demo),
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="meshfg", description="Offline tools of meshfg_ros.")
+    subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for command in COMMANDS:
+        subparser = subparsers.add_parser(command.name, help=command.help, description=command.help)
+        command.add_arguments(subparser)
+        subparser.set_defaults(run=command.run)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the `meshfg` console script; returns the exit code."""
+    args = build_parser().parse_args(argv)
+    try:
+        return args.run(args)
+    except KeyboardInterrupt:
+        print(f"meshfg {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except Exception as error:
+        if not is_user_error(error):
+            raise
+        print(f"meshfg {args.command}: error: {_error_text(error)}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,153 @@
+"""Evaluation (the paper's metrics, observable split, tables, JSON) and pictures of a replay."""
+import json
+
+import numpy as np
+import pytest
+from matplotlib.image import imread
+from offline_helpers import tiny_scenario, write_fake_replay
+
+from meshfg_ros.core.metrics import vertex_rmse
+from meshfg_ros.evaluation import (
+    EvaluationError,
+    evaluate,
+    evaluate_recordings,
+    evaluated_faces,
+    format_tables,
+    load_inputs,
+    write_json,
+)
+from meshfg_ros.io.messages import MeshState
+from meshfg_ros.render import OutputDirectoryError, render
+from meshfg_ros.synth import write_scenario
+
+SAMPLES = 4000
+OFFSET = 1e-3  # the fake estimate is the truth shifted 1 mm up
+
+
+@pytest.fixture(scope="module")
+def camera_scene(tmp_path_factory):
+    """(scenario, truth recording, fake replay) of the small cube seen by a camera from above."""
+    scenario = tiny_scenario(steps=3, camera=True)
+    root = tmp_path_factory.mktemp("camera")
+    write_scenario(scenario, root / "truth")
+    write_fake_replay(scenario, root / "replay", estimate_offset=OFFSET)
+    return scenario, root / "truth", root / "replay"
+
+
+@pytest.fixture(scope="module")
+def evaluation(camera_scene):
+    _, truth, replay = camera_scene
+    return evaluate_recordings(replay, truth, samples=SAMPLES)
+
+
+def test_fixed_faces_are_left_out(camera_scene):
+    scenario = camera_scene[0]
+    mesh = scenario.initial_mesh
+    state = MeshState(0, "world", 0, mesh.vertices, mesh.tetrahedra, mesh.surface_triangles, mesh.fixed_vertices)
+    faces = evaluated_faces(state)
+    bottom = np.isclose(mesh.vertices[mesh.surface_triangles][:, :, 2], 0.0).all(axis=1)
+    assert bottom.sum() == 8
+    np.testing.assert_array_equal(faces, ~bottom)
+
+
+def test_vertex_rmse_of_both_methods(camera_scene, evaluation):
+    scenario = camera_scene[0]
+    mesh = scenario.initial_mesh
+    free = mesh.free_vertices
+    vertex = evaluation["vertex_rmse"]
+    assert vertex["factor_graph"]["all"]["per_step"] == pytest.approx([OFFSET] * 3, rel=1e-9)
+    expected = [vertex_rmse(mesh.vertices, step.truth, free) for step in scenario.steps]
+    assert vertex["simulation"]["all"]["per_step"] == pytest.approx(expected, rel=1e-9)
+    assert vertex["simulation"]["all"]["final"] == pytest.approx(expected[-1], rel=1e-9)
+    assert vertex["simulation"]["all"]["mean"] == pytest.approx(np.mean(expected), rel=1e-9)
+    assert vertex["simulation"]["all"]["std"] == pytest.approx(np.std(expected), rel=1e-9)
+
+
+def test_unobserved_external_vertices_are_below_the_top(camera_scene, evaluation):
+    """The camera above sees only the top face: unobserved external = free surface vertices below it."""
+    scenario = camera_scene[0]
+    mesh, truth = scenario.initial_mesh, scenario.steps[-1].truth
+    external = np.intersect1d(mesh.surface_vertices, mesh.free_vertices)
+    hidden = external[mesh.vertices[external, 2] < 0.02 - 1e-9]
+    expected = vertex_rmse(mesh.vertices, truth, hidden)
+    assert evaluation["vertex_rmse"]["simulation"]["unobserved_external"]["final"] == pytest.approx(expected, rel=1e-9)
+
+
+def test_surface_metrics_see_the_shift(evaluation):
+    surface = evaluation["surface"]["factor_graph"]
+    # Shifted 1 mm along z: the top moves 1 mm off; vertical sides slide onto themselves.
+    assert 0.9e-3 < surface["observable"]["rmse"]["final"] < 1.1e-3
+    assert surface["full"]["chamfer"]["final"] < surface["observable"]["chamfer"]["final"]
+    assert evaluation["units"] == "m" and len(evaluation["stamps_ns"]) == 3
+
+
+def test_measurement_row_is_the_cloud_against_the_observable_truth(camera_scene, evaluation):
+    measured = evaluation["surface"]["measurements"]
+    assert set(measured) == {"observable"}
+    # The cloud holds +x/+y side points the camera cannot see: its one-sided RMSE to the
+    # observable (top) truth is of the order of the side depth, far above the 0.2 mm noise.
+    assert measured["observable"]["rmse"]["final"] > 2e-3
+    assert measured["observable"]["chamfer"]["final"] > evaluation["surface"]["factor_graph"]["observable"][
+        "chamfer"]["final"]
+
+
+def test_camera_less_scene_splits_by_observed_faces(tmp_path):
+    scenario = tiny_scenario(steps=2, camera=False)
+    write_scenario(scenario, tmp_path / "truth")
+    write_fake_replay(scenario, tmp_path / "replay")
+    result = evaluate(load_inputs(tmp_path / "replay", tmp_path / "truth"), samples=SAMPLES)
+    assert set(result["surface"]["factor_graph"]) == {"full", "unobserved", "observable"}
+    assert result["vertex_rmse"]["factor_graph"]["unobserved_external"]["final"] == 0.0
+    # unobserved external = the free vertices of the -x and -y faces only
+    mesh, truth = scenario.initial_mesh, scenario.steps[-1].truth
+    free = mesh.free_vertices
+    hidden = free[(np.isclose(mesh.vertices[free, 0], 0.0) | np.isclose(mesh.vertices[free, 1], 0.0))
+                  & (mesh.vertices[free, 2] < 0.02 - 1e-9) & (mesh.vertices[free, 0] < 0.02 - 1e-9)
+                  & (mesh.vertices[free, 1] < 0.02 - 1e-9)]
+    assert result["vertex_rmse"]["simulation"]["unobserved_external"]["final"] == pytest.approx(
+        vertex_rmse(mesh.vertices, truth, hidden), rel=1e-9)
+
+
+def test_recordings_that_do_not_match_are_rejected(camera_scene, tmp_path):
+    other = tiny_scenario(steps=2, camera=True)
+    shifted = type(other)(**{**other.__dict__, "steps": tuple(
+        type(s)(s.stamp_ns + 500_000_000, s.tool_pose, s.points, s.point_labels, s.truth) for s in other.steps)})
+    write_fake_replay(shifted, tmp_path / "replay")
+    with pytest.raises(EvaluationError, match="same stamp"):
+        load_inputs(tmp_path / "replay", camera_scene[1])
+
+
+def test_tables_and_json(evaluation, tmp_path):
+    text = format_tables(evaluation)
+    for expected in ("Table II", "Table III", "Factor Graph", "Simulation", "Measurements", "Unobserved d_CD",
+                     "Vertex RMSE"):
+        assert expected in text
+    final_mm = evaluation["surface"]["factor_graph"]["observable"]["rmse"]["final"] * 1e3
+    assert f"{final_mm:.2f} (" in text
+    write_json(evaluation, tmp_path / "metrics.json")
+    assert json.loads((tmp_path / "metrics.json").read_text()) == json.loads(json.dumps(evaluation))
+    with pytest.raises(FileExistsError):
+        write_json(evaluation, tmp_path / "metrics.json")
+
+
+def test_render_writes_pictures(camera_scene, evaluation, tmp_path):
+    _, truth, replay = camera_scene
+    written = render(replay, tmp_path / "pictures", truth, evaluation)
+    assert [p.name for p in written] == ["estimate.png", "measurements.png", "error_per_step.png", "convergence.png"]
+    for path in written:
+        image = imread(path)
+        assert image.ndim == 3 and image.shape[0] > 200 and image.shape[1] > 300
+        assert image[..., :3].std() > 0.01  # not a blank canvas
+
+
+def test_render_without_truth_colours_by_std(camera_scene, tmp_path):
+    written = render(camera_scene[2], tmp_path / "pictures")
+    assert [p.name for p in written] == ["estimate.png", "measurements.png", "convergence.png"]
+
+
+def test_render_refuses_a_non_empty_directory(camera_scene, tmp_path):
+    (tmp_path / "keep.txt").write_text("mine")
+    with pytest.raises(OutputDirectoryError, match="not empty"):
+        render(camera_scene[2], tmp_path)
+    assert [p.name for p in tmp_path.iterdir()] == ["keep.txt"]
+    assert (tmp_path / "keep.txt").read_text() == "mine"

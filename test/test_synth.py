@@ -1,0 +1,175 @@
+"""Synthetic recordings: topics, stamps, labels, metadata, determinism, independent decoding."""
+import json
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+from offline_helpers import BAGS, MESHFG, tiny_scenario
+from rosbags.highlevel import AnyReader
+
+from meshfg_ros.core.scenarios import FIRST_STAMP_NS
+from meshfg_ros.io.messages import MeshState, PointCloudRecord, PoseRecord, meshfg_typestore
+from meshfg_ros.io.pointcloud import decode_pointcloud2
+from meshfg_ros.io.recording import RecordingExistsError, RecordingReader
+from meshfg_ros.synth import ScenarioMetadata, read_metadata, scenario_metadata, write_scenario
+from meshfg_ros.topics import (
+    CAMERA_POSE_TOPIC,
+    GROUND_TRUTH_TOPIC,
+    INITIAL_MESH_TOPIC,
+    POINTS_TOPIC,
+    SCENARIO_TOPIC,
+    TOOL_POSE_TOPIC,
+)
+
+# (bundled recording, seed) as listed in bags/README.md; the fastest one is regenerated below.
+BUNDLED = {"cube-shear-spd": 0, "cao-push": 0, "liver-push": 0}
+REGENERATED = "liver-push"
+
+
+@pytest.fixture(scope="module")
+def scenario():
+    return tiny_scenario(steps=3, camera=True)
+
+
+@pytest.fixture(scope="module")
+def recording(scenario, tmp_path_factory):
+    path = tmp_path_factory.mktemp("synth") / "tiny"
+    counts = write_scenario(scenario, path)
+    return path, counts
+
+
+def test_topics_and_counts(recording):
+    path, counts = recording
+    assert counts == {SCENARIO_TOPIC: 1, INITIAL_MESH_TOPIC: 1, GROUND_TRUTH_TOPIC: 4, CAMERA_POSE_TOPIC: 1,
+                      TOOL_POSE_TOPIC: 4, POINTS_TOPIC: 3}
+    with RecordingReader(path) as reader:
+        assert {name: info.count for name, info in reader.topics.items()} == counts
+
+
+def test_initial_mesh_and_step_zero_pose(recording, scenario):
+    path, _ = recording
+    with RecordingReader(path) as reader:
+        initial = next(reader.records(INITIAL_MESH_TOPIC, MeshState))
+        poses = list(reader.records(TOOL_POSE_TOPIC, PoseRecord))
+        truths = list(reader.records(GROUND_TRUTH_TOPIC, MeshState))
+        camera = next(reader.records(CAMERA_POSE_TOPIC, PoseRecord))
+    mesh = scenario.initial_mesh
+    assert initial.stamp_ns == FIRST_STAMP_NS and initial.step == 0 and initial.frame_id == "world"
+    np.testing.assert_array_equal(initial.positions, mesh.vertices)
+    np.testing.assert_array_equal(initial.tetrahedra, mesh.tetrahedra)
+    np.testing.assert_array_equal(initial.surface_triangles, mesh.surface_triangles)
+    np.testing.assert_array_equal(initial.fixed_vertices, mesh.fixed_vertices)
+    assert [p.stamp_ns for p in poses] == [FIRST_STAMP_NS] + [s.stamp_ns for s in scenario.steps]
+    np.testing.assert_array_equal(poses[0].pose, scenario.initial_tool_pose)
+    np.testing.assert_array_equal(poses[-1].pose, scenario.steps[-1].tool_pose)
+    assert [t.step for t in truths] == [0, 1, 2, 3]
+    np.testing.assert_array_equal(truths[2].positions, scenario.steps[1].truth)
+    np.testing.assert_array_equal(camera.pose, scenario.camera_pose)
+
+
+def test_clouds_carry_points_and_labels(recording, scenario):
+    path, _ = recording
+    with AnyReader([path], default_typestore=meshfg_typestore()) as reader:
+        connection = next(c for c in reader.connections if c.topic == POINTS_TOPIC)
+        messages = [reader.deserialize(raw, connection.msgtype) for _, _, raw in reader.messages([connection])]
+    decoded = decode_pointcloud2(messages[1], extra_fields=("label",))
+    step = scenario.steps[1]
+    np.testing.assert_allclose(decoded.points, step.points, atol=1e-8)  # FLOAT32 at centimetre scale
+    np.testing.assert_array_equal(decoded.extra["label"], step.point_labels)
+    assert messages[1].header.frame_id == "world"
+
+
+def test_metadata_round_trip(recording, scenario):
+    path, _ = recording
+    with RecordingReader(path) as reader:
+        metadata = read_metadata(reader)
+    assert metadata == scenario_metadata(scenario)
+    assert metadata.scenario == "tiny-cube" and metadata.seed == 0
+    assert metadata.simulator["tool_radius"] == scenario.simulator_config.tool_radius
+    assert metadata.estimator_overrides == {"stiffness_kind": "corotational"}
+    assert metadata.observed_triangles is None  # a camera scene
+
+
+def test_metadata_of_camera_less_scene_lists_observed_faces():
+    scenario = tiny_scenario(steps=1, camera=False)
+    metadata = ScenarioMetadata.from_json(scenario_metadata(scenario).to_json())
+    np.testing.assert_array_equal(metadata.observed_triangles, np.flatnonzero(scenario.observed_triangles))
+
+
+@pytest.mark.parametrize("text, message", [
+    ("not json", "not JSON"),
+    ('{"format": 99}', "format 1"),
+    ('{"format": 1, "scenario": "x"}', "lacks"),
+])
+def test_metadata_errors_name_the_problem(text, message):
+    with pytest.raises(ValueError, match=message):
+        ScenarioMetadata.from_json(text)
+
+
+def test_max_points_subsamples_reproducibly(scenario, tmp_path):
+    write_scenario(scenario, tmp_path / "a", max_points=100)
+    write_scenario(scenario, tmp_path / "b", max_points=100)
+    clouds = []
+    for name in ("a", "b"):
+        with RecordingReader(tmp_path / name) as reader:
+            clouds.append([c.points for c in reader.records(POINTS_TOPIC, PointCloudRecord)])
+            assert read_metadata(reader).max_points == 100
+    assert all(len(points) == 100 for points in clouds[0])
+    for first, second in zip(*clouds):
+        np.testing.assert_array_equal(first, second)
+    recorded = {tuple(row) for row in scenario.steps[0].points.astype(np.float32).tolist()}
+    kept = [tuple(row) for row in clouds[0][0].astype(np.float32).tolist()]
+    assert len(set(kept)) == 100 and set(kept) <= recorded  # distinct points of the step's cloud
+
+
+def test_never_overwrites(recording, scenario):
+    path, _ = recording
+    before = {p.name: p.stat().st_mtime_ns for p in path.iterdir()}
+    with pytest.raises(RecordingExistsError, match="exists already"):
+        write_scenario(scenario, path)
+    assert {p.name: p.stat().st_mtime_ns for p in path.iterdir()} == before
+
+
+def test_independent_mcap_reader_decodes_every_message(recording):
+    path, counts = recording
+    (mcap_file,) = Path(path).glob("*.mcap")
+    seen: dict[str, int] = {}
+    with open(mcap_file, "rb") as stream:
+        for _, channel, _, message in make_reader(stream, decoder_factories=[DecoderFactory()]).iter_decoded_messages():
+            seen[channel.topic] = seen.get(channel.topic, 0) + 1
+            if channel.topic == SCENARIO_TOPIC:
+                assert json.loads(message.data)["scenario"] == "tiny-cube"
+            if channel.topic == INITIAL_MESH_TOPIC:
+                assert len(message.positions) == 27 * 3 and len(message.fixed_vertices) == 9
+    assert seen == counts
+
+
+def test_bundled_recordings_are_listed_and_small():
+    readme = (BAGS / "README.md").read_text()
+    for name, seed in BUNDLED.items():
+        size = sum(f.stat().st_size for f in (BAGS / name).iterdir())
+        assert size < 5 * 2**20, f"{name} is {size} bytes"
+        assert f"meshfg synth {name} --out bags/{name} --seed {seed}" in readme
+        with RecordingReader(BAGS / name) as reader:
+            metadata = read_metadata(reader)
+        assert (metadata.scenario, metadata.seed) == (name, seed)
+
+
+def test_regenerated_recording_equals_the_bundled_one(tmp_path):
+    """`meshfg synth` is deterministic: the bundled recording comes back message for message."""
+    out = tmp_path / REGENERATED
+    with RecordingReader(BAGS / REGENERATED) as reader:
+        max_points = read_metadata(reader).max_points
+    command = [MESHFG, "synth", REGENERATED, "--out", str(out), "--seed", str(BUNDLED[REGENERATED])]
+    if max_points is not None:
+        command += ["--max-points", str(max_points)]
+    subprocess.run(command, check=True, capture_output=True, timeout=300)
+    recordings = []
+    for path in (BAGS / REGENERATED, out):
+        with AnyReader([path], default_typestore=meshfg_typestore()) as reader:
+            recordings.append([(c.topic, c.msgtype, t, bytes(raw)) for c, t, raw in reader.messages()])
+    assert len(recordings[0]) == len(recordings[1]) > 0
+    assert recordings[0] == recordings[1]
