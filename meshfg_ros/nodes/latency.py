@@ -1,0 +1,298 @@
+"""The live pipeline on a recording, as separate processes, and its latency.
+
+`run_live_pipeline(bag, workdir)` starts simulation_node, estimator_node and a downstream
+recorder (this module's `record` command) as separate processes in namespace /meshfg over
+real DDS, waits until they are connected, plays the recording's inputs with bag_player, and
+returns what the recorder received: every estimate, its status, and the latency from a
+cloud's arrival to its estimate's arrival (both seen by the recorder, one clock).
+`measure_live_latency(bag)` summarises that latency (median, p95) for `meshfg bench`.
+The nodes get the parameters the offline replay would use on the recording
+(meshfg_ros.replay.replay_parameters), so both estimate the same trajectory.
+
+    python -m meshfg_ros.nodes.latency record OUT.npz --clouds N [--timeout S] --ros-args ...
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import random
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rclpy
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.utilities import remove_ros_args
+from sensor_msgs.msg import PointCloud2
+
+from meshfg_msgs.msg import EstimatorStatus, TetraMesh
+from meshfg_ros.core.parameters import parameters_yaml
+from meshfg_ros.io.messages import stamp_ns_from_msg
+from meshfg_ros.replay import load_inputs, replay_parameters
+from meshfg_ros.topics import INITIAL_MESH_TOPIC, POINTS_TOPIC, TOOL_POSE_TOPIC
+
+NAMESPACE = "/meshfg"
+READY_FILE = "recorder.ready"
+# Wall-clock timeouts of the pipeline run, far above any step's time even on a loaded 2-core
+# machine: a timeout would run a step degraded, and the run would no longer match the replay.
+LIVE_TIMEOUTS = {"prediction_timeout": 10.0, "estimate_timeout": 10.0}
+_SHUTDOWN_TIMEOUT_S = 20.0
+_POLL_S = 0.05
+
+
+class LivePipelineError(RuntimeError):
+    """A pipeline process failed or the recorder did not receive every estimate (one line)."""
+
+
+@dataclass(frozen=True)
+class LiveRun:
+    """What the downstream recorder received, one row per estimate in arrival order."""
+
+    stamps_ns: np.ndarray  # (S,) int64
+    steps: np.ndarray  # (S,) int64
+    positions: np.ndarray  # (S, N, 3) float64
+    position_std: np.ndarray  # (S, N) float64
+    latency_ms: np.ndarray  # (S,) cloud arrival -> estimate arrival at the recorder
+    degraded: np.ndarray  # (S,) bool, from the status of the same stamp
+    solve_time_ms: np.ndarray  # (S,) from the status of the same stamp
+    expected_steps: int  # clouds in the recording
+    exit_codes: dict[str, int]
+    logs: dict[str, str]  # stderr of each process
+    parameters: dict[str, Any]
+
+    @property
+    def final_estimate(self) -> np.ndarray:
+        """(N, 3) positions of the last estimate received."""
+        return self.positions[-1]
+
+
+def ros_environment(base: Mapping[str, str] | None = None) -> dict[str, str]:
+    """Environment for DDS on loopback only; a random domain unless ROS_DOMAIN_ID is set."""
+    env = dict(os.environ if base is None else base)
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    env.setdefault("ROS_DOMAIN_ID", str(random.randint(1, 100)))
+    env.setdefault("PYTHONUNBUFFERED", "1")
+    return env
+
+
+def executable(name: str) -> str:
+    """Path of a console script of this environment (next to the running Python)."""
+    path = Path(sys.executable).parent / name
+    if not path.exists():
+        raise LivePipelineError(f"console script {name} not found next to {sys.executable}")
+    return str(path)
+
+
+def run_live_pipeline(
+    bag: str | Path,
+    workdir: str | Path,
+    rate: float = 1.0,
+    overrides: Mapping[str, Any] | None = None,
+    timeout_s: float = 180.0,
+    env: Mapping[str, str] | None = None,
+    use_sim_time: bool = True,
+    single_process: bool = False,
+) -> LiveRun:
+    """Run simulation_node, estimator_node, the recorder and bag_player on `bag` (see module doc).
+
+    overrides: parameters over the replay's (LIVE_TIMEOUTS first); use_sim_time: the nodes run
+    on the player's /clock; single_process: meshfg_stack instead of the two node processes.
+    Raises LivePipelineError if a process fails or an estimate is missing after timeout_s.
+    """
+    bag, workdir = Path(bag).resolve(), Path(workdir).resolve()
+    workdir.mkdir(parents=True, exist_ok=True)
+    inputs = load_inputs(bag)
+    params = replay_parameters(inputs, {**LIVE_TIMEOUTS, **(overrides or {})})
+    params_file = workdir / "parameters.yaml"
+    params_file.write_text(parameters_yaml(params))
+    expected = len(inputs.clouds)
+    env = ros_environment(env)
+    ros_args = ["--ros-args", "-r", f"__ns:={NAMESPACE}"]
+    out = workdir / "estimates.npz"
+    node_args = [*ros_args, "--params-file", str(params_file), "-p", f"use_sim_time:={str(use_sim_time).lower()}"]
+    nodes = ["meshfg_stack"] if single_process else ["simulation_node", "estimator_node"]
+    commands = {
+        **{name: [executable(name), *node_args] for name in nodes},
+        "recorder": [sys.executable, "-m", "meshfg_ros.nodes.latency", "record", str(out), "--clouds", str(expected),
+                     "--timeout", str(timeout_s), *ros_args],
+    }
+    processes: dict[str, subprocess.Popen] = {}
+    logs = {name: workdir / f"{name}.log" for name in [*commands, "bag_player"]}
+    try:
+        for name, command in commands.items():
+            processes[name] = _start(command, logs[name], workdir, env)
+        _wait_until_ready(workdir / READY_FILE, processes, timeout_s)
+        player_command = [executable("bag_player"), str(bag), "--rate", str(rate), "--topics",
+                          INITIAL_MESH_TOPIC, TOOL_POSE_TOPIC, POINTS_TOPIC]
+        processes["bag_player"] = _start(player_command, logs["bag_player"], workdir, env)
+        exit_codes = _wait_for_recorder(processes, timeout_s)
+        for name in nodes:
+            processes[name].send_signal(signal.SIGINT)
+            exit_codes[name] = processes[name].wait(timeout=_SHUTDOWN_TIMEOUT_S)
+    except subprocess.TimeoutExpired as error:
+        raise LivePipelineError(f"{error.cmd[0]} did not stop; logs in {workdir}") from None
+    finally:
+        for process in processes.values():
+            if process.poll() is None:
+                process.kill()
+                process.wait()
+    texts = {name: path.read_text() for name, path in logs.items() if path.exists()}
+    if any(exit_codes.values()) or not out.exists():
+        failed = ", ".join(f"{name} exited {code}" for name, code in exit_codes.items() if code)
+        raise LivePipelineError(f"live pipeline failed ({failed or 'no estimates written'}); logs in {workdir}")
+    received = np.load(out)
+    return LiveRun(
+        stamps_ns=received["stamps_ns"], steps=received["steps"], positions=received["positions"],
+        position_std=received["position_std"], latency_ms=received["latency_ms"], degraded=received["degraded"],
+        solve_time_ms=received["solve_time_ms"], expected_steps=expected, exit_codes=exit_codes, logs=texts,
+        parameters=params,
+    )
+
+
+def measure_live_latency(
+    bag: str | Path,
+    rate: float = 1.0,
+    overrides: Mapping[str, Any] | None = None,
+    timeout_s: float = 180.0,
+    single_process: bool = False,
+) -> dict[str, float]:
+    """Latency of the live pipeline on `bag` (cloud arrival -> estimate arrival downstream, ms).
+
+    Returns steps, expected_steps, latency_ms_median / _p95 / _max, solve_time_ms_median,
+    overhead_ms_median (latency minus the estimator's own solve time: prediction, transport,
+    pairing, and waiting behind earlier steps when a solve outlasts the cloud period),
+    degraded_steps, rate and single_process.
+    """
+    with tempfile.TemporaryDirectory(prefix="meshfg-live-") as workdir:
+        run = run_live_pipeline(bag, workdir, rate, overrides, timeout_s, single_process=single_process)
+    return {
+        "steps": int(run.stamps_ns.size),
+        "expected_steps": run.expected_steps,
+        "latency_ms_median": float(np.median(run.latency_ms)),
+        "latency_ms_p95": float(np.percentile(run.latency_ms, 95)),
+        "latency_ms_max": float(np.max(run.latency_ms)),
+        "solve_time_ms_median": float(np.median(run.solve_time_ms)),
+        "overhead_ms_median": float(np.median(run.latency_ms - run.solve_time_ms)),
+        "degraded_steps": int(np.count_nonzero(run.degraded)),
+        "rate": float(rate),
+        "single_process": single_process,
+    }
+
+
+def _start(command: list[str], log: Path, workdir: Path, env: Mapping[str, str]) -> subprocess.Popen:
+    with open(log, "w") as stream:
+        # cwd = workdir: `python -m` must not see a source checkout's meshfg_msgs/ folder.
+        return subprocess.Popen(command, stdout=stream, stderr=subprocess.STDOUT, cwd=workdir, env=env)
+
+
+def _wait_until_ready(ready_file: Path, processes: Mapping[str, subprocess.Popen], timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not ready_file.exists():
+        exited = {name: process.poll() for name, process in processes.items() if process.poll() is not None}
+        if exited:
+            raise LivePipelineError(f"pipeline process exited before the start: {exited}")
+        if time.monotonic() > deadline:
+            raise LivePipelineError(f"the pipeline did not connect within {timeout_s} s")
+        time.sleep(_POLL_S)
+
+
+def _wait_for_recorder(processes: Mapping[str, subprocess.Popen], timeout_s: float) -> dict[str, int]:
+    """Exit codes of the recorder and the player once both are done; any other exit is an error."""
+    deadline = time.monotonic() + timeout_s + 30.0  # the recorder times out by itself first
+    while processes["recorder"].poll() is None or processes["bag_player"].poll() is None:
+        failed = {name: process.poll() for name, process in processes.items() if process.poll()}
+        if failed:
+            return failed
+        if time.monotonic() > deadline:
+            raise LivePipelineError(f"the recorder did not finish within {timeout_s} s")
+        time.sleep(_POLL_S)
+    return {"recorder": processes["recorder"].returncode, "bag_player": processes["bag_player"].returncode}
+
+
+# ---------------------------------------------------------------------------- the recorder
+def record(out: Path, clouds: int, timeout_s: float, args: list[str]) -> int:
+    """Recorder process: wait for the pipeline's graph, then record `clouds` estimates to `out`."""
+    rclpy.init(args=args)
+    node = Node("live_recorder")
+    cloud_arrivals: dict[int, float] = {}
+    estimates: list[tuple[int, int, float, np.ndarray, np.ndarray]] = []
+    statuses: dict[int, tuple[bool, float]] = {}
+
+    def on_cloud(msg):
+        cloud_arrivals.setdefault(stamp_ns_from_msg(msg.header.stamp), time.monotonic())
+
+    def on_estimate(msg):
+        estimates.append((stamp_ns_from_msg(msg.header.stamp), msg.step, time.monotonic(),
+                          np.array(msg.positions, dtype=np.float64).reshape(-1, 3),
+                          np.array(msg.position_std, dtype=np.float64)))
+
+    def on_status(msg):
+        statuses[stamp_ns_from_msg(msg.header.stamp)] = (msg.degraded, msg.solve_time_ms)
+
+    # Depth > the number of steps: a slow recorder loses nothing.
+    keep_all = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
+                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    # Reliable (the player publishes reliably): a cloud lost here would leave a step without latency.
+    node.create_subscription(PointCloud2, "points", on_cloud, QoSProfile(depth=1000))
+    node.create_subscription(TetraMesh, "estimated_mesh", on_estimate, keep_all)
+    node.create_subscription(EstimatorStatus, "status", on_status, QoSProfile(depth=1000))
+    try:
+        deadline = time.monotonic() + timeout_s
+        while not _connected(node):
+            if time.monotonic() > deadline:
+                print(f"live_recorder: the pipeline did not connect within {timeout_s} s", file=sys.stderr)
+                return 4
+            rclpy.spin_once(node, timeout_sec=_POLL_S)
+        (out.parent / READY_FILE).touch()
+        while (len(estimates) < clouds or len(statuses) < clouds) and time.monotonic() < deadline:
+            rclpy.spin_once(node, timeout_sec=_POLL_S)
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    if not estimates:
+        print(f"live_recorder: no estimate received within {timeout_s} s", file=sys.stderr)
+        return 2
+    stamps = np.array([e[0] for e in estimates], dtype=np.int64)
+    latency = np.array([(e[2] - cloud_arrivals.get(e[0], np.nan)) * 1e3 for e in estimates])
+    np.savez(out, stamps_ns=stamps, steps=np.array([e[1] for e in estimates], dtype=np.int64),
+             positions=np.stack([e[3] for e in estimates]), position_std=np.stack([e[4] for e in estimates]),
+             latency_ms=latency, degraded=np.array([statuses.get(s, (True, np.nan))[0] for s in stamps]),
+             solve_time_ms=np.array([statuses.get(s, (True, np.nan))[1] for s in stamps]))
+    if len(estimates) < clouds:
+        print(f"live_recorder: {len(estimates)} of {clouds} estimates within {timeout_s} s", file=sys.stderr)
+        return 3
+    return 0
+
+
+def _connected(node) -> bool:
+    """Whether the simulator and the estimator are up and connected to each other and to us."""
+    return (node.count_publishers("predicted_mesh") >= 1 and node.count_subscribers("predicted_mesh") >= 1
+            and node.count_publishers("estimated_mesh") >= 1 and node.count_subscribers("estimated_mesh") >= 2
+            and node.count_subscribers("tool_pose") >= 1 and node.count_subscribers("points") >= 2
+            and node.count_subscribers("initial_mesh") >= 2 and node.count_publishers("status") >= 1)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m meshfg_ros.nodes.latency record OUT.npz --clouds N [--timeout S] --ros-args ...`."""
+    argv = sys.argv if argv is None else argv
+    parser = argparse.ArgumentParser(prog="python -m meshfg_ros.nodes.latency")
+    commands = parser.add_subparsers(dest="command", required=True)
+    recorder = commands.add_parser("record", help="record the estimates of a running pipeline")
+    recorder.add_argument("out", type=Path)
+    recorder.add_argument("--clouds", type=int, required=True, help="estimates to wait for")
+    recorder.add_argument("--timeout", type=float, default=180.0)
+    options = parser.parse_args(remove_ros_args(argv)[1:])
+    return record(options.out, options.clouds, options.timeout, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,172 @@
+"""What the nodes need beyond meshfg_ros.io.messages: ROS parameters from the parameter table,
+recordings -> rclpy messages, TetraMesh <-> core arrays.
+
+`declare_parameters` declares parameters of core.parameters with ParameterDescriptors (ranges,
+choices) and returns them validated; `rclpy_message(data)` turns what RecordingReader yields
+(a meshfg record or any decoded rosbags message) into the rclpy message to publish;
+`MeshMessages` builds the TetraMesh messages of one mesh topology with its index arrays
+converted once; `tet_mesh_from_state` rebuilds the core mesh of a received initial mesh.
+"""
+
+from __future__ import annotations
+
+import array
+import sys
+from collections.abc import Iterable
+from typing import Any
+
+import numpy as np
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
+from rclpy.node import Node
+from rclpy.parameter import Parameter as RosParameter
+
+from meshfg_ros.core.mesh import TetMesh
+from meshfg_ros.core.parameters import PARAMETERS, load_parameters
+from meshfg_ros.io.messages import TETRA_MESH, MeshState, RclpyMessageFactory, header_msg
+from meshfg_ros.io.recording import RECORD_TYPES
+
+RCLPY_FACTORY = RclpyMessageFactory()
+# numpy dtype -> array.array type code of the same item size (Linux), for primitive sequences.
+_TYPECODES = {
+    np.dtype(np.float64): "d", np.dtype(np.float32): "f",
+    np.dtype(np.int8): "b", np.dtype(np.uint8): "B",
+    np.dtype(np.int16): "h", np.dtype(np.uint16): "H",
+    np.dtype(np.int32): "i", np.dtype(np.uint32): "I",
+    np.dtype(np.int64): "q", np.dtype(np.uint64): "Q",
+}
+
+
+def rclpy_message(data: Any) -> Any:
+    """The rclpy message for a meshfg record or a rosbags message (converted field by field)."""
+    if type(data) in RECORD_TYPES:
+        _, to_msg, _ = RECORD_TYPES[type(data)]
+        return to_msg(data, RCLPY_FACTORY)
+    return _from_rosbags(data)
+
+
+def _from_rosbags(message: Any) -> Any:
+    message_class = RCLPY_FACTORY.message_class(type(message).__msgtype__)
+    fields = {}
+    for name, kind in message_class.get_fields_and_field_types().items():
+        fields[name] = _field_value(getattr(message, name), kind)
+    return message_class(**fields)
+
+
+def _field_value(value: Any, kind: str) -> Any:
+    if hasattr(value, "__msgtype__"):
+        return _from_rosbags(value)
+    if isinstance(value, np.ndarray):
+        if kind.startswith("sequence<") and value.dtype in _TYPECODES:
+            return array.array(_TYPECODES[value.dtype], np.ascontiguousarray(value).tobytes())
+        return value  # fixed-size arrays are numpy arrays in rclpy too
+    if isinstance(value, list):
+        return [_field_value(item, kind) for item in value]
+    return value
+
+
+def tet_mesh_from_state(state: MeshState) -> TetMesh:
+    """The core TetMesh (vertices, tetrahedra, fixed vertices) of a received mesh state."""
+    return TetMesh(state.positions, state.tetrahedra, state.fixed_vertices)
+
+
+_ROS_TYPES = {
+    "double": ParameterType.PARAMETER_DOUBLE,
+    "integer": ParameterType.PARAMETER_INTEGER,
+    "string": ParameterType.PARAMETER_STRING,
+    "bool": ParameterType.PARAMETER_BOOL,
+    "double_array": ParameterType.PARAMETER_DOUBLE_ARRAY,
+    "integer_array": ParameterType.PARAMETER_INTEGER_ARRAY,
+}
+_EMPTY_ARRAY_TYPES = {"double_array": RosParameter.Type.DOUBLE_ARRAY, "integer_array": RosParameter.Type.INTEGER_ARRAY}
+
+
+def parameter_descriptor(parameter) -> ParameterDescriptor:
+    """ROS ParameterDescriptor of a core.parameters.Parameter (type, description, range, choices)."""
+    descriptor = ParameterDescriptor(
+        name=parameter.name,
+        type=_ROS_TYPES[parameter.type],
+        description=parameter.description,
+        read_only=True,  # read once at start-up
+    )
+    if parameter.choices is not None:
+        descriptor.additional_constraints = f"one of: {', '.join(parameter.choices)}"
+    if parameter.length is not None:
+        descriptor.additional_constraints = f"exactly {parameter.length} values"
+    if parameter.range is not None and parameter.type in ("double", "integer"):
+        low, high = parameter.range
+        if parameter.type == "double":
+            descriptor.floating_point_range = [FloatingPointRange(
+                from_value=-sys.float_info.max if low is None else float(low),
+                to_value=sys.float_info.max if high is None else float(high),
+            )]
+        else:
+            descriptor.integer_range = [IntegerRange(
+                from_value=-(2**63) if low is None else int(low),
+                to_value=2**63 - 1 if high is None else int(high),
+                step=1,
+            )]
+    return descriptor
+
+
+def declare_parameters(node: Node, names: Iterable[str]) -> dict[str, Any]:
+    """Declare the table's parameters `names` on `node`; all parameters, validated (ParameterError).
+
+    Undeclared parameters keep their defaults. ROS cannot infer the type of an empty array
+    default: such a parameter is declared by type and then set to [] unless overridden, so it is
+    not read-only.
+    """
+    wanted = set(names)
+    values = {}
+    for parameter in PARAMETERS:
+        if parameter.name not in wanted:
+            continue
+        descriptor = parameter_descriptor(parameter)
+        if parameter.type in _EMPTY_ARRAY_TYPES and not parameter.default:
+            descriptor.read_only = False
+            array_type = _EMPTY_ARRAY_TYPES[parameter.type]
+            if node.declare_parameter(parameter.name, array_type, descriptor).type_ == RosParameter.Type.NOT_SET:
+                node.set_parameters([RosParameter(parameter.name, array_type, [])])
+            values[parameter.name] = list(node.get_parameter(parameter.name).value)
+        else:
+            default = list(parameter.default) if isinstance(parameter.default, tuple) else parameter.default
+            values[parameter.name] = node.declare_parameter(parameter.name, default, descriptor).value
+    return load_parameters(values)
+
+
+class MeshMessages:
+    """TetraMesh messages of one topology: the index arrays are converted once, not per message."""
+
+    def __init__(self, state: MeshState) -> None:
+        self.vertex_count = state.positions.shape[0]
+        self._tetrahedra = RCLPY_FACTORY.sequence(state.tetrahedra, np.uint32)
+        self._surface_triangles = RCLPY_FACTORY.sequence(state.surface_triangles, np.uint32)
+        self._fixed_vertices = RCLPY_FACTORY.sequence(state.fixed_vertices, np.uint32)
+
+    def message(self, stamp_ns: int, frame_id: str, step: int, positions: np.ndarray,
+                position_std: np.ndarray | None = None) -> Any:
+        """TetraMesh of `positions` (N, 3) (finite: checked by the caller) and optional std (N,)."""
+        std = np.zeros(0) if position_std is None else position_std
+        return RCLPY_FACTORY.make(
+            TETRA_MESH,
+            header=header_msg(stamp_ns, frame_id, RCLPY_FACTORY),
+            step=int(step),
+            positions=RCLPY_FACTORY.sequence(positions, np.float64),
+            tetrahedra=self._tetrahedra,
+            surface_triangles=self._surface_triangles,
+            fixed_vertices=self._fixed_vertices,
+            position_std=RCLPY_FACTORY.sequence(std, np.float32),
+        )
+
+
+def positions_from_msg(msg: Any, vertex_count: int) -> np.ndarray | None:
+    """Vertex positions (N, 3) of a TetraMesh, or None unless N == vertex_count and all finite."""
+    positions = np.asarray(msg.positions, dtype=np.float64)
+    if positions.size != 3 * vertex_count or not np.isfinite(positions).all():
+        return None
+    return positions.reshape(vertex_count, 3)
+
+
+def same_mesh(a: MeshState, b: MeshState) -> bool:
+    """Whether two mesh states have equal positions, tetrahedra and fixed vertices."""
+    return (np.array_equal(a.positions, b.positions) and np.array_equal(a.tetrahedra, b.tetrahedra)
+            and np.array_equal(a.fixed_vertices, b.fixed_vertices))

@@ -1,0 +1,23 @@
+"""meshfg_stack: the simulation and estimator nodes in one process (one MultiThreadedExecutor).
+
+Same topics, parameters and --ros-args as the two separate executables, without the DDS hop
+between the simulator and the estimator being a process boundary.
+"""
+
+from __future__ import annotations
+
+import sys
+
+from meshfg_ros.nodes.estimator_node import EstimatorNode
+from meshfg_ros.nodes.runtime import run_nodes
+from meshfg_ros.nodes.simulation_node import SimulationNode
+
+
+def main(args=None) -> int:
+    """Console script `meshfg_stack` (accepts --ros-args; e.g. -r __ns:=/meshfg --params-file FILE)."""
+    # Threads: the simulator's group, the estimator's inputs, solver, outputs and default groups.
+    return run_nodes("meshfg_stack", [SimulationNode, EstimatorNode], threads=5, args=args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,476 @@
+"""The node executables over real DDS (separate processes, loopback only; see conftest.py).
+
+Start-up with parameters files and overrides, clean shutdown on SIGINT, the simulator's
+prediction semantics, the estimator's robustness to bad input (diagnostics counters, never a
+NaN), degraded steps without the simulator and recovery, and the bag player.
+"""
+import os
+import py_compile
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
+from rcl_interfaces.srv import GetParameters
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import PointCloud2
+from visualization_msgs.msg import MarkerArray
+
+from meshfg_msgs.msg import EstimatorStatus, TetraMesh
+from meshfg_ros.core.meshing import cube_mesh
+from meshfg_ros.core.parameters import load_parameters, simulator_config
+from meshfg_ros.core.simulator import XpbdSimulator
+from meshfg_ros.io.messages import (
+    MeshState,
+    PointCloudRecord,
+    PoseRecord,
+    RclpyMessageFactory,
+    RosbagsMessageFactory,
+    header_msg,
+    mesh_state_to_msg,
+    pose_to_msg,
+    stamp_ns_from_msg,
+)
+from meshfg_ros.io.pointcloud import decode_pointcloud2, encode_xyz
+from meshfg_ros.io.recording import RecordingWriter
+from meshfg_ros.nodes.ros_conversions import rclpy_message
+
+REPOSITORY = Path(__file__).resolve().parents[1]
+CONFIG = REPOSITORY / "config" / "meshfg.yaml"
+BIN = Path(sys.executable).parent
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+KEEP = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+FACTORY = RclpyMessageFactory()
+S = 1_000_000_000  # ns per second
+SIDE = 0.05
+
+
+# ---------------------------------------------------------------------------- helpers
+@pytest.fixture(scope="module")
+def probe():
+    """A node of the test process that talks to the nodes under test."""
+    rclpy.init()
+    node = rclpy.create_node("test_probe")
+    yield node
+    node.destroy_node()
+    rclpy.shutdown()
+
+
+def spin_until(node, condition, timeout_s=30.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        rclpy.spin_once(node, timeout_sec=0.05)
+    return True
+
+
+class Process:
+    """A node executable with its output in a log file."""
+
+    def __init__(self, tmp_path: Path, name: str, *args: str):
+        self.log = tmp_path / f"{name}-{time.monotonic_ns()}.log"
+        with open(self.log, "w") as stream:
+            self.popen = subprocess.Popen([str(BIN / name), *args], stdout=stream, stderr=subprocess.STDOUT,
+                                          cwd=tmp_path, env=dict(os.environ))
+
+    def output(self) -> str:
+        return self.log.read_text()
+
+    def interrupt(self, timeout_s=20.0) -> int:
+        """SIGINT (Ctrl-C); the exit code."""
+        self.popen.send_signal(signal.SIGINT)
+        return self.popen.wait(timeout=timeout_s)
+
+    def alive(self) -> bool:
+        return self.popen.poll() is None
+
+    def kill(self) -> None:
+        if self.alive():
+            self.popen.kill()
+            self.popen.wait()
+
+
+@pytest.fixture
+def processes():
+    started: list[Process] = []
+    yield started
+    for process in started:
+        process.kill()
+
+
+def assert_clean_exit(process: Process, code: int) -> None:
+    output = process.output()
+    assert code == 0, output
+    for sign_of_an_unclean_stop in ("Traceback", "never retrieved", "never awaited"):
+        assert sign_of_an_unclean_stop not in output, output
+
+
+def ros_args(namespace: str, *parameters: str, params_file: Path | None = None) -> list[str]:
+    """--ros-args with the namespace, a parameters file, then `-p` overrides (the last one wins)."""
+    args = ["--ros-args", "-r", f"__ns:={namespace}"]
+    if params_file is not None:
+        args += ["--params-file", str(params_file)]
+    for parameter in parameters:
+        args += ["-p", parameter]
+    return args
+
+
+def pushed_cube():
+    mesh = cube_mesh(side=SIDE, divisions=3)
+    return mesh.with_fixed(np.flatnonzero(np.isclose(mesh.vertices[:, 2], 0.0)))
+
+
+def mesh_msg(mesh, stamp_ns=0, positions=None):
+    positions = mesh.vertices if positions is None else positions
+    return mesh_state_to_msg(MeshState(stamp_ns, "world", 0, positions, mesh.tetrahedra, mesh.surface_triangles,
+                                       mesh.fixed_vertices), FACTORY)
+
+
+def top_points(count=40, seed=0):
+    rng = np.random.default_rng(seed)
+    return np.column_stack([rng.uniform(0.005, SIDE - 0.005, (count, 2)), np.full(count, SIDE)])
+
+
+def cloud_msg(points, stamp_ns, frame="world"):
+    return encode_xyz(points, frame, stamp_ns, FACTORY)
+
+
+def tool_pose_msg(position, stamp_ns):
+    return pose_to_msg(PoseRecord(stamp_ns, "world", [*position, 0.0, 0.0, 0.0, 1.0]), FACTORY)
+
+
+def get_parameters(probe, node_name: str, names: list[str]) -> dict:
+    client = probe.create_client(GetParameters, f"{node_name}/get_parameters")
+    try:
+        assert client.wait_for_service(timeout_sec=30.0), f"no parameter service {node_name}"
+        future = client.call_async(GetParameters.Request(names=names))
+        assert spin_until(probe, future.done)
+        values = future.result().values
+        assert len(values) == len(names), f"{node_name} has not declared all of {names}"
+        return {name: rclpy.parameter.parameter_value_to_python(value) for name, value in zip(names, values)}
+    finally:
+        probe.destroy_client(client)
+
+
+# ---------------------------------------------------------------------------- start, parameters, stop
+def test_executables_read_parameters_and_stop_cleanly_on_sigint(probe, processes, tmp_path):
+    separate = [Process(tmp_path, "simulation_node", *ros_args("/p_sep", "youngs_modulus:=4500.0", params_file=CONFIG)),
+                Process(tmp_path, "estimator_node", *ros_args("/p_sep", "window_size:=7", params_file=CONFIG))]
+    stack = Process(tmp_path, "meshfg_stack", *ros_args("/p_stack", "tool_radius:=0.002", params_file=CONFIG))
+    processes += [*separate, stack]
+    # Relative topics: the namespace applies. (Parameter services answer before the parameters are
+    # declared; the topics exist after.)
+    assert spin_until(probe, lambda: probe.count_subscribers("/p_sep/points") == 1
+                      and probe.count_publishers("/p_sep/predicted_mesh") == 1
+                      and probe.count_publishers("/p_stack/estimated_mesh") == 1)
+    simulation = get_parameters(probe, "/p_sep/simulation_node", ["youngs_modulus", "simulator", "grasped_vertices"])
+    assert simulation == {"youngs_modulus": 4500.0, "simulator": "vbd", "grasped_vertices": []}
+    estimator = get_parameters(probe, "/p_sep/estimator_node", ["window_size", "measurement_sigma", "camera_pose"])
+    assert estimator["window_size"] == 7 and estimator["measurement_sigma"] == 0.001
+    assert list(estimator["camera_pose"]) == [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]
+    assert get_parameters(probe, "/p_stack/simulation_node", ["tool_radius"]) == {"tool_radius": 0.002}
+    assert get_parameters(probe, "/p_stack/estimator_node", ["world_frame"]) == {"world_frame": "world"}
+    for process in [*separate, stack]:
+        assert_clean_exit(process, process.interrupt())
+
+
+def test_invalid_parameters_stop_the_node_with_a_message(processes, tmp_path):
+    window = Process(tmp_path, "estimator_node", *ros_args("/bad", "window_size:=0"))
+    grasp = Process(tmp_path, "simulation_node", *ros_args("/bad", "tool_mode:=grasp"))
+    processes += [window, grasp]
+    assert window.popen.wait(timeout=60) == 1
+    assert "window_size" in window.output() and "Traceback" not in window.output()
+    assert grasp.popen.wait(timeout=60) == 1
+    assert "simulation_node: invalid parameters: tool_mode 'grasp' needs grasped_vertices" in grasp.output()
+
+
+# ---------------------------------------------------------------------------- simulation node
+def test_simulation_node_predicts_from_the_latest_estimate(probe, processes, tmp_path):
+    mesh = pushed_cube()
+    params = load_parameters({"tool_radius": 0.01, "estimate_timeout": 1.0})
+    node = Process(tmp_path, "simulation_node",
+                   *ros_args("/sim", "tool_radius:=0.01", "estimate_timeout:=1.0"))
+    processes.append(node)
+    predictions = []
+    prediction_subscription = probe.create_subscription(TetraMesh, "/sim/predicted_mesh", predictions.append, KEEP)
+    mesh_publisher = probe.create_publisher(TetraMesh, "/sim/initial_mesh", LATCHED)
+    estimate_publisher = probe.create_publisher(TetraMesh, "/sim/estimated_mesh", LATCHED)
+    pose_publisher = probe.create_publisher(PoseStamped, "/sim/tool_pose", KEEP)
+    assert spin_until(probe, lambda: pose_publisher.get_subscription_count() == 1
+                      and estimate_publisher.get_subscription_count() == 1
+                      and prediction_subscription.get_publisher_count() == 1)
+    mesh_publisher.publish(mesh_msg(mesh))
+    centre = np.array([SIDE / 2, SIDE / 2, SIDE + 0.011])
+    poses = [centre - [0.0, 0.0, 1e-3 * k] for k in range(5)]
+
+    def send_pose(k, stamp_ns):
+        pose_publisher.publish(tool_pose_msg(poses[k], stamp_ns))
+
+    def received(count):
+        assert spin_until(probe, lambda: len(predictions) >= count), f"{len(predictions)} predictions"
+        return predictions[count - 1]
+
+    send_pose(0, 1 * S)  # the first pose only resets the simulator
+    send_pose(1, 2 * S)
+    first = received(1)
+    estimate = np.asarray(first.positions).reshape(-1, 3) + [1e-4, 0.0, 0.0]
+    estimate_publisher.publish(mesh_msg(mesh, 2 * S, estimate))
+    send_pose(2, 3 * S)  # predicted from the estimate of 2 s
+    received(2)
+    send_pose(3, 4 * S)  # no estimate of 3 s: after estimate_timeout, from the state of 2 s
+    send_pose(3, 4 * S)  # repeated stamp: dropped
+    estimate_publisher.publish(mesh_msg(mesh, 10 * S, estimate + 1e-3))  # no pose at 10 s: ignored
+    received(3)
+    send_pose(4, 5 * S)
+    received(4)
+    # A looped recording: the stamps jump back, the simulation restarts from the initial mesh.
+    send_pose(0, 1 * S)
+    send_pose(1, 2 * S)
+    received(5)
+    spin_until(probe, lambda: len(predictions) > 5, timeout_s=1.5)
+
+    simulator = XpbdSimulator(mesh, simulator_config(params))
+    simulator.reset(np.concatenate([poses[0], [0.0, 0.0, 0.0, 1.0]]))
+    expected = [simulator.predict(mesh.vertices, np.concatenate([poses[1], [0, 0, 0, 1.0]]), 1.0)]
+    for k in (2, 3, 4):
+        expected.append(simulator.predict(estimate, np.concatenate([poses[k], [0, 0, 0, 1.0]]), 1.0))
+    expected.append(expected[0])
+    assert [stamp_ns_from_msg(p.header.stamp) for p in predictions] == [2 * S, 3 * S, 4 * S, 5 * S, 2 * S]
+    assert all(p.header.frame_id == "world" for p in predictions)
+    for message, positions in zip(predictions, expected, strict=True):
+        np.testing.assert_array_equal(np.asarray(message.positions).reshape(-1, 3), positions)
+    assert not np.array_equal(expected[1], expected[0])  # the tool did push the cube
+    assert node.alive()
+    assert_clean_exit(node, node.interrupt())
+
+
+# ---------------------------------------------------------------------------- estimator node
+class EstimatorProbe:
+    """Publishes the estimator node's inputs and collects its outputs."""
+
+    def __init__(self, probe, namespace):
+        self.node = probe
+        self.estimates, self.statuses, self.diagnostics, self.markers = [], [], [], []
+        probe.create_subscription(MarkerArray, f"{namespace}/markers", self.markers.append, KEEP)
+        probe.create_subscription(TetraMesh, f"{namespace}/estimated_mesh", self.estimates.append,
+                                  QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                                             durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        self.status_subscription = probe.create_subscription(
+            EstimatorStatus, f"{namespace}/status", self.statuses.append, KEEP)
+        probe.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, KEEP)
+        self.mesh = probe.create_publisher(TetraMesh, f"{namespace}/initial_mesh", LATCHED)
+        self.prediction = probe.create_publisher(TetraMesh, f"{namespace}/predicted_mesh", KEEP)
+        self.cloud = probe.create_publisher(PointCloud2, f"{namespace}/points", KEEP)
+        self.status_name = f"{namespace}/estimator_node: estimation"
+
+    def _on_diagnostics(self, msg):
+        for status in msg.status:
+            if status.name == self.status_name:
+                self.diagnostics.append((status.message, {kv.key: kv.value for kv in status.values}))
+
+    def counters(self) -> dict:
+        return self.diagnostics[-1][1] if self.diagnostics else {}
+
+    def wait_for(self, **expected) -> dict:
+        """Spin until the diagnostics show the `expected` counter values; the counters."""
+        matches = lambda: all(self.counters().get(key) == str(value) for key, value in expected.items())  # noqa: E731
+        assert spin_until(self.node, matches, timeout_s=30.0), f"expected {expected}, got {self.counters()}"
+        return self.counters()
+
+    def send(self, msg, **expected) -> dict:
+        self.cloud.publish(msg)
+        return self.wait_for(**expected)
+
+
+def test_estimator_node_survives_bad_input_and_recovers_from_a_missing_simulator(probe, processes, tmp_path):
+    mesh = pushed_cube()
+    node = Process(tmp_path, "estimator_node", *ros_args(
+        "/est", "prediction_timeout:=0.3", "window_size:=3", "camera_frame:=endoscope",
+        "camera_pose:=[0.0, 0.0, 0.1, 1.0, 0.0, 0.0, 0.0]"))
+    processes.append(node)
+    io = EstimatorProbe(probe, "/est")
+    assert spin_until(probe, lambda: io.cloud.get_subscription_count() == 1
+                      and io.prediction.get_subscription_count() == 1
+                      and io.status_subscription.get_publisher_count() == 1)
+    io.wait_for(clouds_received=0)
+    assert io.diagnostics[-1][0] == "waiting for initial_mesh"
+    io.mesh.publish(mesh_msg(mesh))
+    points = top_points()
+
+    # Without a simulator the step runs degraded after prediction_timeout.
+    io.send(cloud_msg(points, 1 * S), steps=1, degraded_steps=1)
+    malformed = cloud_msg(points, 2 * S)
+    malformed.data = malformed.data[:-5]
+    io.send(malformed, clouds_rejected_malformed=1)
+    io.send(cloud_msg(np.zeros((0, 3)), 2 * S), clouds_rejected_empty=1)
+    io.send(cloud_msg(np.full((6, 3), np.nan), 2 * S), clouds_rejected_empty=2, nan_points_dropped=6)
+    io.send(cloud_msg(points, 2 * S, frame="map"), clouds_rejected_frame=1)
+    io.send(cloud_msg(points, 1 * S), clouds_rejected_stamp=1)  # repeated stamp
+    io.send(cloud_msg(points, S // 2), clouds_rejected_stamp=2)  # older than the newest state
+    # Camera-frame cloud (camera 0.1 m above, looking down): moved to the world; NaN points dropped.
+    in_camera = (points - [0.0, 0.0, 0.1]) * [1.0, -1.0, -1.0]
+    with_nan = np.vstack([in_camera, np.full((3, 3), np.nan)])
+    io.send(cloud_msg(with_nan, 2 * S, frame="endoscope"), steps=2, degraded_steps=2, nan_points_dropped=9)
+    assert io.statuses[-1].num_points == len(points) and io.statuses[-1].num_points_rejected == 0
+
+    # The simulator comes back: the step pairs with its prediction and is not degraded.
+    io.prediction.publish(mesh_msg(mesh, 3 * S))
+    counters = io.send(cloud_msg(points, 3 * S), steps=3, degraded_steps=2)
+    assert counters["predictions_received"] == "1"
+    assert io.diagnostics[-1][0] == "estimating"
+    # A prediction that arrives too late (its cloud went degraded): ignored.
+    io.send(cloud_msg(points, 4 * S), steps=4, degraded_steps=3)
+    io.prediction.publish(mesh_msg(mesh, 4 * S))
+    io.wait_for(predictions_rejected=1)
+    # A looped recording: the stamp jumps back by more than 1 s, the estimator restarts.
+    io.send(cloud_msg(points, S // 5), steps=5, clock_jumps_back=1)
+    # Absurd coordinates: gated away, the step still yields a finite estimate.
+    io.send(cloud_msg(np.full((5, 3), 1e30), S // 2), steps=6)
+
+    assert spin_until(probe, lambda: len(io.estimates) == 6 and len(io.statuses) == 6)
+    counters = io.counters()
+    assert counters["clouds_received"] == "12" and counters["clouds_rejected"] == "6"
+    assert counters["failed_steps"] == "0" and counters["nonfinite_estimates"] == "0"
+    assert float(counters["last_solve_time_ms"]) > 0.0 and float(counters["median_latency_ms"]) > 0.0
+    assert [stamp_ns_from_msg(e.header.stamp) for e in io.estimates] == [S, 2 * S, 3 * S, 4 * S, S // 5, S // 2]
+    assert [e.step for e in io.estimates] == [1, 2, 3, 4, 1, 2]  # restarted from the initial mesh
+    assert [s.degraded for s in io.statuses] == [True, True, False, True, True, True]
+    assert io.statuses[-1].num_points == 0 and io.statuses[-1].num_points_rejected == 5
+    for estimate in io.estimates:  # never a NaN
+        assert np.isfinite(estimate.positions).all() and np.isfinite(estimate.position_std).all()
+        assert len(estimate.position_std) == mesh.vertex_count
+        assert len(estimate.tetrahedra) == 4 * mesh.tetrahedron_count
+    for status in io.statuses:
+        assert np.isfinite([status.initial_cost, status.final_cost, status.solve_time_ms]).all()
+    # Markers of the newest estimates (built while someone subscribes).
+    assert spin_until(probe, lambda: io.markers and stamp_ns_from_msg(io.markers[-1].markers[0].header.stamp) == S // 2)
+    surface, wireframe, cloud = io.markers[-1].markers
+    assert len(surface.points) == len(surface.colors) == 3 * len(mesh.surface_triangles)
+    assert surface.header.frame_id == "world" and len(wireframe.points) > 0 and len(cloud.points) == 5
+    # The measured top face stays near z = SIDE.
+    top = np.isclose(mesh.vertices[:, 2], SIDE)
+    assert np.abs(np.asarray(io.estimates[2].positions).reshape(-1, 3)[top, 2] - SIDE).max() < 2e-3
+    assert node.alive()
+    assert_clean_exit(node, node.interrupt())
+
+
+def test_estimated_mesh_reaches_a_late_subscriber(probe, processes, tmp_path):
+    mesh = pushed_cube()
+    node = Process(tmp_path, "estimator_node", *ros_args("/late", "prediction_timeout:=0.0"))
+    processes.append(node)
+    mesh_publisher = probe.create_publisher(TetraMesh, "/late/initial_mesh", LATCHED)
+    cloud_publisher = probe.create_publisher(PointCloud2, "/late/points", KEEP)
+    statuses, diagnostics = [], []
+    status_subscription = probe.create_subscription(EstimatorStatus, "/late/status", statuses.append, KEEP)
+    probe.create_subscription(DiagnosticArray, "/diagnostics", lambda m: diagnostics.extend(
+        s for s in m.status if s.name == "/late/estimator_node: estimation"), KEEP)
+    # A best-effort reader drops what arrives before it has matched the writer: wait until the node
+    # has been up for a while (its first diagnostics), not only until our writer sees it.
+    assert spin_until(probe, lambda: cloud_publisher.get_subscription_count() == 1
+                      and status_subscription.get_publisher_count() == 1 and diagnostics)
+    mesh_publisher.publish(mesh_msg(mesh))
+    cloud_publisher.publish(cloud_msg(top_points(), 7 * S))
+    assert spin_until(probe, lambda: len(statuses) == 1)
+    late = []  # transient-local: subscribing after the publication still delivers the newest state
+    probe.create_subscription(TetraMesh, "/late/estimated_mesh", late.append, LATCHED)
+    assert spin_until(probe, lambda: len(late) == 1)
+    assert stamp_ns_from_msg(late[0].header.stamp) == 7 * S
+    assert_clean_exit(node, node.interrupt())
+
+
+# ---------------------------------------------------------------------------- bag player
+@pytest.fixture(scope="module")
+def small_recording(tmp_path_factory):
+    """Initial mesh, 4 tool poses and 4 clouds 0.2 s apart."""
+    path = tmp_path_factory.mktemp("bag") / "small"
+    mesh = pushed_cube()
+    poses = [PoseRecord(S + k * S // 5, "world", [0.01 * k, 0.0, 0.1, 0.0, 0.0, 0.0, 1.0]) for k in range(4)]
+    clouds = [PointCloudRecord(S + k * S // 5, "world", top_points(10 + k, seed=k)) for k in range(4)]
+    with RecordingWriter(path) as writer:
+        writer.write("/rec/initial_mesh", MeshState(S, "world", 0, mesh.vertices, mesh.tetrahedra,
+                                                    mesh.surface_triangles, mesh.fixed_vertices))
+        for pose, cloud in zip(poses, clouds, strict=True):
+            writer.write("/rec/tool_pose", pose)
+            writer.write("/rec/points", cloud)
+    return path, mesh, poses, clouds
+
+
+def test_bag_player_plays_at_the_recorded_rate_with_clock(probe, processes, tmp_path, small_recording):
+    path, mesh, poses, clouds = small_recording
+    received = {"mesh": [], "poses": [], "clouds": [], "clock": []}
+    probe.create_subscription(TetraMesh, "/rec/initial_mesh", received["mesh"].append, LATCHED)
+    probe.create_subscription(PoseStamped, "/rec/tool_pose",
+                              lambda m: received["poses"].append((time.monotonic(), m)), KEEP)
+    probe.create_subscription(PointCloud2, "/rec/points", received["clouds"].append, KEEP)
+    probe.create_subscription(Clock, "/clock", received["clock"].append, KEEP)
+    player = Process(tmp_path, "bag_player", str(path), "--rate", "2", "--wait-for-subscribers", "30")
+    processes.append(player)
+    assert spin_until(probe, lambda: player.popen.poll() is not None and len(received["clouds"]) == 4)
+    spin_until(probe, lambda: False, timeout_s=0.3)  # the last clock messages
+    assert_clean_exit(player, player.popen.returncode)
+    assert len(received["mesh"]) == 1 and np.array_equal(np.asarray(received["mesh"][0].positions),
+                                                         mesh.vertices.reshape(-1))
+    assert [stamp_ns_from_msg(m.header.stamp) for _, m in received["poses"]] == [p.stamp_ns for p in poses]
+    assert received["poses"][-1][1].pose.position.x == pytest.approx(0.03)
+    for message, cloud in zip(received["clouds"], clouds, strict=True):
+        recorded = cloud.points.astype(np.float32)  # clouds are recorded as FLOAT32 x, y, z
+        np.testing.assert_array_equal(decode_pointcloud2(message).points, recorded)
+    # 0.6 s of recording at rate 2: 0.3 s between the first and the last pose.
+    elapsed = received["poses"][-1][0] - received["poses"][0][0]
+    assert 0.25 < elapsed < 0.6
+    clock = [stamp_ns_from_msg(m.clock) for m in received["clock"]]
+    assert clock == sorted(clock) and clock[0] == S and clock[-1] == poses[-1].stamp_ns
+    assert len(clock) > 10  # also between the messages
+
+
+def test_bag_player_errors_and_interrupt(probe, processes, tmp_path, small_recording):
+    missing = Process(tmp_path, "bag_player", str(tmp_path / "nothing"))
+    unknown_topic = Process(tmp_path, "bag_player", str(small_recording[0]), "--topics", "/rec/nothing")
+    waiting = Process(tmp_path, "bag_player", str(small_recording[0]), "--topics", "/rec/points",
+                      "--wait-for-subscribers", "600", *ros_args("/", ), "-r", "/rec/points:=/nobody/points")
+    processes += [missing, unknown_topic, waiting]
+    assert missing.popen.wait(timeout=60) == 1
+    assert "does not exist" in missing.output() and "Traceback" not in missing.output()
+    assert unknown_topic.popen.wait(timeout=60) == 1
+    assert "topic /rec/nothing is not in" in unknown_topic.output()
+    # Interrupted while it waits for a subscriber that never comes.
+    assert spin_until(probe, lambda: probe.count_publishers("/nobody/points") == 1)
+    assert waiting.alive()
+    assert_clean_exit(waiting, waiting.interrupt())
+
+
+def test_launch_file_is_valid_python():
+    launch_file = REPOSITORY / "launch" / "meshfg.launch.py"
+    py_compile.compile(str(launch_file), doraise=True)
+    launch = pytest.importorskip("launch")
+    namespace = {}
+    exec(compile(launch_file.read_text(), str(launch_file), "exec"), namespace)
+    assert isinstance(namespace["generate_launch_description"](), launch.LaunchDescription)
+
+
+def test_recorded_messages_of_any_type_convert_to_rclpy():
+    make = RosbagsMessageFactory().make
+    info = make("sensor_msgs/msg/CameraInfo", header=header_msg(5 * S, "camera"), height=480, width=640,
+                distortion_model="plumb_bob", d=np.array([0.1, -0.2, 0.0, 0.0, 0.01]),
+                k=np.arange(9.0), r=np.eye(3).reshape(-1), p=np.arange(12.0), binning_x=0, binning_y=0,
+                roi=make("sensor_msgs/msg/RegionOfInterest", x_offset=1, y_offset=2, height=3, width=4,
+                         do_rectify=True))
+    converted = rclpy_message(info)
+    assert type(converted).__module__.startswith("sensor_msgs.msg")
+    assert stamp_ns_from_msg(converted.header.stamp) == 5 * S and converted.header.frame_id == "camera"
+    assert (converted.height, converted.width, converted.distortion_model) == (480, 640, "plumb_bob")
+    np.testing.assert_array_equal(converted.d, [0.1, -0.2, 0.0, 0.0, 0.01])
+    np.testing.assert_array_equal(converted.k, np.arange(9.0))
+    assert converted.roi.do_rectify and converted.roi.width == 4
+    text = rclpy_message(make("std_msgs/msg/String", data='{"scenario": "x"}'))
+    assert text.data == '{"scenario": "x"}'
+    markers = rclpy_message(make("visualization_msgs/msg/MarkerArray", markers=[]))
+    assert isinstance(markers, MarkerArray) and markers.markers == []

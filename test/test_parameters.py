@@ -1,0 +1,155 @@
+"""The parameter table: config/meshfg.yaml matches it, validation names the key, core configs follow."""
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from rcl_interfaces.msg import ParameterType
+
+from meshfg_ros.core.estimator import EstimatorConfig
+from meshfg_ros.core.parameters import (
+    PARAMETERS,
+    FrameError,
+    ParameterError,
+    cloud_to_world,
+    default_parameters,
+    estimator_config,
+    load_parameters,
+    read_parameters_file,
+    simulator_config,
+)
+from meshfg_ros.core.simulator import SimulatorConfig
+from meshfg_ros.nodes.ros_conversions import parameter_descriptor
+
+CONFIG = Path(__file__).resolve().parents[1] / "config" / "meshfg.yaml"
+PYTHON_TYPES = {"double": float, "integer": int, "string": str, "bool": bool}
+
+
+def config_section() -> dict:
+    document = yaml.safe_load(CONFIG.read_text())
+    assert list(document) == ["/**"]
+    return document["/**"]["ros__parameters"]
+
+
+def test_config_file_lists_every_parameter_at_its_default_with_its_ros_type():
+    section = config_section()
+    assert list(section) == [parameter.name for parameter in PARAMETERS]
+    for parameter in PARAMETERS:
+        value = section[parameter.name]
+        if parameter.type.endswith("_array"):
+            assert tuple(value) == parameter.default, parameter.name
+            element_type = PYTHON_TYPES[parameter.type.removesuffix("_array")]
+            assert all(type(item) is element_type for item in value), parameter.name
+        else:
+            # The exact type: ROS rejects 3000 (an integer) for a double parameter.
+            assert type(value) is PYTHON_TYPES[parameter.type], parameter.name
+            assert value == parameter.default, parameter.name
+    assert read_parameters_file(CONFIG) == default_parameters()
+
+
+def test_every_default_is_valid_and_described():
+    assert load_parameters() == default_parameters()
+    assert len({parameter.name for parameter in PARAMETERS}) == len(PARAMETERS)
+    for parameter in PARAMETERS:
+        assert parameter.validate(parameter.default) == parameter.default
+        assert parameter.description.endswith(".") and len(parameter.description) > 20
+
+
+def test_descriptors_carry_type_range_and_choices():
+    by_name = {parameter.name: parameter_descriptor(parameter) for parameter in PARAMETERS}
+    assert by_name["poisson_ratio"].type == ParameterType.PARAMETER_DOUBLE
+    (poisson_range,) = by_name["poisson_ratio"].floating_point_range
+    assert (poisson_range.from_value, poisson_range.to_value) == (0.001, 0.499)
+    (window_range,) = by_name["window_size"].integer_range
+    assert (window_range.from_value, window_range.to_value, window_range.step) == (1, 100, 1)
+    assert by_name["tool_mode"].additional_constraints == "one of: sphere, grasp"
+    assert by_name["grasped_vertices"].type == ParameterType.PARAMETER_INTEGER_ARRAY
+    assert by_name["camera_pose"].additional_constraints == "exactly 7 values"
+    assert all(descriptor.read_only and descriptor.description for descriptor in by_name.values())
+    assert by_name["grasped_vertices"].type == ParameterType.PARAMETER_INTEGER_ARRAY
+
+
+@pytest.mark.parametrize("mapping, message", [
+    ({"youngs_modulus_pa": 1.0}, "unknown parameter 'youngs_modulus_pa'"),
+    ({"youngs_modulus": "soft"}, "youngs_modulus must be a number"),
+    ({"youngs_modulus": True}, "youngs_modulus must be a number"),
+    ({"youngs_modulus": float("nan")}, "youngs_modulus must be finite"),
+    ({"youngs_modulus": -5.0}, r"youngs_modulus = -5.0 is outside \[1, 1e\+09\]"),
+    ({"poisson_ratio": 0.5}, r"poisson_ratio = 0.5 is outside \[0.001, 0.499\]"),
+    ({"window_size": 2.0}, "window_size must be an integer"),
+    ({"window_size": 0}, r"window_size = 0 is outside \[1, 100\]"),
+    ({"spd_projection": 1}, "spd_projection must be a bool"),
+    ({"tool_mode": "scalpel"}, "tool_mode must be one of sphere, grasp; got 'scalpel'"),
+    ({"world_frame": 3}, "world_frame must be a string"),
+    ({"camera_pose": [0.0, 0.0, 0.0, 1.0]}, "camera_pose must have 7 values, got 4"),
+    ({"camera_pose": "identity"}, "camera_pose must be a list"),
+    ({"camera_pose": [0.0] * 7}, "camera_pose quaternion has zero norm"),
+    ({"tool_mode": "grasp", "grasped_vertices": [1, -2]}, r"grasped_vertices\[1\] = -2 is outside \[0, inf\]"),
+    ({"tool_mode": "grasp", "grasped_vertices": [1.5]}, r"grasped_vertices\[0\] must be an integer"),
+    ({"tool_mode": "grasp"}, "tool_mode 'grasp' needs grasped_vertices"),
+    ({"grasped_vertices": [1, 2]}, "grasped_vertices is set but tool_mode is not 'grasp'"),
+])
+def test_invalid_parameters_name_the_key(mapping, message):
+    with pytest.raises(ParameterError, match=message):
+        load_parameters(mapping)
+
+
+def test_values_are_normalised():
+    params = load_parameters({"youngs_modulus": 5000, "tool_mode": "grasp", "grasped_vertices": np.array([3, 1]),
+                              "camera_pose": [1, 2, 3, 0, 0, 0, 1]})
+    assert type(params["youngs_modulus"]) is float and params["youngs_modulus"] == 5000.0
+    assert params["grasped_vertices"] == (3, 1) and all(type(v) is int for v in params["grasped_vertices"])
+    assert params["camera_pose"] == (1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 1.0)
+    with pytest.raises(ParameterError, match="parameters must be a mapping"):
+        load_parameters([("youngs_modulus", 1.0)])
+
+
+def test_core_configurations_follow_the_parameters():
+    params = load_parameters({"youngs_modulus": 8000.0, "poisson_ratio": 0.4, "density": 1100.0,
+                              "tool_radius": 0.002, "simulator_substeps": 4, "simulator_iterations": 7,
+                              "window_size": 5, "measurement_sigma": 0.0005, "max_iterations": 3})
+    simulator = simulator_config(params)
+    assert (simulator.youngs_modulus, simulator.poisson_ratio, simulator.density, simulator.tool_radius,
+            simulator.substeps, simulator.solver_iterations) == (8000.0, 0.4, 1100.0, 0.002, 4, 7)
+    estimator = estimator_config(params)
+    assert (estimator.window_size, estimator.measurement_sigma, estimator.max_iterations) == (5, 0.0005, 3)
+    # The table's defaults are the estimator's own.
+    assert estimator_config(default_parameters()) == EstimatorConfig()
+    assert simulator_config(default_parameters()) == SimulatorConfig()
+
+
+def test_parameters_file_formats(tmp_path):
+    ros_file = tmp_path / "ros.yaml"
+    ros_file.write_text(yaml.safe_dump({
+        "/**": {"ros__parameters": {"window_size": 4, "use_sim_time": True}},
+        "estimator_node": {"ros__parameters": {"window_size": 6}},
+        "simulation_node": {"ros__parameters": {"youngs_modulus": 9000.0}},
+    }))
+    assert read_parameters_file(ros_file)["window_size"] == 4
+    node_params = read_parameters_file(ros_file, node_name="estimator_node")
+    assert node_params["window_size"] == 6 and node_params["youngs_modulus"] == 3000.0
+    flat = tmp_path / "flat.yaml"
+    flat.write_text("factors: full\nmax_iterations: 12\n")
+    assert read_parameters_file(flat)["max_iterations"] == 12
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("- 1\n- 2\n")
+    with pytest.raises(ParameterError, match="must hold a mapping"):
+        read_parameters_file(bad)
+    unknown = tmp_path / "unknown.yaml"
+    unknown.write_text("max_iteration: 12\n")
+    with pytest.raises(ParameterError, match="unknown parameter 'max_iteration'"):
+        read_parameters_file(unknown)
+    with pytest.raises(ParameterError, match="cannot read parameters file"):
+        read_parameters_file(tmp_path / "missing.yaml")
+
+
+def test_clouds_move_from_the_camera_frame_to_the_world_frame():
+    quarter_turn_about_z = [0.0, 0.0, np.sqrt(0.5), np.sqrt(0.5)]
+    params = load_parameters({"camera_pose": [1.0, 2.0, 3.0, *quarter_turn_about_z], "camera_frame": "endoscope"})
+    points = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 2.0]])
+    assert cloud_to_world(points, "world", params) is points
+    np.testing.assert_allclose(cloud_to_world(points, "endoscope", params), [[1.0, 3.0, 3.0], [1.0, 2.0, 5.0]],
+                               atol=1e-15)
+    message = "cloud frame 'map' is neither world_frame 'world' nor camera_frame 'endoscope'"
+    with pytest.raises(FrameError, match=message):
+        cloud_to_world(points, "map", params)
