@@ -14,8 +14,9 @@ setup(
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/config", glob("config/*.yaml")),
         (f"share/{PACKAGE}/launch", glob("launch/*.py")),
-        (f"share/{PACKAGE}/bags", glob("bags/*.mcap")),
-    ],
+    ]
+    # Bundled recordings are rosbag2 directories (metadata.yaml + MCAP file).
+    + [(f"share/{PACKAGE}/{bag}", glob(f"{bag}/*")) for bag in sorted(glob("bags/*/"))],
     install_requires=["setuptools"],
     zip_safe=True,
     maintainer="meshfg_ros maintainers",

@@ -154,13 +154,14 @@ def _moller_trumbore(origin: np.ndarray, unit: np.ndarray, corners: np.ndarray) 
         q = np.cross(offset, edge1)
         v = np.einsum("ij,ij->i", unit, q) * inverse
         distance = np.einsum("ij,ij->i", edge2, q) * inverse
-    hit = (
-        (determinant != 0)
-        & (u >= -_BARYCENTRIC_SLACK)
-        & (v >= -_BARYCENTRIC_SLACK)
-        & (u + v <= 1 + _BARYCENTRIC_SLACK)
-        & (distance > 0)
-    )
+        # Rays parallel to a triangle give inf/nan barycentrics: they compare False (a miss).
+        hit = (
+            (determinant != 0)
+            & (u >= -_BARYCENTRIC_SLACK)
+            & (v >= -_BARYCENTRIC_SLACK)
+            & (u + v <= 1 + _BARYCENTRIC_SLACK)
+            & (distance > 0)
+        )
     return np.where(hit, distance, np.inf)
 
 
