@@ -11,6 +11,7 @@ nothing existing is overwritten.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from collections.abc import Callable
@@ -153,8 +154,7 @@ def _eval_arguments(parser: argparse.ArgumentParser) -> None:
 def run_eval(args: argparse.Namespace) -> int:
     from meshfg_ros.evaluation import DEFAULT_SAMPLES, evaluate_recordings, format_tables, write_json
 
-    if args.json is not None and (args.json.exists() or args.json.is_symlink()):
-        raise FileExistsError(17, "File exists (never overwritten)", str(args.json))
+    _refuse_existing(args.json)
     samples = DEFAULT_SAMPLES if args.samples is None else args.samples
     evaluation = evaluate_recordings(args.outbag, args.truth, samples)
     print(format_tables(evaluation))
@@ -219,6 +219,55 @@ def run_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+# --------------------------------------------------------------------------- ablation
+def _ablation_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--scenario", required=True, choices=("cube-translate", "cube-shear-spd", "cube-shear-nonspd"))
+    parser.add_argument("--steps", type=_positive_integer, default=15, help="steps at 1 Hz (default 15, as the paper)")
+    parser.add_argument("--seed", type=int, default=0, help="scenario seed (default 0)")
+    parser.add_argument("--json", type=Path, help="write the table as JSON (never overwritten)")
+
+
+def run_ablation(args: argparse.Namespace) -> int:
+    from meshfg_ros.ablation import format_table, run_ablation
+
+    _refuse_existing(args.json)
+    result = run_ablation(args.scenario, steps=args.steps, seed=args.seed)
+    print(format_table(result))
+    if args.json is not None:
+        args.json.write_text(json.dumps(result, indent=2))
+        print(f"\nwrote {args.json}")
+    return 0
+
+
+# --------------------------------------------------------------------------- bench
+def _bench_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--json", type=Path, help="write the figures as JSON (never overwritten)")
+    parser.add_argument("--plot", type=Path, help="write a PNG of latencies vs targets and baselines")
+    parser.add_argument("--sections", nargs="+", default=["core", "estimator", "baselines", "live"],
+                        choices=("core", "estimator", "baselines", "live"), help="what to measure (default: all)")
+    parser.add_argument("--bag", type=Path, help="recording for the live section (default: bundled cao-push)")
+
+
+def run_bench(args: argparse.Namespace) -> int:
+    from meshfg_ros.bench import format_report, run_bench, save, write_plot
+
+    _refuse_existing(args.json)
+    _refuse_existing(args.plot)
+    bag = args.bag if args.bag is not None else bundled_recording(DEMO_SCENARIO)
+    result = run_bench(tuple(args.sections), bag)
+    print(format_report(result))
+    save(result, args.json)
+    if args.plot is not None:
+        write_plot(result, args.plot)
+        print(f"wrote {args.plot}")
+    return 0
+
+
+def _refuse_existing(path: Path | None) -> None:
+    if path is not None and (path.exists() or path.is_symlink()):
+        raise FileExistsError(17, "File exists (never overwritten)", str(path))
+
+
 COMMANDS: tuple[Command, ...] = (
     Command("synth", "write a synthetic scenario as a rosbag2 recording", _synth_arguments, run_synth),
     Command("replay", "run simulator + estimator over a recording as the nodes would", _replay_arguments,
@@ -226,6 +275,9 @@ COMMANDS: tuple[Command, ...] = (
     Command("eval", "the paper's metrics of a replay against the ground truth", _eval_arguments, run_eval),
     Command("render", "PNG pictures of a replay", _render_arguments, run_render),
     Command("demo", "replay, evaluate and render the bundled airway-push recording", _demo_arguments, run_demo),
+    Command("ablation", "the paper's Table I: factor configurations on a deforming cube", _ablation_arguments,
+            run_ablation),
+    Command("bench", "latency and speed figures against targets and baselines", _bench_arguments, run_bench),
 )
 
 

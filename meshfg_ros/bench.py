@@ -1,0 +1,200 @@
+"""`meshfg bench`: speed figures measured in one run, with baselines measured in the same run.
+
+Sections (each can be skipped):
+- core: time to assemble K (linear, corotational) and one simulator step, on the liver, the
+  airway phantom and a ~10,000-vertex box;
+- estimator: per-update latency (median, p95), LM iterations and one linear solve at paper
+  scale (~500 vertices, 2,000 points, W=10) and organ scale (~10,000 vertices, 20,000
+  points, W=5), against the targets (p95 <= 30 ms and <= 1 s);
+- baselines: the same single window update (paper scale, association frozen, information
+  fixed) solved from the same start by meshfg's LM, GTSAM's LM and scipy's least_squares:
+  median time and final cost, and meshfg's speed-up;
+- live: cloud arrival to estimate published over real DDS on a bundled recording.
+Timings on a shared 2-core machine are noisy: compare ratios taken in the same run.
+"""
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+PAPER_SCALE = dict(target_vertices=500, points_per_step=2000, window_size=10, steps=20)
+ORGAN_SCALE = dict(target_vertices=10_000, points_per_step=20_000, window_size=5, steps=8)
+TARGETS_MS = {"paper_scale": 30.0, "organ_scale": 1000.0}
+SPEEDUP_TARGET = 10.0
+
+
+def _median_time(function, repeats: int) -> tuple[float, object]:
+    """Median wall time (ms) of `repeats` calls and the last call's result."""
+    times, result = [], None
+    for _ in range(repeats):
+        start = time.perf_counter()
+        result = function()
+        times.append(1e3 * (time.perf_counter() - start))
+    return float(np.median(times)), result
+
+
+def bench_core(repeats: int = 5, progress: bool = True) -> dict:
+    """K assembly and one simulator step on the liver, the airway tumour and a 10k box."""
+    from .core.fem import ElasticModel
+    from .core.meshing import airway_phantom, box_mesh
+    from .core.scenarios import liver_mesh, pose
+    from .core.simulator import SimulatorConfig, XpbdSimulator
+
+    box = box_mesh(10_000, (0.1, 0.1, 0.1))
+    box = box.with_fixed(np.flatnonzero(np.isclose(box.vertices[:, 2], 0.0)))
+    meshes = {"liver": liver_mesh(), "airway": airway_phantom().tumour, "box_10k": box}
+    out = {}
+    for name, mesh in tqdm(meshes.items(), desc="bench core", file=sys.stderr, disable=not progress):
+        model = ElasticModel(mesh.vertices, mesh.tetrahedra, 3e3, 0.45)
+        deformed = mesh.vertices + 1e-3 * np.sin(mesh.vertices * 40.0)
+        linear_ms, _ = _median_time(lambda: model.stiffness(kind="linear"), repeats)
+        corot_ms, _ = _median_time(lambda: model.stiffness(deformed, kind="corotational"), repeats)
+        extent = np.ptp(mesh.vertices, axis=0)
+        radius = 0.1 * float(extent.max())
+        free = np.setdiff1d(mesh.surface_vertices, mesh.fixed_vertices)
+        top = free[np.argmax(mesh.vertices[free, 1])]
+        start = mesh.vertices[top] + np.array([0.0, radius, 0.0])
+        simulator = XpbdSimulator(mesh, SimulatorConfig(tool_radius=radius))
+        simulator.reset(pose(start))
+        target = pose(start - np.array([0.0, 0.02 * extent.max(), 0.0]))
+
+        def one_step():
+            simulator.reset(pose(start))
+            return simulator.predict(mesh.vertices, target, 1.0)
+
+        step_ms, _ = _median_time(one_step, max(1, repeats // 2) if name == "box_10k" else repeats)
+        out[name] = {"vertices": mesh.vertex_count, "tetrahedra": mesh.tetrahedron_count,
+                     "assemble_linear_ms": linear_ms, "assemble_corotational_ms": corot_ms,
+                     "simulator_step_ms": step_ms}
+    return out
+
+
+def bench_estimator(scale: dict, progress: bool = True) -> dict:
+    """Per-update latency of the sliding-window estimator on a synthetic deforming box."""
+    from .core.baselines import benchmark_update, synthetic_sequence
+    from .core.estimator import EstimatorConfig
+
+    mesh, sequence = synthetic_sequence(scale["target_vertices"], scale["points_per_step"], scale["steps"])
+    config = EstimatorConfig(window_size=scale["window_size"])
+    result = benchmark_update(mesh, tqdm(sequence, desc=f"bench {mesh.vertex_count} vertices", file=sys.stderr,
+                                         disable=not progress), config)
+    return {"vertices": mesh.vertex_count, "points": scale["points_per_step"], "window_size": scale["window_size"],
+            "median_ms": result["median_ms"], "p95_ms": result["p95_ms"], "iterations": result["mean_iterations"],
+            "linear_solve_ms": result["linear_solve_ms"], "rmse_mm": 1e3 * float(np.mean(result["rmse_m"]))}
+
+
+def bench_baselines(repeats: int = 3, progress: bool = True) -> dict:
+    """One paper-scale window update solved by meshfg, GTSAM and scipy from the same start."""
+    from .core.baselines import compare_single_update, pending_window, synthetic_sequence
+    from .core.estimator import EstimatorConfig
+
+    scale = PAPER_SCALE
+    mesh, sequence = synthetic_sequence(scale["target_vertices"], scale["points_per_step"], scale["window_size"] + 1)
+    _, graph = pending_window(mesh, sequence, EstimatorConfig(window_size=scale["window_size"]))
+    out = {"problem": f"one window update: box {mesh.vertex_count} vertices, W={scale['window_size']}, "
+                      f"{scale['points_per_step']} points/step, association frozen, same start"}
+    for name in tqdm(("meshfg", "scipy", "gtsam"), desc="bench baselines", file=sys.stderr, disable=not progress):
+        runs = repeats if name == "meshfg" else 1
+        median_ms, results = _median_time(lambda: compare_single_update(graph, solvers=(name,)), runs)
+        result = results[name]
+        out[name] = {"median_ms": median_ms, "final_cost": float(result.cost)}
+    for name in ("scipy", "gtsam"):
+        out[name]["meshfg_speedup"] = out[name]["median_ms"] / out["meshfg"]["median_ms"]
+        out[name]["relative_cost_difference"] = abs(out[name]["final_cost"] - out["meshfg"]["final_cost"]) / max(
+            abs(out[name]["final_cost"]), 1e-300)
+    return out
+
+
+def bench_live(bag: Path) -> dict:
+    """Cloud arrival to estimate published, simulation + estimator nodes over real DDS."""
+    from .nodes.latency import measure_live_latency
+
+    return measure_live_latency(bag)
+
+
+def run_bench(sections=("core", "estimator", "baselines", "live"), bag: Path | None = None,
+              progress: bool = True) -> dict:
+    """Run the chosen sections; the JSON structure of `meshfg bench --json`."""
+    out = {}
+    if "core" in sections:
+        out["core"] = bench_core(progress=progress)
+    if "estimator" in sections:
+        out["paper_scale"] = bench_estimator(PAPER_SCALE, progress)
+        out["organ_scale"] = bench_estimator(ORGAN_SCALE, progress)
+    if "baselines" in sections:
+        out["baselines"] = bench_baselines(progress=progress)
+    if "live" in sections and bag is not None:
+        out["live"] = bench_live(bag)
+    return out
+
+
+def format_report(result: dict) -> str:
+    """Human-readable figures and their ratios to targets and baselines."""
+    lines = []
+    if "core" in result:
+        lines.append("Core (ms): mesh, vertices, K linear, K corotational, one simulator step")
+        for name, row in result["core"].items():
+            lines.append(f"  {name:<9}{row['vertices']:>7}{row['assemble_linear_ms']:>10.2f}"
+                         f"{row['assemble_corotational_ms']:>10.2f}{row['simulator_step_ms']:>10.1f}")
+    for key in ("paper_scale", "organ_scale"):
+        if key in result:
+            row, target = result[key], TARGETS_MS[key]
+            verdict = "met" if row["p95_ms"] <= target else "NOT met"
+            lines.append(f"Estimator {key}: {row['vertices']} vertices, {row['points']} points, W={row['window_size']}: "
+                         f"median {row['median_ms']:.1f} ms, p95 {row['p95_ms']:.1f} ms (target {target:g} ms: {verdict}), "
+                         f"{row['iterations']:.1f} LM iterations, linear solve {row['linear_solve_ms']:.2f} ms, "
+                         f"RMSE {row['rmse_mm']:.3f} mm")
+    if "baselines" in result:
+        base = result["baselines"]
+        lines.append(f"Baselines ({base['problem']}):")
+        lines.append(f"  meshfg  {base['meshfg']['median_ms']:>10.1f} ms  cost {base['meshfg']['final_cost']:.9g}")
+        for name in ("scipy", "gtsam"):
+            row = base[name]
+            verdict = "met" if row["meshfg_speedup"] >= SPEEDUP_TARGET else "NOT met"
+            lines.append(f"  {name:<7}{row['median_ms']:>10.1f} ms  cost {row['final_cost']:.9g}  meshfg is "
+                         f"{row['meshfg_speedup']:.1f}x faster (target {SPEEDUP_TARGET:g}x: {verdict}), "
+                         f"relative cost difference {row['relative_cost_difference']:.1e}")
+    if "live" in result:
+        live = result["live"]
+        lines.append(f"Live pipeline: cloud arrival to estimate published, median {live['latency_median_ms']:.0f} ms, "
+                     f"p95 {live['latency_p95_ms']:.0f} ms over {live['steps']} steps")
+    return "\n".join(lines)
+
+
+def write_plot(result: dict, path: Path) -> None:
+    """Bar chart of the latencies against their targets and the baselines."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    scales = [k for k in ("paper_scale", "organ_scale") if k in result]
+    if scales:
+        x = np.arange(len(scales))
+        axes[0].bar(x - 0.2, [result[k]["median_ms"] for k in scales], 0.4, label="median")
+        axes[0].bar(x + 0.2, [result[k]["p95_ms"] for k in scales], 0.4, label="p95")
+        axes[0].scatter(x, [TARGETS_MS[k] for k in scales], color="red", marker="_", s=900, label="target p95")
+        axes[0].set_xticks(x, scales)
+        axes[0].set_yscale("log")
+        axes[0].set_ylabel("update latency (ms)")
+        axes[0].legend()
+    if "baselines" in result:
+        names = ("meshfg", "scipy", "gtsam")
+        axes[1].bar(names, [result["baselines"][n]["median_ms"] for n in names], color=["C2", "C0", "C1"])
+        axes[1].set_yscale("log")
+        axes[1].set_ylabel("one window update (ms)")
+        axes[1].set_title("same problem, same start")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def save(result: dict, json_path: Path | None) -> None:
+    if json_path is not None:
+        Path(json_path).write_text(json.dumps(result, indent=2))
