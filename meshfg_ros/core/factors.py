@@ -1,0 +1,664 @@
+"""Factors of the mesh factor graph and the graph that assembles their normal equations.
+
+A factor touches the states (N, 3) of one or two keys and gives its residual r, its
+Jacobians dr/dX_key (sparse, w.r.t. the flattened vertex positions x0 y0 z0 x1 ...), its cost
+and its contribution to the Gauss-Newton normal equations. Noise models (noise.py) and robust
+kernels (robust.py) are separate objects passed to the factor.
+
+  PhysicsPriorFactor     r = Xhat_t - X_t,  information Lambda = scale * K(X_t) + ridge I
+  PointToSurfaceFactor   r_k = (a x_a + b x_b + c x_c) - m_k on the closest surface triangle
+  TemporalFactor         r = X_t - X_{t-1} (or - an anchor state), information I / sigma^2
+
+`FactorGraph` holds the states of a window (in time order), their factors and the fixed
+(boundary) vertices, and is the problem Levenberg-Marquardt solves: unknowns are the free
+vertex coordinates of every state; fixed vertices are eliminated (held at their known
+positions), which is exact and keeps the system well conditioned, unlike a stiff prior.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse
+
+from .closest_point import Association, CandidateCache, project_onto_triangles, projection_jacobian
+from .linear_solvers import WindowSystem, diagonal_positions
+from .noise import IdentityNoise, InformationMatrixNoise, PointNoise
+from .robust import RobustKernel
+
+__all__ = [
+    "Factor",
+    "FactorError",
+    "FactorGraph",
+    "FactorLinearization",
+    "PhysicsPriorFactor",
+    "PointBlocks",
+    "PointToSurfaceFactor",
+    "TemporalFactor",
+    "prior_scale",
+]
+
+
+class FactorError(ValueError):
+    """Bad factor input: wrong shapes, unknown keys, non-finite values."""
+
+
+def _as_state(array, vertex_count: int, what: str) -> np.ndarray:
+    state = np.asarray(array, dtype=np.float64)
+    if state.shape != (vertex_count, 3):
+        raise FactorError(f"{what} must have shape ({vertex_count}, 3), got {state.shape}")
+    if not np.all(np.isfinite(state)):
+        raise FactorError(f"{what} contains NaN or infinite values")
+    return state
+
+
+@dataclass
+class PointBlocks:
+    """Per-point normal-equation terms of point-to-triangle residuals: triangle (P,) surface
+    triangle index, hessian (P, 81) = w J^T J (9x9 over the triangle's 9 coordinates, row
+    major), gradient (P, 9) = w J^T r."""
+
+    triangle: np.ndarray
+    hessian: np.ndarray
+    gradient: np.ndarray
+
+
+@dataclass
+class FactorLinearization:
+    """A factor's cost and normal-equation terms at a linearisation point.
+
+    gradients[key] (3N,) = J_key^T W r; hessians[(key, key)] csr (3N, 3N) = J^T W J;
+    identity_terms[(key_i, key_j)] = c for a c * I block (i == j on the diagonal block,
+    i != j the off-diagonal block); point_blocks[key] per-point terms (measurements).
+    """
+
+    cost: float
+    gradients: dict = field(default_factory=dict)
+    hessians: dict = field(default_factory=dict)
+    identity_terms: dict = field(default_factory=dict)
+    point_blocks: dict = field(default_factory=dict)
+
+
+class Factor:
+    """Base: keys (the state keys it touches), residual, Jacobians, cost and linearisation."""
+
+    keys: tuple = ()
+
+    def residual(self, states: dict) -> np.ndarray:
+        raise NotImplementedError
+
+    def jacobians(self, states: dict) -> dict:
+        """dr/dX_key for each key: csr (m, 3N)."""
+        raise NotImplementedError
+
+    def cost(self, states: dict) -> float:
+        raise NotImplementedError
+
+    def linearize(self, states: dict) -> FactorLinearization:
+        raise NotImplementedError
+
+
+def prior_scale(stiffness, simulation_sigma: float, free_dofs=None) -> float:
+    """Scale s with mean(diag(s K)) = 1 / simulation_sigma^2 over `free_dofs` (None: all).
+
+    K is in N/m and measurement information in 1/m^2, so K needs a scale ("temperature").
+    Choosing it so the prior's mean per-coordinate information equals that of an independent
+    simulator error of std `simulation_sigma` [m] per vertex coordinate makes the prior weigh
+    like the simulator's expected accuracy while keeping K's stiffness ratios.
+    """
+    if not (np.isfinite(simulation_sigma) and simulation_sigma > 0.0):
+        raise FactorError(f"simulation_sigma must be finite and > 0, got {simulation_sigma}")
+    diagonal = scipy.sparse.csr_matrix(stiffness).diagonal()
+    if free_dofs is not None:
+        diagonal = diagonal[free_dofs]
+    mean = float(np.mean(diagonal))
+    if not mean > 0.0:
+        raise FactorError("stiffness has a non-positive mean diagonal")
+    return 1.0 / (simulation_sigma**2 * mean)
+
+
+class PhysicsPriorFactor(Factor):
+    """r = Xhat - X with information Lambda(X) = scale * K(X) + ridge * I.
+
+    model: an ElasticModel (core.fem); kind / spd_projection select K. K depends on X and is
+    treated as the information matrix, not differentiated. With relinearize=True it is
+    re-evaluated at the linearisation point on every `linearize` (once per LM iteration);
+    with relinearize=False it is evaluated at the first linearisation and kept until
+    `invalidate_information()` (the estimator does that once per update, see estimator.py).
+    `cost` uses the Lambda of the last evaluation, so a trial step is judged on the same
+    quadratic as its model. The tiny ridge fixes the 6 rigid-body modes a free body's K leaves without
+    information. Raw neo-Hookean K may be indefinite: then Lambda is too, and the solver's
+    damping must make the step system positive definite.
+    """
+
+    def __init__(self, key, predicted, model, kind: str = "corotational", spd_projection: bool = False,
+                 scale: float = 1.0, ridge: float = 0.0, relinearize: bool = True):
+        self.keys = (key,)
+        self.model = model
+        self.predicted = _as_state(predicted, model.vertex_count, "predicted state")
+        self.kind = kind
+        self.spd_projection = bool(spd_projection)
+        self.scale = float(scale)
+        self.ridge = float(ridge)
+        self.relinearize = bool(relinearize)
+        self._information: scipy.sparse.csr_matrix | None = None
+        self.information_state: np.ndarray | None = None  # where Lambda was last evaluated
+
+    def information(self, state: np.ndarray) -> scipy.sparse.csr_matrix:
+        """Lambda at `state` (N, 3); cached when K cannot change (linear kind or relinearize off)."""
+        constant = self.kind == "linear" or not self.relinearize
+        if self._information is None or not constant:
+            stiffness = self.model.stiffness(state, kind=self.kind, spd_projection=self.spd_projection)
+            information = (self.scale * stiffness).tocsr()
+            if self.ridge:
+                information = (information + scipy.sparse.identity(information.shape[0]) * self.ridge).tocsr()
+            self._information = information
+            self.information_state = np.array(state, dtype=np.float64)
+        return self._information
+
+    def invalidate_information(self) -> None:
+        """Make the next linearisation re-evaluate K at its linearisation point."""
+        if self.kind != "linear":
+            self._information = None
+
+    def noise_model(self, state: np.ndarray) -> InformationMatrixNoise:
+        return InformationMatrixNoise(self.information(state))
+
+    def residual(self, states):
+        return (self.predicted - states[self.keys[0]]).reshape(-1)
+
+    def jacobians(self, states):
+        size = 3 * self.model.vertex_count
+        return {self.keys[0]: -scipy.sparse.identity(size, format="csr")}
+
+    def cost(self, states):
+        if self._information is None:
+            self.information(states[self.keys[0]])
+        r = self.residual(states)
+        return 0.5 * float(r @ (self._information @ r))
+
+    def linearize(self, states):
+        key = self.keys[0]
+        information = self.information(states[key])
+        r = self.residual(states)
+        weighted = information @ r
+        return FactorLinearization(
+            cost=0.5 * float(r @ weighted),
+            gradients={key: -weighted},
+            hessians={(key, key): information},
+        )
+
+
+class TemporalFactor(Factor):
+    """r = X_t - X_previous with information I / sigma^2; the previous state is a key of the
+    graph, or (anchor) a constant state: one that left the window or the initial mesh."""
+
+    def __init__(self, key, sigma: float, previous_key=None, anchor=None):
+        if not (np.isfinite(sigma) and sigma > 0.0):
+            raise FactorError(f"temporal sigma must be finite and > 0, got {sigma}")
+        if (previous_key is None) == (anchor is None):
+            raise FactorError("a temporal factor needs exactly one of previous_key and anchor")
+        self.sigma = float(sigma)
+        self.weight = 1.0 / self.sigma**2
+        self.key = key
+        self.previous_key = previous_key
+        self.anchor = None if anchor is None else np.array(anchor, dtype=np.float64)
+        self.keys = (key,) if anchor is not None else (previous_key, key)
+
+    def _previous(self, states):
+        return self.anchor if self.anchor is not None else states[self.previous_key]
+
+    def residual(self, states):
+        return (states[self.key] - self._previous(states)).reshape(-1)
+
+    def jacobians(self, states):
+        size = states[self.key].size
+        identity = scipy.sparse.identity(size, format="csr")
+        out = {self.key: identity}
+        if self.anchor is None:
+            out[self.previous_key] = -identity
+        return out
+
+    def cost(self, states):
+        r = self.residual(states)
+        return 0.5 * self.weight * float(r @ r)
+
+    def linearize(self, states):
+        r = self.residual(states)
+        out = FactorLinearization(cost=0.5 * self.weight * float(r @ r))
+        out.gradients[self.key] = self.weight * r
+        out.identity_terms[(self.key, self.key)] = self.weight
+        if self.anchor is None:
+            out.gradients[self.previous_key] = -self.weight * r
+            out.identity_terms[(self.previous_key, self.previous_key)] = self.weight
+            out.identity_terms[(self.previous_key, self.key)] = -self.weight
+        return out
+
+
+class PointToSurfaceFactor(Factor):
+    """Measured points against the closest triangle of the surface of state `key`.
+
+    r_k = q_k - m_k with q_k the closed-form closest point (closest_point.py) on the closest
+    surface triangle; its Jacobian is the exact derivative of that projection (barycentrics
+    included). Association: the closest triangle is re-found whenever the residual is
+    evaluated (every cost evaluation and linearisation), exactly and cheaply through a
+    candidate cache that only re-queries the k-d tree after a surface vertex moved more than
+    `association_margin` [m] (default a tenth of the mean surface edge length); so the cost
+    is the true point-to-surface distance, continuous in X, and LM's gain ratio compares like
+    with like. `freeze_association` pins each point to its current triangle (for cross-checks
+    with other solvers).
+
+    Points farther than `gating_distance` from the surface at `initial_vertices` are rejected
+    once, at construction (num_points_rejected), so the objective does not change while LM
+    iterates. Cost: 0.5 sum_k w_k rho(|r_k|^2), w_k = 1/sigma_k^2, rho the robust kernel
+    (identity without one), applied as IRLS weights w_k rho'(|r_k|^2).
+    """
+
+    def __init__(self, key, points, surface_triangles, initial_vertices, noise: PointNoise | None = None,
+                 robust: RobustKernel | None = None, gating_distance: float = np.inf,
+                 association_margin: float | None = None):
+        points = np.asarray(points, dtype=np.float64)
+        if points.ndim != 2 or points.shape[1] != 3:
+            raise FactorError(f"points must have shape (K, 3), got {points.shape}")
+        if not np.all(np.isfinite(points)):
+            raise FactorError("points contain NaN or infinite values")
+        self.keys = (key,)
+        self.triangles = np.asarray(surface_triangles, dtype=np.int64)
+        initial_vertices = np.asarray(initial_vertices, dtype=np.float64)
+        self.vertex_count = len(initial_vertices)
+        noise = IdentityNoise() if noise is None else noise
+        noise.point_weights(len(points))  # validates per-point sizes
+        corners = initial_vertices[self.triangles]
+        edge_length = float(np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).mean())
+        self.association_margin = 0.1 * edge_length if association_margin is None else float(association_margin)
+        accepted = np.ones(len(points), dtype=bool)
+        cache = CandidateCache(points, self.triangles, self.association_margin) if len(points) else None
+        if np.isfinite(gating_distance) and cache is not None:
+            accepted = cache.associate(initial_vertices).distance <= gating_distance
+            if not accepted.all():
+                cache = cache.subset(accepted)
+        self.num_points_rejected = int(np.count_nonzero(~accepted))
+        self.points = points[accepted]
+        self.noise = noise.subset(accepted)
+        self.weights = self.noise.point_weights(len(self.points))
+        self.robust = robust
+        self._cache = cache if len(self.points) else None
+        self._frozen_triangle: np.ndarray | None = None
+
+    @property
+    def num_points(self) -> int:
+        return len(self.points)
+
+    @property
+    def frozen_triangles(self) -> np.ndarray | None:
+        """Triangle index per point pinned by `freeze_association`, or None (free association)."""
+        return self._frozen_triangle
+
+    def associate(self, states) -> Association:
+        """Closest triangle per point on the surface of the current state (or the frozen ones)."""
+        vertices = states[self.keys[0]]
+        if self._frozen_triangle is not None:
+            corners = vertices[self.triangles[self._frozen_triangle]]
+            projection = project_onto_triangles(self.points, corners[:, 0], corners[:, 1], corners[:, 2])
+            return Association(self._frozen_triangle, projection.closest, projection.barycentric,
+                               projection.region, np.sqrt(projection.squared_distance))
+        return self._cache.associate(vertices)
+
+    def freeze_association(self, states) -> np.ndarray:
+        """Pin every point to its closest triangle at `states`; returns those triangle indices."""
+        self._frozen_triangle = self.associate(states).triangle.copy()
+        return self._frozen_triangle
+
+    def _terms(self, states):
+        association = self.associate(states)
+        residual = association.closest - self.points
+        squared = np.einsum("ij,ij->i", residual, residual)
+        if self.robust is None:
+            cost_terms, irls = squared, self.weights
+        else:
+            cost_terms, irls = self.robust.rho(squared), self.weights * self.robust.weight(squared)
+        return association, residual, 0.5 * float(self.weights @ cost_terms), irls
+
+    def residual(self, states):
+        if not self.num_points:
+            return np.zeros(0)
+        return (self.associate(states).closest - self.points).reshape(-1)
+
+    def _point_jacobians(self, states, association):
+        corners = states[self.keys[0]][self.triangles[association.triangle]]
+        return projection_jacobian(self.points, corners[:, 0], corners[:, 1], corners[:, 2], association.region)
+
+    def jacobians(self, states):
+        size = 3 * self.vertex_count
+        if not self.num_points:
+            return {self.keys[0]: scipy.sparse.csr_matrix((0, size))}
+        association = self.associate(states)
+        jacobian = self._point_jacobians(states, association)  # (K, 3, 9)
+        vertex_dofs = 3 * self.triangles[association.triangle][:, :, None] + np.arange(3)  # (K, 3, 3)
+        rows = np.broadcast_to(np.arange(3 * self.num_points).reshape(-1, 3, 1), jacobian.shape)
+        cols = np.broadcast_to(vertex_dofs.reshape(-1, 1, 9), jacobian.shape)
+        matrix = scipy.sparse.csr_matrix(
+            (jacobian.reshape(-1), (rows.reshape(-1), cols.reshape(-1))), shape=(3 * self.num_points, size)
+        )
+        return {self.keys[0]: matrix}
+
+    def cost(self, states):
+        if not self.num_points:
+            return 0.0
+        return self._terms(states)[2]
+
+    def linearize(self, states):
+        key = self.keys[0]
+        if not self.num_points:
+            return FactorLinearization(cost=0.0)
+        association, residual, cost, irls = self._terms(states)
+        jacobian = self._point_jacobians(states, association)  # (K, 3, 9)
+        weighted = jacobian * irls[:, None, None]
+        hessian = np.einsum("kia,kib->kab", weighted, jacobian).reshape(-1, 81)
+        gradient = np.einsum("kia,ki->ka", weighted, residual)
+        blocks = PointBlocks(association.triangle, hessian, gradient)
+        return FactorLinearization(cost=cost, point_blocks={key: blocks})
+
+
+@dataclass
+class _StateLinearization:
+    """Cached normal-equation terms of the single-state factors of one state at x_lin."""
+
+    x_lin: np.ndarray        # (N, 3) linearisation point
+    data: np.ndarray         # (nnz + 1,) block values on the pattern (last: sink)
+    gradient: np.ndarray     # (3N,)
+    cost: float
+    block: scipy.sparse.csr_matrix | None = None  # block over the free dofs (for the model)
+
+
+class FactorGraph:
+    """States of a window (time order), their factors and fixed vertices; the LM problem.
+
+    vertex_count N, tetrahedra (M, 4) (sparsity pattern and inversion checks), surface
+    triangles (F, 3), fixed vertices (held at fixed_positions). Unknown vector x: the free
+    vertex coordinates of every state, concatenated in window order.
+
+    Relinearisation (as iSAM2's): the single-state factors of a state (physics prior,
+    measurements) are re-linearised when it moved more than `relinearize_threshold` [m] (RMS
+    vertex displacement) from where they were last linearised; otherwise their cached
+    Gauss-Newton quadratic c + g.d + 0.5 d.H d (d = X - X_lin) stands in for them, in the
+    gradient and in the cost, until the next linearisation. States that are re-linearised are
+    "active": `cost` evaluates their factors exactly. Old window states, which get no new
+    measurements, thus cost nothing until they really move. threshold 0 re-linearises every
+    state at every iteration (exact Levenberg-Marquardt on the window). Temporal factors are
+    exact quadratics and always evaluated directly. States in `exact_keys` (the estimator's
+    newest state, the one its new measurements and prediction act on) ignore the threshold.
+    """
+
+    def __init__(self, vertex_count: int, tetrahedra, surface_triangles, fixed_vertices=(), fixed_positions=None,
+                 relinearize_threshold: float = 0.0):
+        self.vertex_count = int(vertex_count)
+        self.tetrahedra = np.asarray(tetrahedra, dtype=np.int64)
+        self.surface_triangles = np.asarray(surface_triangles, dtype=np.int64)
+        fixed = np.unique(np.asarray(fixed_vertices, dtype=np.int64))
+        self.fixed_vertices = fixed
+        is_free = np.ones(self.vertex_count, dtype=bool)
+        is_free[fixed] = False
+        self.free_vertices = np.flatnonzero(is_free)
+        self.fixed_positions = None if fixed_positions is None else _as_state(fixed_positions, self.vertex_count, "fixed positions")[fixed]
+        self.free_dofs = (3 * self.free_vertices[:, None] + np.arange(3)).reshape(-1)
+        self.dof_count = 3 * self.vertex_count
+        self.block_size = self.free_dofs.size
+        self._free_index = np.full(self.dof_count, -1, dtype=np.int64)
+        self._free_index[self.free_dofs] = np.arange(self.block_size)
+        self.relinearize_threshold = float(relinearize_threshold)
+        self._build_pattern()
+        self.keys: list = []
+        self.states: dict = {}
+        self.factors: list[Factor] = []
+        self._positive: dict = {}
+        self._cache: dict = {}
+        self._active: set = set()
+        self.exact_keys: set = set()  # states re-linearised whenever they move at all
+        self.relinearizations = 0
+
+    # ------------------------------------------------------------------------ pattern
+    def _build_pattern(self) -> None:
+        """Block pattern over free dofs: every pair of dofs of vertices sharing a tetrahedron."""
+        tets = self.tetrahedra
+        vertex_rows = np.repeat(tets, 4, axis=1).reshape(-1)
+        vertex_cols = np.tile(tets, (1, 4)).reshape(-1)
+        rows = (3 * vertex_rows[:, None, None] + np.arange(3)[None, :, None]).repeat(3, axis=2).reshape(-1)
+        cols = (3 * vertex_cols[:, None, None] + np.arange(3)[None, None, :]).repeat(3, axis=1).reshape(-1)
+        free_rows, free_cols = self._free_index[rows], self._free_index[cols]
+        keep = (free_rows >= 0) & (free_cols >= 0)
+        n = self.block_size
+        keys = np.unique(free_rows[keep] * n + free_cols[keep])
+        keys = np.union1d(keys, np.arange(n) * (n + 1))
+        self._pattern_keys = keys
+        pattern_rows, pattern_cols = np.divmod(keys, n)
+        indptr = np.searchsorted(pattern_rows, np.arange(n + 1)).astype(np.int32)
+        self._pattern = scipy.sparse.csr_matrix(
+            (np.zeros(keys.size), pattern_cols.astype(np.int32), indptr), shape=(n, n)
+        )
+        self._diagonal_index = diagonal_positions(self._pattern)
+        # Positions of every triangle's 9x9 dof pairs (row major) in the pattern (or the sink).
+        triangle_dofs = (3 * self.surface_triangles[:, :, None] + np.arange(3)).reshape(-1, 9)
+        self._triangle_dofs = triangle_dofs
+        self._triangle_slots = self._slots(
+            np.repeat(triangle_dofs, 9, axis=1), np.tile(triangle_dofs, (1, 9))
+        ).reshape(-1, 81)
+        free_vertex_dofs = 3 * np.arange(n // 3)[:, None, None] + np.arange(3)
+        self._vertex_block_slots = np.searchsorted(
+            keys, (free_vertex_dofs * n + free_vertex_dofs.transpose(0, 2, 1)).reshape(-1)
+        ).reshape(-1, 3, 3)
+        self._csr_slot_cache: tuple | None = None
+
+    def _slots(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Pattern data positions of full-dof pairs (rows, cols); nnz (a sink slot) where a dof
+        is fixed."""
+        free_rows, free_cols = self._free_index[rows], self._free_index[cols]
+        inside = (free_rows >= 0) & (free_cols >= 0)
+        keys = free_rows * self.block_size + free_cols
+        slots = np.searchsorted(self._pattern_keys, np.where(inside, keys, 0))
+        slots = np.where(inside, slots, self._pattern_keys.size)
+        hit = slots[inside]
+        if np.any(hit >= self._pattern_keys.size) or np.any(self._pattern_keys[hit] != keys[inside]):
+            raise FactorError("a factor couples dofs of vertices that share no tetrahedron")
+        return slots
+
+    def _csr_slots(self, matrix: scipy.sparse.csr_matrix) -> np.ndarray:
+        cache = self._csr_slot_cache
+        if cache is not None and np.array_equal(cache[0], matrix.indptr) and np.array_equal(cache[1], matrix.indices):
+            return cache[2]
+        rows = np.repeat(np.arange(matrix.shape[0]), np.diff(matrix.indptr))
+        slots = self._slots(rows, matrix.indices.astype(np.int64))
+        self._csr_slot_cache = (matrix.indptr.copy(), matrix.indices.copy(), slots)
+        return slots
+
+    def newest_vertex_information(self) -> np.ndarray:
+        """3x3 information blocks (free vertices, 3, 3) of the newest state: its single-state
+        factors at their last linearisation plus its temporal terms."""
+        key = self.keys[-1]
+        cached = self._cache.get(key) or self._relinearize(key, self.states[key])
+        blocks = cached.data[self._vertex_block_slots].copy()
+        temporal = 0.0
+        for factor in self._cross_factors():
+            if key in factor.keys and isinstance(factor, TemporalFactor):
+                temporal += factor.weight
+        return blocks + temporal * np.eye(3)
+
+    # ------------------------------------------------------------------------ states
+    def add_state(self, key, initial) -> None:
+        """Append state `key` (newest) with initial positions (N, 3); fixed vertices are reset."""
+        if key in self.states:
+            raise FactorError(f"state {key!r} is already in the graph")
+        state = _as_state(initial, self.vertex_count, f"initial state {key!r}").copy()
+        if self.fixed_positions is not None:
+            state[self.fixed_vertices] = self.fixed_positions
+        self.keys.append(key)
+        self.states[key] = state
+
+    def remove_state(self, key) -> np.ndarray:
+        """Drop state `key` and every factor touching it; returns its positions."""
+        state = self.states.pop(key)
+        self.keys.remove(key)
+        self._positive.pop(key, None)
+        self._cache.pop(key, None)
+        self._active.discard(key)
+        self.factors = [factor for factor in self.factors if key not in factor.keys]
+        return state
+
+    def add_factor(self, factor: Factor) -> None:
+        unknown = [key for key in factor.keys if key not in self.states]
+        if unknown:
+            raise FactorError(f"factor touches unknown state {unknown[0]!r}")
+        self.factors.append(factor)
+        if len(factor.keys) == 1 and not isinstance(factor, TemporalFactor):
+            self._cache.pop(factor.keys[0], None)
+
+    def get_x(self) -> np.ndarray:
+        return np.concatenate([self.states[key].reshape(-1)[self.free_dofs] for key in self.keys])
+
+    def states_from_x(self, x: np.ndarray) -> dict:
+        parts = np.asarray(x, dtype=np.float64).reshape(len(self.keys), self.block_size)
+        states = {}
+        for key, part in zip(self.keys, parts):
+            flat = self.states[key].reshape(-1).copy()
+            flat[self.free_dofs] = part
+            states[key] = flat.reshape(-1, 3)
+        return states
+
+    def set_x(self, x: np.ndarray) -> None:
+        self.states = self.states_from_x(x)
+
+    # ------------------------------------------------------------------------ problem
+    def _single_state_factors(self, key) -> list:
+        """Factors on state `key` alone, except temporal ones (exact quadratics, never cached)."""
+        return [factor for factor in self.factors if factor.keys == (key,) and not isinstance(factor, TemporalFactor)]
+
+    def _relinearize(self, key, state: np.ndarray) -> _StateLinearization:
+        nnz = self._pattern_keys.size
+        data = np.zeros(nnz + 1)
+        gradient = np.zeros(self.dof_count)
+        cost = 0.0
+        states = {key: state}
+        for factor in self._single_state_factors(key):
+            terms = factor.linearize(states)
+            cost += terms.cost
+            self._accumulate(terms, key, data, gradient)
+        self.relinearizations += 1
+        pattern = self._pattern
+        block = scipy.sparse.csr_matrix((data[:nnz], pattern.indices, pattern.indptr), shape=pattern.shape)
+        return _StateLinearization(state.copy(), data, gradient, cost, block)
+
+    def _accumulate(self, terms: FactorLinearization, key, data: np.ndarray, gradient: np.ndarray) -> None:
+        nnz = self._pattern_keys.size
+        for values in terms.gradients.values():
+            gradient += values
+        for matrix in terms.hessians.values():
+            matrix = scipy.sparse.csr_matrix(matrix)
+            data += np.bincount(self._csr_slots(matrix), weights=matrix.data, minlength=nnz + 1)
+        for value in terms.identity_terms.values():
+            data[self._diagonal_index] += value
+        for blocks in terms.point_blocks.values():
+            slots = self._triangle_slots[blocks.triangle].reshape(-1)
+            data += np.bincount(slots, weights=blocks.hessian.reshape(-1), minlength=nnz + 1)
+            gradient += np.bincount(
+                self._triangle_dofs[blocks.triangle].reshape(-1), weights=blocks.gradient.reshape(-1),
+                minlength=self.dof_count,
+            )
+
+    def _model(self, cached: _StateLinearization, state: np.ndarray):
+        """(cost, gradient (3N,)) of the cached quadratic at `state`."""
+        delta = (state - cached.x_lin).reshape(-1)
+        free_delta = delta[self.free_dofs]
+        product = np.zeros(self.dof_count)
+        product[self.free_dofs] = cached.block @ free_delta
+        cost = cached.cost + float(cached.gradient @ delta) + 0.5 * float(free_delta @ product[self.free_dofs])
+        return cost, cached.gradient + product
+
+    def _moved(self, cached: _StateLinearization, state: np.ndarray) -> float:
+        """RMS vertex displacement since the linearisation (a max would let the few vertices at
+        sharp surface edges, where the closest triangle flips, re-linearise every state)."""
+        return float(np.sqrt(np.mean(np.sum((state - cached.x_lin) ** 2, axis=1))))
+
+    def _cross_factors(self) -> list:
+        return [factor for factor in self.factors if len(factor.keys) != 1 or isinstance(factor, TemporalFactor)]
+
+    def cost(self, x: np.ndarray) -> float:
+        """Total cost: exact for active states and temporal factors, cached model for the rest."""
+        states = self.states_from_x(x)
+        total = 0.0
+        for key in self.keys:
+            cached = self._cache.get(key)
+            if key in self._active or cached is None:
+                total += sum(factor.cost(states) for factor in self._single_state_factors(key))
+            else:
+                total += self._model(cached, states[key])[0]
+        total += sum(factor.cost(states) for factor in self._cross_factors())
+        return float(total)
+
+    def linearize(self, x: np.ndarray):
+        """(WindowSystem of J^T W J, gradient J^T W r over the free dofs, cost) at x."""
+        states = self.states_from_x(x)
+        window = len(self.keys)
+        nnz = self._pattern_keys.size
+        data = np.zeros((window, nnz + 1))
+        gradient = np.zeros((window, self.dof_count))
+        couplings = np.zeros(max(window - 1, 0))
+        coupling_diagonal = np.zeros(window)
+        cost = 0.0
+        self._active = set()
+        for t, key in enumerate(self.keys):
+            cached = self._cache.get(key)
+            threshold = 0.0 if key in self.exact_keys else self.relinearize_threshold
+            if cached is None or self._moved(cached, states[key]) > threshold:
+                cached = self._cache[key] = self._relinearize(key, states[key])
+                self._active.add(key)
+                cost += cached.cost
+                gradient[t] = cached.gradient
+            else:
+                model_cost, model_gradient = self._model(cached, states[key])
+                cost += model_cost
+                gradient[t] = model_gradient
+            data[t] = cached.data
+        position = {key: t for t, key in enumerate(self.keys)}
+        for factor in self._cross_factors():
+            terms = factor.linearize(states)
+            cost += terms.cost
+            for key, values in terms.gradients.items():
+                gradient[position[key]] += values
+            for (key_i, key_j), value in terms.identity_terms.items():
+                t, s = position[key_i], position[key_j]
+                if t == s:
+                    data[t, self._diagonal_index] += value
+                    coupling_diagonal[t] += value
+                elif abs(t - s) == 1:
+                    couplings[min(t, s)] += value
+                else:
+                    raise FactorError("identity terms may only couple consecutive states")
+            if terms.hessians or terms.point_blocks:
+                raise FactorError("factors across states must give scaled-identity terms only")
+        pattern = self._pattern
+        blocks = [
+            scipy.sparse.csr_matrix((data[t, :nnz], pattern.indices, pattern.indptr), shape=pattern.shape)
+            for t in range(window)
+        ]
+        system = WindowSystem(blocks, couplings, list(self.keys), self._diagonal_index, coupling_diagonal,
+                              self._vertex_block_slots)
+        positive = self._signed_volumes(np.stack([states[key] for key in self.keys])) > 0.0
+        self._positive = dict(zip(self.keys, positive))
+        return system, gradient[:, self.free_dofs].reshape(-1), cost
+
+    def _signed_volumes(self, state: np.ndarray) -> np.ndarray:
+        """Signed tetrahedron volumes of a state (N, 3) -> (M,), or of states (W, N, 3) -> (W, M)."""
+        corners = state[..., self.tetrahedra, :]
+        edges = corners[..., 1:, :] - corners[..., :1, :]
+        return np.einsum("...i,...i->...", np.cross(edges[..., 0, :], edges[..., 1, :]), edges[..., 2, :]) / 6.0
+
+    def acceptable(self, x: np.ndarray) -> bool:
+        """False when x inverts (signed volume <= 0) a tetrahedron that was positive at the
+        last linearisation point; elements already inverted there do not block a step."""
+        if len(self._positive) != len(self.keys):
+            return True
+        states = self.states_from_x(x)
+        volumes = self._signed_volumes(np.stack([states[key] for key in self.keys]))
+        positive = np.stack([self._positive[key] for key in self.keys])
+        return not np.any(positive & (volumes <= 0.0))

@@ -1,0 +1,202 @@
+"""Closest point on triangles: Voronoi regions, exact Jacobian (autograd + finite differences),
+and the k-d tree association against brute force."""
+
+import numpy as np
+import pytest
+import torch
+from torch.func import jacrev, vmap
+
+from meshfg_ros.core.closest_point import (
+    REGION_EDGE_AB,
+    REGION_EDGE_AC,
+    REGION_EDGE_BC,
+    REGION_FACE,
+    REGION_VERTEX_A,
+    REGION_VERTEX_B,
+    REGION_VERTEX_C,
+    CandidateCache,
+    ClosestPointIndex,
+    InvalidGeometryError,
+    brute_force_closest,
+    project_onto_triangles,
+    projection_jacobian,
+)
+from meshfg_ros.core.meshing import cube_mesh
+
+ALL_REGIONS = (REGION_FACE, REGION_VERTEX_A, REGION_VERTEX_B, REGION_VERTEX_C, REGION_EDGE_AB, REGION_EDGE_AC, REGION_EDGE_BC)
+
+
+def torch_closest_point(p, a, b, c):
+    """Ericson's closest point on a triangle in torch (one point), for autograd reference."""
+    ab, ac, ap = b - a, c - a, p - a
+    d1, d2 = ab @ ap, ac @ ap
+    bp = p - b
+    d3, d4 = ab @ bp, ac @ bp
+    cp = p - c
+    d5, d6 = ab @ cp, ac @ cp
+    vc = d1 * d4 - d3 * d2
+    vb = d5 * d2 - d1 * d6
+    va = d3 * d6 - d5 * d4
+    face = a + ab * (vb / (va + vb + vc)) + ac * (vc / (va + vb + vc))
+    edge_bc = b + (c - b) * ((d4 - d3) / ((d4 - d3) + (d5 - d6)))
+    edge_ac = a + ac * (d2 / (d2 - d6))
+    edge_ab = a + ab * (d1 / (d1 - d3))
+    # Nested where in reverse priority: the first passing test of Ericson's order wins.
+    result = face
+    result = torch.where((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0), edge_bc, result)
+    result = torch.where((vb <= 0) & (d2 >= 0) & (d6 <= 0), edge_ac, result)
+    result = torch.where((d6 >= 0) & (d5 <= d6), c, result)
+    result = torch.where((vc <= 0) & (d1 >= 0) & (d3 <= 0), edge_ab, result)
+    result = torch.where((d3 >= 0) & (d4 <= d3), b, result)
+    result = torch.where((d1 <= 0) & (d2 <= 0), a, result)
+    return result
+
+
+def random_cases(rng, count):
+    """Random non-sliver triangles (quality > 0.05, as on a mesh surface) and points spread
+    around them so every region is hit."""
+    a, b, c = (rng.normal(size=(4 * count, 3)) for _ in range(3))
+    area2 = np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    edges2 = ((b - a) ** 2).sum(1) + ((c - b) ** 2).sum(1) + ((a - c) ** 2).sum(1)
+    good = np.flatnonzero(2 * np.sqrt(3) * area2 / edges2 > 0.05)[:count]
+    a, b, c = a[good], b[good], c[good]
+    weights = rng.uniform(-1.0, 2.0, size=(count, 3))
+    weights /= weights.sum(axis=1, keepdims=True)
+    normal = np.cross(b - a, c - a)
+    points = weights[:, :1] * a + weights[:, 1:2] * b + weights[:, 2:] * c + rng.normal(size=(count, 1)) * normal
+    return points, a, b, c
+
+
+def test_every_voronoi_region_is_classified_and_closest_is_optimal():
+    rng = np.random.default_rng(0)
+    points, a, b, c = random_cases(rng, 4000)
+    projection = project_onto_triangles(points, a, b, c)
+    assert set(np.unique(projection.region)) == set(ALL_REGIONS)
+    bary = projection.barycentric
+    assert np.allclose(bary.sum(axis=1), 1.0) and bary.min() >= -1e-12
+    # No barycentric sample of the triangle is closer than the projection.
+    samples = rng.dirichlet(np.ones(3), size=400)
+    sampled = np.einsum("sk,pkj->psj", samples, np.stack([a, b, c], axis=1))
+    sampled_distance = ((sampled - points[:, None]) ** 2).sum(-1).min(axis=1)
+    assert np.all(projection.squared_distance <= sampled_distance + 1e-12)
+
+
+def test_regions_of_hand_placed_points():
+    a, b, c = np.array([0.0, 0, 0]), np.array([1.0, 0, 0]), np.array([0.0, 1, 0])
+    cases = {
+        REGION_FACE: ([0.2, 0.2, 0.5], [0.2, 0.2, 0.0]),
+        REGION_VERTEX_A: ([-1.0, -1.0, 0.3], a),
+        REGION_VERTEX_B: ([2.0, -0.5, 0.0], b),
+        REGION_VERTEX_C: ([-0.5, 2.0, 0.0], c),
+        REGION_EDGE_AB: ([0.5, -1.0, 0.0], [0.5, 0.0, 0.0]),
+        REGION_EDGE_AC: ([-1.0, 0.5, 0.0], [0.0, 0.5, 0.0]),
+        REGION_EDGE_BC: ([1.0, 1.0, 0.0], [0.5, 0.5, 0.0]),
+    }
+    points = np.array([point for point, _ in cases.values()])
+    tile = np.ones((len(points), 1))
+    projection = project_onto_triangles(points, tile * a, tile * b, tile * c)
+    assert projection.region.tolist() == list(cases)
+    assert np.allclose(projection.closest, np.array([closest for _, closest in cases.values()]), atol=1e-15)
+
+
+def test_jacobian_matches_torch_autograd_in_every_region():
+    rng = np.random.default_rng(1)
+    points, a, b, c = random_cases(rng, 3000)
+    analytic = projection_jacobian(points, a, b, c)
+    torch_inputs = [torch.tensor(x, dtype=torch.float64) for x in (points, a, b, c)]
+    reference = vmap(jacrev(torch_closest_point, argnums=(1, 2, 3)))(*torch_inputs)
+    reference = torch.cat(reference, dim=-1).numpy()
+    regions = project_onto_triangles(points, a, b, c).region
+    for code in ALL_REGIONS:
+        mask = regions == code
+        assert mask.sum() > 20
+        np.testing.assert_allclose(analytic[mask], reference[mask], rtol=1e-9, atol=1e-10)
+
+
+def test_jacobian_matches_central_finite_differences():
+    rng = np.random.default_rng(2)
+    points, a, b, c = random_cases(rng, 2000)
+    projection = project_onto_triangles(points, a, b, c)
+    analytic = projection_jacobian(points, a, b, c, projection.region)
+    corners = np.concatenate([a, b, c], axis=1)
+    step = 1e-6
+    numeric = np.zeros_like(analytic)
+    for column in range(9):
+        plus, minus = corners.copy(), corners.copy()
+        plus[:, column] += step
+        minus[:, column] -= step
+        forward = project_onto_triangles(points, plus[:, :3], plus[:, 3:6], plus[:, 6:])
+        backward = project_onto_triangles(points, minus[:, :3], minus[:, 3:6], minus[:, 6:])
+        numeric[:, :, column] = (forward.closest - backward.closest) / (2 * step)
+    # Points within the step of a region boundary have a kink; skip only those.
+    stable = np.ones(len(points), dtype=bool)
+    for column in range(9):
+        for sign in (1.0, -1.0):
+            moved = corners.copy()
+            moved[:, column] += sign * step
+            stable &= project_onto_triangles(points, moved[:, :3], moved[:, 3:6], moved[:, 6:]).region == projection.region
+    assert stable.mean() > 0.99
+    np.testing.assert_allclose(analytic[stable], numeric[stable], rtol=1e-6, atol=1e-7)
+
+
+def test_jacobian_times_residual_is_the_fixed_barycentric_gradient():
+    rng = np.random.default_rng(3)
+    points, a, b, c = random_cases(rng, 500)
+    projection = project_onto_triangles(points, a, b, c)
+    jacobian = projection_jacobian(points, a, b, c, projection.region)
+    residual = projection.closest - points
+    gradient = np.einsum("pij,pi->pj", jacobian, residual)
+    fixed = np.einsum("pk,pi->pki", projection.barycentric, residual).reshape(-1, 9)
+    np.testing.assert_allclose(gradient, fixed, rtol=1e-8, atol=1e-10)
+
+
+@pytest.fixture(scope="module")
+def cube_surface():
+    mesh = cube_mesh(side=1.0, divisions=6)
+    rng = np.random.default_rng(4)
+    vertices = mesh.vertices + rng.normal(scale=0.02, size=mesh.vertices.shape)
+    return vertices, mesh.surface_triangles
+
+
+def test_index_association_equals_brute_force(cube_surface):
+    vertices, triangles = cube_surface
+    rng = np.random.default_rng(5)
+    points = rng.uniform(-0.3, 1.3, size=(1500, 3))
+    index = ClosestPointIndex(vertices, triangles)
+    fast = index.associate(points)
+    slow = brute_force_closest(points, vertices, triangles)
+    np.testing.assert_allclose(fast.distance, slow.distance, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(fast.closest, slow.closest, rtol=0, atol=1e-14)
+    # Where the triangles differ it is a tie (a shared edge or vertex): same distance on both.
+    corners = vertices[triangles[fast.triangle]]
+    own = project_onto_triangles(points, corners[:, 0], corners[:, 1], corners[:, 2])
+    np.testing.assert_allclose(np.sqrt(own.squared_distance), slow.distance, rtol=0, atol=1e-14)
+
+
+def test_index_gating_rejects_far_points(cube_surface):
+    vertices, triangles = cube_surface
+    points = np.array([[0.5, 0.5, 1.05], [0.5, 0.5, 3.0], [-2.0, 0.5, 0.5]])
+    association = ClosestPointIndex(vertices, triangles).associate(points, max_distance=0.2)
+    assert association.triangle[0] >= 0 and association.triangle[1] == -1 and association.triangle[2] == -1
+    assert np.isinf(association.distance[1:]).all()
+
+
+def test_candidate_cache_stays_exact_under_motion(cube_surface):
+    vertices, triangles = cube_surface
+    rng = np.random.default_rng(6)
+    points = rng.uniform(-0.1, 1.1, size=(800, 3))
+    cache = CandidateCache(points, triangles, margin=0.03)
+    moved = vertices.copy()
+    for _ in range(6):
+        moved = moved + rng.normal(scale=0.006, size=moved.shape)
+        cached = cache.associate(moved)
+        slow = brute_force_closest(points, moved, triangles)
+        np.testing.assert_allclose(cached.distance, slow.distance, rtol=0, atol=1e-14)
+    assert cache.rebuild_count < 6  # small motions reuse the candidates
+
+
+def test_bad_input_raises():
+    with pytest.raises(InvalidGeometryError, match="points"):
+        ClosestPointIndex(np.zeros((3, 3)), np.array([[0, 1, 2]])).associate(np.zeros((4, 2)))
+    with pytest.raises(InvalidGeometryError, match="index"):
+        ClosestPointIndex(np.zeros((3, 3)), np.array([[0, 1, 3]]))

@@ -1,0 +1,271 @@
+"""Factors: Jacobians against finite differences / autograd, normal-equation terms, noise models,
+robust kernels, and the factor graph's assembly against an independent dense J^T W J."""
+
+import numpy as np
+import pytest
+import scipy.sparse
+import torch
+from torch.func import jacrev, vmap
+
+from meshfg_ros.core.baselines import WhitenedProblem, freeze_associations
+from meshfg_ros.core.factors import (
+    FactorError,
+    FactorGraph,
+    PhysicsPriorFactor,
+    PointToSurfaceFactor,
+    TemporalFactor,
+    prior_scale,
+)
+from meshfg_ros.core.fem import ElasticModel
+from meshfg_ros.core.meshing import cube_mesh
+from meshfg_ros.core.metrics import sample_surface
+from meshfg_ros.core.noise import (
+    IdentityNoise,
+    InformationMatrixNoise,
+    IsotropicNoise,
+    NoiseModelError,
+    NotPositiveDefiniteError,
+    PerPointNoise,
+)
+from meshfg_ros.core.robust import CauchyKernel, HuberKernel, RobustKernelError, make_robust_kernel
+
+from test_closest_point import torch_closest_point
+
+
+@pytest.fixture(scope="module")
+def cube():
+    mesh = cube_mesh(side=0.1, divisions=3)
+    return mesh.with_fixed(np.flatnonzero(mesh.vertices[:, 2] < 1e-9))
+
+
+@pytest.fixture(scope="module")
+def model(cube):
+    return ElasticModel(cube.vertices, cube.tetrahedra, 3e3, 0.45)
+
+
+def deformed(cube, amount=1.0, seed=0):
+    rng = np.random.default_rng(seed)
+    height = cube.vertices[:, 2:] / 0.1
+    return cube.vertices + amount * (np.array([[0.004, 0.001, -0.001]]) * height + rng.normal(scale=4e-4, size=cube.vertices.shape))
+
+
+def noisy_points(state, triangles, count=300, seed=0):
+    points = sample_surface(state, triangles, count, seed=seed)
+    return points + np.random.default_rng(seed).normal(scale=1.5e-3, size=points.shape)
+
+
+def central_differences(function, state, step=1e-7):
+    """d function(state) / d state.ravel() by central differences, (m, 3N)."""
+    flat = state.reshape(-1)
+    columns = []
+    for index in range(flat.size):
+        plus, minus = flat.copy(), flat.copy()
+        plus[index] += step
+        minus[index] -= step
+        columns.append((function(plus.reshape(-1, 3)) - function(minus.reshape(-1, 3))) / (2 * step))
+    return np.stack(columns, axis=1)
+
+
+def test_point_to_surface_jacobian_matches_finite_differences(cube):
+    state = deformed(cube)
+    factor = PointToSurfaceFactor(0, noisy_points(state, cube.surface_triangles), cube.surface_triangles, state,
+                                  IsotropicNoise(1e-3))
+    factor.freeze_association({0: state})  # no triangle switch inside the difference stencil
+    analytic = factor.jacobians({0: state})[0].toarray()
+    numeric = central_differences(lambda s: factor.residual({0: s}), state)
+    np.testing.assert_allclose(analytic, numeric, rtol=0, atol=1e-7)
+    assert np.abs(analytic).max() > 0.5
+
+
+def test_point_to_surface_jacobian_matches_torch_autograd(cube):
+    state = deformed(cube, seed=1)
+    points = noisy_points(state, cube.surface_triangles, 200, seed=1)
+    factor = PointToSurfaceFactor(0, points, cube.surface_triangles, state)
+    triangles = cube.surface_triangles[factor.associate({0: state}).triangle]
+    analytic = factor.jacobians({0: state})[0].toarray()
+
+    torch_points = torch.as_tensor(points)
+
+    def residuals(flat_state):
+        corners = flat_state.reshape(-1, 3)[torch.as_tensor(triangles)]
+        closest = vmap(torch_closest_point)(torch_points, corners[:, 0], corners[:, 1], corners[:, 2])
+        return (closest - torch_points).reshape(-1)
+
+    reference = jacrev(residuals)(torch.tensor(state.reshape(-1))).numpy()
+    np.testing.assert_allclose(analytic, reference, rtol=1e-9, atol=1e-12)
+
+
+def test_physics_and_temporal_jacobians_match_finite_differences(cube, model):
+    state, previous = deformed(cube), deformed(cube, 0.5, seed=3)
+    prior = PhysicsPriorFactor(1, deformed(cube, 1.2, seed=2), model, "corotational", scale=1.0)
+    temporal = TemporalFactor(1, 5e-3, previous_key=0)
+    states = {0: previous, 1: state}
+    np.testing.assert_allclose(prior.jacobians(states)[1].toarray(),
+                               central_differences(lambda s: prior.residual({1: s}), state), atol=1e-8)
+    for key in (0, 1):
+        def residual(s, key=key):
+            return temporal.residual({**states, key: s})
+        np.testing.assert_allclose(temporal.jacobians(states)[key].toarray(),
+                                   central_differences(residual, states[key]), atol=1e-8)
+
+
+def test_linearize_equals_weighted_normal_equations(cube, model):
+    state = deformed(cube)
+    points = noisy_points(state, cube.surface_triangles)
+    sigmas = np.random.default_rng(4).uniform(5e-4, 2e-3, len(points))
+    for robust in (None, HuberKernel(1e-3), CauchyKernel(1e-3)):
+        factor = PointToSurfaceFactor(0, points, cube.surface_triangles, state, PerPointNoise(sigmas), robust)
+        terms = factor.linearize({0: state})
+        jacobian = factor.jacobians({0: state})[0]
+        residual = factor.residual({0: state}).reshape(-1, 3)
+        squared = (residual**2).sum(axis=1)
+        weights = 1.0 / sigmas**2 * (1.0 if robust is None else robust.weight(squared))
+        weight_rows = scipy.sparse.diags(np.repeat(weights, 3))
+        blocks = terms.point_blocks[0]
+        tri_dofs = (3 * cube.surface_triangles[blocks.triangle][:, :, None] + np.arange(3)).reshape(-1, 9)
+        gradient = np.bincount(tri_dofs.reshape(-1), blocks.gradient.reshape(-1), minlength=jacobian.shape[1])
+        np.testing.assert_allclose(gradient, jacobian.T @ (weight_rows @ residual.reshape(-1)), rtol=1e-10, atol=1e-6)
+        hessian = np.zeros((jacobian.shape[1],) * 2)
+        np.add.at(hessian, (np.repeat(tri_dofs, 9, axis=1), np.tile(tri_dofs, (1, 9))), blocks.hessian)
+        np.testing.assert_allclose(hessian, (jacobian.T @ weight_rows @ jacobian).toarray(), rtol=1e-10, atol=1e-3)
+        expected_cost = 0.5 * np.sum(squared / sigmas**2) if robust is None else 0.5 * np.sum(robust.rho(squared) / sigmas**2)
+        assert terms.cost == pytest.approx(expected_cost, rel=1e-12)
+
+
+def test_prior_scale_sets_mean_information(model, cube):
+    stiffness = model.stiffness()
+    scale = prior_scale(stiffness, 2e-3)
+    assert np.mean(scale * stiffness.diagonal()) == pytest.approx(1.0 / 2e-3**2, rel=1e-12)
+    prior = PhysicsPriorFactor(0, cube.vertices, model, "linear", scale=scale, ridge=7.0)
+    information = prior.information(cube.vertices)
+    np.testing.assert_allclose(information.diagonal(), scale * stiffness.diagonal() + 7.0)
+    r = np.random.default_rng(5).normal(size=cube.vertices.shape)
+    states = {0: cube.vertices - r}
+    assert prior.cost(states) == pytest.approx(0.5 * r.reshape(-1) @ (information @ r.reshape(-1)), rel=1e-12)
+    noise = prior.noise_model(cube.vertices)  # the prior's sqrt-information (whitening) form
+    whitened = noise.whiten(r.reshape(-1))
+    assert 0.5 * whitened @ whitened == pytest.approx(prior.cost(states), rel=1e-9)
+    rebuilt = InformationMatrixNoise.from_sqrt_information(noise.sqrt_information())
+    np.testing.assert_allclose(rebuilt.information.toarray(), information.toarray(), rtol=1e-9, atol=1e-6)
+
+
+def test_physics_information_follows_the_state_unless_fixed(cube, model):
+    state = deformed(cube, 8.0)
+    moving = PhysicsPriorFactor(0, state, model, "corotational")
+    fixed = PhysicsPriorFactor(0, state, model, "corotational", relinearize=False)
+    first = moving.information(cube.vertices)
+    fixed.information(cube.vertices)
+    assert abs(moving.information(state) - first).max() > 1e-3 * abs(first).max()
+    assert abs(fixed.information(state) - first).max() == 0.0
+
+
+def test_gating_rejects_far_points(cube):
+    state = cube.vertices
+    points = np.array([[0.05, 0.05, 0.101], [0.05, 0.05, 0.2], [0.5, 0.5, 0.5], [0.05, -0.001, 0.05]])
+    factor = PointToSurfaceFactor(0, points, cube.surface_triangles, state, gating_distance=0.01)
+    assert factor.num_points == 2 and factor.num_points_rejected == 2
+    np.testing.assert_array_equal(factor.points, points[[0, 3]])
+
+
+def test_association_follows_the_surface_exactly(cube):
+    start = cube.vertices
+    points = noisy_points(deformed(cube, 2.0), cube.surface_triangles, 400, seed=6)
+    factor = PointToSurfaceFactor(0, points, cube.surface_triangles, start)
+    moved = deformed(cube, 3.0, seed=7)
+    from meshfg_ros.core.closest_point import brute_force_closest
+
+    reference = brute_force_closest(points, moved, cube.surface_triangles)
+    np.testing.assert_allclose(factor.associate({0: moved}).distance, reference.distance, atol=1e-15)
+
+
+def test_noise_models_and_robust_kernels():
+    assert np.allclose(IsotropicNoise(0.5).point_weights(3), 4.0)
+    assert np.allclose(IdentityNoise().point_weights(2), 1.0)
+    per_point = PerPointNoise([1.0, 2.0, 4.0]).subset(np.array([True, False, True]))
+    assert np.allclose(per_point.point_weights(2), [1.0, 1.0 / 16.0])
+    np.testing.assert_allclose(per_point.whiten(np.array([[1.0, 2.0, 3.0], [4.0, 8.0, 0.0]])),
+                               [[1.0, 2.0, 3.0], [1.0, 2.0, 0.0]])
+    with pytest.raises(NoiseModelError):
+        IsotropicNoise(0.0)
+    with pytest.raises(NoiseModelError):
+        PerPointNoise([1.0]).point_weights(2)
+    information = scipy.sparse.csr_matrix(np.array([[4.0, 1.0], [1.0, 3.0]]))
+    noise = InformationMatrixNoise(information)
+    root = noise.sqrt_information()
+    np.testing.assert_allclose(root.T @ root, information.toarray())
+    assert noise.squared_norm(np.array([1.0, 2.0])) == pytest.approx(4 + 4 + 12)
+    with pytest.raises(NotPositiveDefiniteError):
+        InformationMatrixNoise(np.array([[1.0, 2.0], [2.0, 1.0]])).sqrt_information()
+    huber, cauchy = HuberKernel(2.0), CauchyKernel(2.0)
+    squared = np.array([1.0, 4.0, 16.0])
+    np.testing.assert_allclose(huber.rho(squared), [1.0, 4.0, 2 * 2 * 4 - 4])
+    np.testing.assert_allclose(huber.weight(squared), [1.0, 1.0, 0.5])
+    np.testing.assert_allclose(cauchy.rho(squared), 4 * np.log1p(squared / 4))
+    np.testing.assert_allclose(cauchy.weight(squared), 1 / (1 + squared / 4))
+    assert make_robust_kernel("none", 1.0) is None and make_robust_kernel(None, 1.0) is None
+    with pytest.raises(RobustKernelError):
+        make_robust_kernel("tukey", 1.0)
+
+
+def build_window(cube, model, threshold=0.0, keys=3):
+    graph = FactorGraph(cube.vertex_count, cube.tetrahedra, cube.surface_triangles, cube.fixed_vertices,
+                        cube.vertices, threshold)
+    scale = prior_scale(model.stiffness(), 1e-3, graph.free_dofs)
+    for key in range(keys):
+        truth = deformed(cube, 0.5 * (key + 1), seed=10 + key)
+        predicted = deformed(cube, 0.5 * (key + 1), seed=20 + key)
+        graph.add_state(key, predicted)
+        graph.add_factor(PhysicsPriorFactor(key, predicted, model, "corotational", scale=scale, ridge=1.0,
+                                            relinearize=False))
+        graph.add_factor(PointToSurfaceFactor(key, noisy_points(truth, cube.surface_triangles, 200, key),
+                                              cube.surface_triangles, predicted, IsotropicNoise(1e-3)))
+        graph.add_factor(TemporalFactor(key, 5e-3, previous_key=key - 1) if key
+                         else TemporalFactor(key, 5e-3, anchor=cube.vertices))
+    return graph
+
+
+def test_graph_assembly_equals_dense_whitened_normal_equations(cube, model):
+    graph = build_window(cube, model)
+    freeze_associations(graph)
+    x = graph.get_x() + np.random.default_rng(8).normal(scale=1e-4, size=graph.get_x().size)
+    system, gradient, cost = graph.linearize(x)
+    whitened = WhitenedProblem(graph)
+    jacobian, residual = whitened.jacobian(x), whitened.residual(x)
+    np.testing.assert_allclose(system.to_csr().toarray(), (jacobian.T @ jacobian).toarray(), rtol=1e-9, atol=1e-3)
+    np.testing.assert_allclose(gradient, jacobian.T @ residual, rtol=1e-9, atol=1e-6)
+    assert cost == pytest.approx(0.5 * residual @ residual, rel=1e-12)
+    assert graph.cost(x) == pytest.approx(cost, rel=1e-12)
+    probe = np.random.default_rng(9).normal(size=x.size)
+    np.testing.assert_allclose(system.matvec(probe), system.to_csr() @ probe, rtol=1e-12, atol=1e-6)
+
+
+def test_relinearization_threshold_reuses_the_quadratic_model(cube, model):
+    graph = build_window(cube, model, threshold=1e-3)
+    x = graph.get_x()
+    graph.linearize(x)
+    assert graph.relinearizations == 3
+    small = x + 1e-5
+    system, gradient, cost = graph.linearize(small)
+    assert graph.relinearizations == 3  # nobody moved 1 mm: the cached models stand
+    # The stand-in is the Gauss-Newton quadratic at x: c + g.d + d.H d / 2 and gradient g + H d.
+    exact = build_window(cube, model, threshold=0.0)
+    lin_system, lin_gradient, lin_cost = exact.linearize(x)
+    d = small - x
+    assert cost == pytest.approx(lin_cost + lin_gradient @ d + 0.5 * d @ lin_system.matvec(d), rel=1e-12)
+    np.testing.assert_allclose(gradient, lin_gradient + lin_system.matvec(d), rtol=1e-10, atol=1e-8)
+    _, _, exact_cost = exact.linearize(small)
+    assert cost == pytest.approx(exact_cost, rel=1e-4)  # and close to the re-linearised cost
+    graph.linearize(x + 2e-3)
+    assert graph.relinearizations == 6
+
+
+def test_graph_rejects_bad_factors(cube, model):
+    graph = FactorGraph(cube.vertex_count, cube.tetrahedra, cube.surface_triangles)
+    with pytest.raises(FactorError, match="unknown state"):
+        graph.add_factor(TemporalFactor(1, 1e-3, anchor=cube.vertices))
+    with pytest.raises(FactorError):
+        TemporalFactor(1, 1e-3)
+    with pytest.raises(FactorError, match="shape"):
+        PointToSurfaceFactor(0, np.zeros((3, 2)), cube.surface_triangles, cube.vertices)
+    with pytest.raises(FactorError):
+        prior_scale(model.stiffness(), 0.0)

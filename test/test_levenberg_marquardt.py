@@ -1,0 +1,179 @@
+"""Levenberg-Marquardt and the linear solvers: optimum against scipy and GTSAM, indefinite
+systems, inversion rejection, solver agreement and fallback."""
+
+import numpy as np
+import pytest
+import scipy.optimize
+import scipy.sparse
+
+from meshfg_ros.core.baselines import compare_single_update
+from meshfg_ros.core.factors import FactorGraph, PhysicsPriorFactor, prior_scale
+from meshfg_ros.core.fem import ElasticModel
+from meshfg_ros.core.levenberg_marquardt import LevenbergMarquardtConfig, levenberg_marquardt
+from meshfg_ros.core.linear_solvers import (
+    CholeskySolver,
+    FallbackSolver,
+    LinearSolveError,
+    NotPositiveDefiniteError,
+    PCGSolver,
+    SuperLUSolver,
+    WindowSystem,
+    make_linear_solver,
+)
+from meshfg_ros.core.meshing import cube_mesh
+
+from test_factors import build_window, cube, model  # noqa: F401  (fixtures)
+
+TIGHT = LevenbergMarquardtConfig(max_iterations=200, cost_tolerance=1e-15, step_tolerance=1e-15,
+                                 gradient_tolerance=1e-15)
+
+
+class CurveFit:
+    """r_i = a exp(b t_i) - y_i, a small nonlinear least-squares problem."""
+
+    def __init__(self):
+        self.t = np.linspace(0.0, 1.0, 30)
+        self.y = 2.0 * np.exp(-1.3 * self.t) + 0.01 * np.sin(17 * self.t)
+
+    def residual(self, x):
+        return x[0] * np.exp(x[1] * self.t) - self.y
+
+    def jac(self, x):
+        e = np.exp(x[1] * self.t)
+        return np.stack([e, x[0] * self.t * e], axis=1)
+
+    def cost(self, x):
+        r = self.residual(x)
+        return 0.5 * r @ r
+
+    def linearize(self, x):
+        J, r = self.jac(x), self.residual(x)
+        return WindowSystem.single(J.T @ J), J.T @ r, self.cost(x)
+
+
+class Rosenbrock:
+    """Newton-type problem with the exact (indefinite at the start) Hessian as H."""
+
+    def cost(self, x):
+        return 0.5 * ((1 - x[0]) ** 2 + 100 * (x[1] - x[0] ** 2) ** 2)
+
+    def linearize(self, x):
+        a, b = x
+        gradient = np.array([-(1 - a) - 200 * a * (b - a * a), 100 * (b - a * a)])
+        hessian = np.array([[1 - 200 * b + 600 * a * a, -200 * a], [-200 * a, 100.0]])
+        return WindowSystem.single(hessian), gradient, self.cost(x)
+
+
+def test_curve_fit_matches_scipy():
+    problem = CurveFit()
+    result = levenberg_marquardt(problem, np.array([1.0, 0.0]), TIGHT, CholeskySolver())
+    reference = scipy.optimize.least_squares(problem.residual, [1.0, 0.0], jac=problem.jac, xtol=1e-15, ftol=1e-15,
+                                             gtol=1e-15)
+    assert result.converged
+    np.testing.assert_allclose(result.x, reference.x, rtol=1e-9)
+    assert result.final_cost == pytest.approx(0.5 * reference.fun @ reference.fun, rel=1e-12)
+    assert np.all(np.diff(result.cost_history) <= 0.0)
+    assert result.cost_history[0] == result.initial_cost and result.cost_history[-1] == result.final_cost
+
+
+@pytest.mark.parametrize("solver", [CholeskySolver(), PCGSolver(tolerance=1e-12)])
+def test_indefinite_hessian_raises_damping_and_converges(solver):
+    problem = Rosenbrock()
+    start = np.array([0.0, 1.0])
+    assert np.linalg.eigvalsh(problem.linearize(start)[0].to_csr().toarray()).min() < 0
+    result = levenberg_marquardt(problem, start, LevenbergMarquardtConfig(max_iterations=500, cost_tolerance=1e-20),
+                                 solver)
+    np.testing.assert_allclose(result.x, [1.0, 1.0], atol=1e-6)
+    assert result.not_positive_definite > 0
+    assert any("not positive definite" in message for message in result.messages)
+
+
+def test_steps_that_invert_tetrahedra_are_rejected():
+    mesh = cube_mesh(side=0.1, divisions=1)
+    model = ElasticModel(mesh.vertices, mesh.tetrahedra, 3e3, 0.45)
+    corner = int(np.argmax(mesh.vertices.sum(axis=1)))
+    target = mesh.vertices.copy()
+    target[corner] = [-0.05, -0.05, -0.05]  # through the cube: inverts its elements
+    graph = FactorGraph(mesh.vertex_count, mesh.tetrahedra, mesh.surface_triangles)
+    graph.add_state(0, mesh.vertices)
+    fixed = np.arange(mesh.vertex_count) != corner
+    graph.fixed_vertices = np.flatnonzero(fixed)
+    scale = prior_scale(model.stiffness(), 1e-3)
+    graph.add_factor(PhysicsPriorFactor(0, target, model, "linear", scale=scale, ridge=1.0))
+    result = levenberg_marquardt(graph, graph.get_x(), LevenbergMarquardtConfig(max_iterations=30), CholeskySolver())
+    final = graph.states_from_x(result.x)[0]
+    assert result.inverting_steps > 0
+    assert np.all(graph._signed_volumes(final) > 0.0)
+    assert result.final_cost < result.initial_cost
+
+
+def test_window_optimum_matches_scipy_and_gtsam(cube, model):  # noqa: F811
+    graph = build_window(cube, model, keys=2)
+    results = compare_single_update(graph, tolerance=1e-14)
+    ours = results["meshfg"]
+    for name in ("scipy", "gtsam"):
+        other = results[name]
+        assert other.cost == pytest.approx(ours.cost, rel=1e-6), name
+        assert np.abs(other.x - ours.x).max() < 1e-6, name
+    assert ours.cost < graph.cost(graph.get_x())
+
+
+def window_system(cube, model, damping=1e-3):  # noqa: F811
+    graph = build_window(cube, model)
+    system, gradient, _ = graph.linearize(graph.get_x())
+    return system.with_added_diagonal(damping * system.diagonal()), -gradient
+
+
+def test_linear_solvers_agree(cube, model):  # noqa: F811
+    system, rhs = window_system(cube, model)
+    reference = np.linalg.solve(system.to_csr().toarray(), rhs)
+    solvers = [CholeskySolver(), SuperLUSolver()] + [
+        PCGSolver(tolerance=1e-12, preconditioner=mode) for mode in ("block", "time", "vertex", "auto")
+    ]
+    for solver in solvers:
+        x, stats = solver.solve(system, rhs)
+        np.testing.assert_allclose(x, reference, rtol=1e-8, atol=1e-10 * np.abs(reference).max())
+        assert stats.time_ms >= 0.0
+    pcg = PCGSolver(tolerance=1e-12, preconditioner="block")
+    _, first = pcg.solve(system, rhs)
+    _, second = pcg.solve(system, rhs)
+    assert first.factorizations == 3 and second.factorizations == 0  # block factors are reused
+
+
+def test_indefinite_systems_are_reported():
+    matrix = scipy.sparse.csr_matrix(np.array([[2.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]]))
+    system = WindowSystem.single(matrix)
+    rhs = np.array([1.0, 1.0, 1.0])
+    with pytest.raises(NotPositiveDefiniteError):
+        CholeskySolver().solve(system, rhs)
+    with pytest.raises(NotPositiveDefiniteError):
+        PCGSolver(preconditioner="vertex").solve(system, rhs)
+    x, _ = SuperLUSolver().solve(system, rhs)
+    np.testing.assert_allclose(x, [0.5, -1.0, 1.0])
+
+
+def test_fallback_solver_says_what_failed(cube, model):  # noqa: F811
+    system, rhs = window_system(cube, model)
+    solver = FallbackSolver([PCGSolver(tolerance=1e-14, max_iterations=1, preconditioner="vertex"), CholeskySolver()])
+    x, stats = solver.solve(system, rhs)
+    assert "pcg failed" in stats.message and "solved with cholesky" in stats.message
+    np.testing.assert_allclose(system.matvec(x), rhs, rtol=1e-8, atol=1e-8 * np.abs(rhs).max())
+    with pytest.raises(LinearSolveError):
+        FallbackSolver([PCGSolver(tolerance=1e-14, max_iterations=1, preconditioner="vertex")]).solve(system, rhs)
+    with pytest.raises(ValueError):
+        make_linear_solver("qr")
+
+
+def test_estimator_window_problem_matches_scipy():
+    from meshfg_ros.core.baselines import pending_window, synthetic_sequence
+    from meshfg_ros.core.estimator import EstimatorConfig
+
+    mesh, sequence = synthetic_sequence(target_vertices=64, points_per_step=200, steps=4, noise_sigma=5e-4,
+                                        prediction_error=2e-3, seed=2)
+    _, graph = pending_window(mesh, sequence, EstimatorConfig(window_size=3, measurement_sigma=5e-4))
+    assert len(graph.keys) == 3
+    start_cost = graph.cost(graph.get_x())
+    results = compare_single_update(graph, solvers=("meshfg", "scipy"), tolerance=1e-13)
+    assert results["meshfg"].cost < 0.9 * start_cost
+    assert results["scipy"].cost == pytest.approx(results["meshfg"].cost, rel=1e-6)
+    assert np.abs(results["scipy"].x - results["meshfg"].x).max() < 1e-6
