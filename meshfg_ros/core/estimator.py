@@ -115,7 +115,7 @@ class EstimatorConfig:
     window_size: int = 10
     measurement_sigma: float = 1e-3
     simulation_sigma: float = 1e-3
-    temporal_sigma: float = 5e-3
+    temporal_sigma: float = 1e-2  # a weak random walk: up to ~1 cm per 1 Hz step (Table I: see README)
     stiffness_kind: str = "corotational"
     spd_projection: bool = False
     youngs_modulus: float = 3e3
