@@ -1,0 +1,51 @@
+"""Table I ablation on a short deforming-cube run: the paper's ordering of configurations."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from meshfg_ros.ablation import ABLATION_CONFIGURATIONS, VERTEX_SETS, format_table, run_ablation
+
+MESHFG = Path(sys.executable).with_name("meshfg")
+
+
+@pytest.fixture(scope="module")
+def shear_table():
+    return run_ablation("cube-shear-spd", steps=4, progress=False)
+
+
+def test_simulation_prior_gives_sub_millimetre_errors(shear_table):
+    rows = shear_table["configurations"]
+    for name in ("simulation+measurement", "full"):
+        for vertex_set in VERTEX_SETS:
+            assert rows[name][vertex_set]["mean_mm"] <= 0.73, (name, vertex_set)
+
+
+def test_configurations_order_as_in_the_paper(shear_table):
+    mean = {name: shear_table["configurations"][name]["all"]["mean_mm"] for name in ABLATION_CONFIGURATIONS}
+    worst_with_simulation = max(mean["simulation+measurement"], mean["full"])
+    assert worst_with_simulation < mean["temporal"] < mean["measurement"]
+    assert mean["measurement"] > mean["temporal+measurement"] > worst_with_simulation
+
+
+def test_table_and_json_layout(shear_table, tmp_path):
+    text = format_table(shear_table)
+    assert all(name in text for name in ABLATION_CONFIGURATIONS)
+    assert set(shear_table["configurations"]) == set(ABLATION_CONFIGURATIONS)
+    for row in shear_table["configurations"].values():
+        assert set(row) == set(VERTEX_SETS)
+        assert all(set(cell) == {"mean_mm", "std_mm"} for cell in row.values())
+    assert shear_table["noise_sigma_m"] == pytest.approx(1e-3)
+    assert shear_table["unobserved_external_vertices"] > 0
+
+
+def test_ablation_command_refuses_to_overwrite(tmp_path):
+    existing = tmp_path / "table.json"
+    existing.write_text("{}")
+    result = subprocess.run([str(MESHFG), "ablation", "--scenario", "cube-translate", "--steps", "2",
+                             "--json", str(existing)], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 1
+    assert "exists" in result.stderr and "Traceback" not in result.stderr
+    assert json.loads(existing.read_text()) == {}
