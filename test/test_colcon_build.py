@@ -53,3 +53,23 @@ def test_built_messages_import_from_install_space(install_space):
     module_file, values = result.stdout.strip().splitlines()
     assert module_file.startswith(str(install_space / "meshfg_msgs"))
     assert values == "3 [1.0, 2.0, 3.0] 4 True"
+
+
+@pytest.mark.parametrize("executable", ["simulation_node", "estimator_node", "meshfg_stack", "bag_player"])
+def test_installed_executables_start_and_stop_cleanly(install_space, executable, tmp_path):
+    """Each executable of the install space runs (sourcing install/setup.bash, as `ros2 run`
+    would) and exits 0 on SIGINT without a traceback."""
+    import signal
+    import time
+
+    lib = install_space / "meshfg_ros" / "lib" / "meshfg_ros"
+    arguments = [str(REPO / "bags" / "cao-push"), "--wait-for-subscribers", "60"] if executable == "bag_player" else []
+    command = " ".join([f'"{lib / executable}"', *arguments, "--ros-args", "-r", "__ns:=/colcon_check"])
+    process = subprocess.Popen(["bash", "-c", f'source "{install_space}/setup.bash" && exec {command}'],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    time.sleep(6.0)
+    assert process.poll() is None, process.communicate()[1]
+    process.send_signal(signal.SIGINT)
+    _, stderr = process.communicate(timeout=60)
+    assert process.returncode == 0, stderr
+    assert "Traceback" not in stderr
