@@ -188,8 +188,10 @@ def format_report(result: dict) -> str:
                              f"relative cost difference {row['relative_cost_difference']:.1e}")
     if "live" in result:
         live = result["live"]
-        lines.append(f"Live pipeline: cloud arrival to estimate published, median {live['latency_median_ms']:.0f} ms, "
-                     f"p95 {live['latency_p95_ms']:.0f} ms over {live['steps']} steps")
+        lines.append(f"Live pipeline (separate node processes, real DDS, rate {live['rate']:g}): cloud arrival to "
+                     f"estimate received downstream, median {live['latency_ms_median']:.0f} ms, p95 "
+                     f"{live['latency_ms_p95']:.0f} ms over {live['steps']} steps (solve {live['solve_time_ms_median']:.0f} ms, "
+                     f"ROS overhead {live['overhead_ms_median']:.0f} ms, {live['degraded_steps']} degraded)")
     return "\n".join(lines)
 
 
