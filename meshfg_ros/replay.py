@@ -287,7 +287,8 @@ def _mesh_state(template: MeshState, positions: np.ndarray, stamp_ns: int, step:
                      np.zeros(0) if position_std is None else position_std)
 
 
-def _status(result: StepResult, frame_id: str) -> StatusRecord:
+def status_record(result: StepResult, frame_id: str) -> StatusRecord:
+    """The EstimatorStatus record of one update (shared by the replay and the estimator node)."""
     return StatusRecord(
         stamp_ns=result.stamp_ns, frame_id=frame_id, step=result.step, iterations=result.iterations,
         initial_cost=result.initial_cost, final_cost=result.final_cost, solve_time_ms=result.solve_time_ms,
@@ -351,7 +352,7 @@ def write_replay(
                              _mesh_state(template, step.simulation_only, step.stamp_ns, index))
             writer.write(ESTIMATED_MESH_TOPIC,
                          _mesh_state(template, result.positions, step.stamp_ns, result.step, result.position_std))
-            writer.write(STATUS_TOPIC, _status(result, frame))
+            writer.write(STATUS_TOPIC, status_record(result, frame))
             _cost_history(writer, np.asarray(result.cost_history, dtype=np.float64), step.stamp_ns)
             writer.write(MARKERS_TOPIC, mesh_markers(
                 result.positions, template.surface_triangles, result.position_std, step.points, frame,

@@ -90,7 +90,7 @@ def test_indefinite_hessian_raises_damping_and_converges(solver):
 
 def test_steps_that_invert_tetrahedra_are_rejected():
     mesh = cube_mesh(side=0.1, divisions=1)
-    model = ElasticModel(mesh.vertices, mesh.tetrahedra, 3e3, 0.45)
+    elastic = ElasticModel(mesh.vertices, mesh.tetrahedra, 3e3, 0.45)
     corner = int(np.argmax(mesh.vertices.sum(axis=1)))
     target = mesh.vertices.copy()
     target[corner] = [-0.05, -0.05, -0.05]  # through the cube: inverts its elements
@@ -98,8 +98,8 @@ def test_steps_that_invert_tetrahedra_are_rejected():
     graph.add_state(0, mesh.vertices)
     fixed = np.arange(mesh.vertex_count) != corner
     graph.fixed_vertices = np.flatnonzero(fixed)
-    scale = prior_scale(model.stiffness(), 1e-3)
-    graph.add_factor(PhysicsPriorFactor(0, target, model, "linear", scale=scale, ridge=1.0))
+    scale = prior_scale(elastic.stiffness(), 1e-3)
+    graph.add_factor(PhysicsPriorFactor(0, target, elastic, "linear", scale=scale, ridge=1.0))
     result = levenberg_marquardt(graph, graph.get_x(), LevenbergMarquardtConfig(max_iterations=30), CholeskySolver())
     final = graph.states_from_x(result.x)[0]
     assert result.inverting_steps > 0

@@ -36,6 +36,8 @@ import scipy.linalg
 import scipy.sparse
 import scipy.sparse.linalg
 
+from .mesh import DegenerateMeshError as DegenerateElementError  # one error for degenerate rest elements
+
 __all__ = [
     "STIFFNESS_KINDS",
     "DefinitenessReport",
@@ -69,20 +71,7 @@ _POLAR_MAX_ITERATIONS = 30
 _POLAR_CONVERGENCE = 1e-9
 # det(F) below this times (|F|_F / sqrt 3)^3 goes to the SVD path (inverted or near flat).
 _POLAR_NEWTON_MIN_DET = 1e-6
-_MAX_NAMED_ELEMENTS = 5
 _TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
-
-
-class DegenerateElementError(ValueError):
-    """Rest tetrahedra with (near) zero volume or repeated vertices; names the elements."""
-
-    def __init__(self, element_indices: np.ndarray, reason: str):
-        self.element_indices = np.asarray(element_indices, dtype=np.int64)
-        shown = ", ".join(str(i) for i in self.element_indices[:_MAX_NAMED_ELEMENTS])
-        more = ", ..." if self.element_indices.size > _MAX_NAMED_ELEMENTS else ""
-        super().__init__(
-            f"{self.element_indices.size} degenerate tetrahedra ({reason}): elements [{shown}{more}]"
-        )
 
 
 class InvalidMaterialError(ValueError):

@@ -40,7 +40,6 @@ from meshfg_ros.core.parameters import PARAMETERS, FrameError, cloud_to_world, e
 from meshfg_ros.io.messages import (
     MeshState,
     MessageValidationError,
-    StatusRecord,
     mesh_state_from_msg,
     stamp_ns_from_msg,
     status_to_msg,
@@ -56,6 +55,7 @@ from meshfg_ros.nodes.ros_conversions import (
     tet_mesh_from_state,
 )
 from meshfg_ros.nodes.runtime import run_nodes
+from meshfg_ros.replay import status_record
 
 # The simulator's own settings are the simulation node's; the estimator reads the rest.
 _SIMULATOR_ONLY = {"tool_mode", "tool_contact", "tool_radius", "grasped_vertices", "density", "simulator",
@@ -316,7 +316,7 @@ class EstimatorNode(Node):
         self._estimate_publisher.publish(self._messages.message(
             cloud.stamp_ns, self._frame, result.step, result.positions, result.position_std))
         latency_ms = (time.monotonic() - cloud.arrival_s) * 1e3
-        self._status_publisher.publish(status_to_msg(_status_record(result, self._frame), RCLPY_FACTORY))
+        self._status_publisher.publish(status_to_msg(status_record(result, self._frame), RCLPY_FACTORY))
         with self._lock:
             self.counters.steps += 1
             self.counters.degraded_steps += int(result.degraded)
@@ -361,14 +361,6 @@ def _finite(result: StepResult) -> bool:
     return all(np.isfinite(np.asarray(value, dtype=np.float64)).all() for value in values)
 
 
-def _status_record(result: StepResult, frame_id: str) -> StatusRecord:
-    return StatusRecord(
-        stamp_ns=result.stamp_ns, frame_id=frame_id, step=result.step, iterations=result.iterations,
-        initial_cost=result.initial_cost, final_cost=result.final_cost, solve_time_ms=result.solve_time_ms,
-        num_points=result.num_points, num_points_rejected=result.num_points_rejected,
-        window_size=result.window_size, converged=result.converged, degraded=result.degraded,
-        message=result.message,
-    )
 
 
 def main(args=None) -> int:
