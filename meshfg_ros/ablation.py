@@ -102,3 +102,27 @@ def format_table(result: dict) -> str:
         cells = "".join(f"{row[s]['mean_mm']:>10.3g} +/- {row[s]['std_mm']:<5.2g}" for s in VERTEX_SETS)
         lines.append(f"{name:<24}{cells}")
     return "\n".join(lines)
+
+
+def write_plot(result: dict, path) -> None:
+    """Grouped bars (log scale): vertex RMSE per configuration and vertex set, with std."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(9, 4))
+    width = 0.8 / len(VERTEX_SETS)
+    for offset, vertex_set in enumerate(VERTEX_SETS):
+        rows = [result["configurations"][name][vertex_set] for name in ABLATION_CONFIGURATIONS]
+        positions = [index + (offset - 1) * width for index in range(len(ABLATION_CONFIGURATIONS))]
+        ax.bar(positions, [row["mean_mm"] for row in rows], width, yerr=[row["std_mm"] for row in rows],
+               label=vertex_set.replace("_", " "), capsize=2)
+    ax.set_xticks(range(len(ABLATION_CONFIGURATIONS)), ABLATION_CONFIGURATIONS, rotation=15)
+    ax.set_yscale("log")
+    ax.set_ylabel("vertex RMSE (mm)")
+    ax.set_title(f"{result['scenario']}: {result['steps']} steps, noise sigma {result['noise_sigma_m'] * 1e3:g} mm")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

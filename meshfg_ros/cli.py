@@ -225,17 +225,22 @@ def _ablation_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--steps", type=_positive_integer, default=15, help="steps at 1 Hz (default 15, as the paper)")
     parser.add_argument("--seed", type=int, default=0, help="scenario seed (default 0)")
     parser.add_argument("--json", type=Path, help="write the table as JSON (never overwritten)")
+    parser.add_argument("--plot", type=Path, help="write the table as a PNG bar chart (never overwritten)")
 
 
 def run_ablation(args: argparse.Namespace) -> int:
-    from meshfg_ros.ablation import format_table, run_ablation
+    from meshfg_ros.ablation import format_table, run_ablation, write_plot
 
     _refuse_existing(args.json)
+    _refuse_existing(args.plot)
     result = run_ablation(args.scenario, steps=args.steps, seed=args.seed)
     print(format_table(result))
     if args.json is not None:
         args.json.write_text(json.dumps(result, indent=2))
         print(f"\nwrote {args.json}")
+    if args.plot is not None:
+        write_plot(result, args.plot)
+        print(f"wrote {args.plot}")
     return 0
 
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from meshfg_ros.ablation import ABLATION_CONFIGURATIONS, VERTEX_SETS, format_table, run_ablation
+from meshfg_ros.ablation import ABLATION_CONFIGURATIONS, VERTEX_SETS, format_table, run_ablation, write_plot
 
 MESHFG = Path(sys.executable).with_name("meshfg")
 
@@ -39,6 +39,8 @@ def test_table_and_json_layout(shear_table, tmp_path):
         assert all(set(cell) == {"mean_mm", "std_mm"} for cell in row.values())
     assert shear_table["noise_sigma_m"] == pytest.approx(1e-3)
     assert shear_table["unobserved_external_vertices"] > 0
+    write_plot(shear_table, tmp_path / "table.png")
+    assert (tmp_path / "table.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_ablation_command_refuses_to_overwrite(tmp_path):
