@@ -200,3 +200,22 @@ def test_bad_input_raises():
         ClosestPointIndex(np.zeros((3, 3)), np.array([[0, 1, 2]])).associate(np.zeros((4, 2)))
     with pytest.raises(InvalidGeometryError, match="index"):
         ClosestPointIndex(np.zeros((3, 3)), np.array([[0, 1, 3]]))
+
+
+def test_candidate_cache_exact_between_one_and_two_margins(cube_surface):
+    """Motion past the margin is accepted only where each point's new distance proves it."""
+    vertices, triangles = cube_surface
+    rng = np.random.default_rng(7)
+    points = rng.uniform(-0.1, 1.1, size=(800, 3))
+    cache = CandidateCache(points, triangles, margin=0.03)
+    cache.associate(vertices)
+    for shift in (0.04, 0.055):  # a rigid shift: distances move by at most the shift
+        moved = vertices + np.array([shift, 0.0, 0.0])
+        cached = cache.associate(moved)
+        slow = brute_force_closest(points, moved, triangles)
+        np.testing.assert_allclose(cached.distance, slow.distance, rtol=0, atol=1e-14)
+    moved = vertices + rng.normal(scale=0.05, size=vertices.shape)  # beyond 2 margins: rebuilt
+    before = cache.rebuild_count
+    np.testing.assert_allclose(cache.associate(moved).distance, brute_force_closest(points, moved, triangles).distance,
+                               rtol=0, atol=1e-14)
+    assert cache.rebuild_count == before + 1

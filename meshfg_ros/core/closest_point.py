@@ -25,7 +25,8 @@ at distance d from a point has its centroid within d + R of it (R: largest centr
 distance), so after an upper bound U from nearby triangles only triangles whose centroid lies
 within U + R can win. `CandidateCache` keeps, per point, every triangle within the best
 distance + 2 * margin; while no surface vertex moves more than `margin`, the true closest
-triangle stays in that set, so re-association is an exact projection on a few cached pairs.
+triangle stays in that set, so re-association is an exact projection on a few cached pairs
+(up to 2 * margin when each point's new closest distance proves it, see CandidateCache).
 """
 
 from __future__ import annotations
@@ -338,10 +339,12 @@ def _associate_on_pairs(points, vertices, triangles, pair_point, pair_triangle, 
 class CandidateCache:
     """Closest-triangle association kept exact, with a k-d tree query only after large motion.
 
-    The cache holds, per point, every triangle within (closest distance + 2 * margin) of it at
-    the vertices it was built on. As long as no vertex has moved more than `margin` since, the
-    closest triangle is among them (distances change by at most the vertex motion), so
-    `associate` projects onto the cached pairs only; otherwise it rebuilds the cache.
+    The cache holds, per point, every triangle within reach = (closest distance + 2 * margin)
+    of it at the vertices it was built on. Distances change by at most the largest vertex
+    motion `moved`, so a triangle outside the set is now farther than reach - moved: the
+    closest cached triangle is the true closest whenever its distance is below that bound
+    (always so for moved <= margin). `associate` projects onto the cached pairs, checks the
+    bound per point and rebuilds the cache only where it fails (or moved > 2 * margin).
     """
 
     def __init__(self, points, triangles, margin: float):
@@ -353,11 +356,14 @@ class CandidateCache:
         self._surface_vertices = np.unique(self.triangles)
         self.rebuild_count = 0
         self._built_on: np.ndarray | None = None
-        self._pair_point = self._pair_triangle = None
+        self._pair_point = self._pair_triangle = self._reach = None
 
     def _rebuild(self, vertices: np.ndarray) -> None:
         index = ClosestPointIndex(vertices, self.triangles)
-        self._pair_point, self._pair_triangle, _ = index.candidate_pairs(self.points, 2.0 * self.margin)
+        self._pair_point, self._pair_triangle, squared = index.candidate_pairs(self.points, 2.0 * self.margin)
+        best, _ = _segment_argmin(self._pair_point, squared, len(self.points))
+        # Every triangle outside the candidates was farther than this (candidate_pairs' limit).
+        self._reach = np.sqrt(best) + 2.0 * self.margin
         self._built_on = vertices.copy()
         self.rebuild_count += 1
 
@@ -370,6 +376,7 @@ class CandidateCache:
             keep = mask[self._pair_point]
             out._pair_point = new_index[self._pair_point[keep]]
             out._pair_triangle = self._pair_triangle[keep]
+            out._reach = self._reach[mask]
             out._built_on = self._built_on
             out.rebuild_count = self.rebuild_count
         return out
@@ -378,8 +385,16 @@ class CandidateCache:
         """Exact closest triangle of every point on the surface at `vertices` (N, 3)."""
         vertices = np.asarray(vertices, dtype=np.float64)
         used = self._surface_vertices
-        if self._built_on is None or np.max(np.linalg.norm(vertices[used] - self._built_on[used], axis=1)) > self.margin:
-            self._rebuild(vertices)
+        if self._built_on is not None:
+            moved = float(np.max(np.linalg.norm(vertices[used] - self._built_on[used], axis=1)))
+            if moved <= 2.0 * self.margin:
+                association = _associate_on_pairs(self.points, vertices, self.triangles, self._pair_point,
+                                                  self._pair_triangle)
+                # Per-point proof instead of moved <= margin: saves ~half the k-d tree rebuilds
+                # of an LM update (its first steps move the newest state by about a margin).
+                if moved <= self.margin or np.all(association.distance < self._reach - moved):
+                    return association
+        self._rebuild(vertices)
         return _associate_on_pairs(self.points, vertices, self.triangles, self._pair_point, self._pair_triangle)
 
 

@@ -274,10 +274,14 @@ class PointToSurfaceFactor(Factor):
         self.association_margin = 0.1 * edge_length if association_margin is None else float(association_margin)
         accepted = np.ones(len(points), dtype=bool)
         cache = CandidateCache(points, self.triangles, self.association_margin) if len(points) else None
+        initial_association = None
         if np.isfinite(gating_distance) and cache is not None:
-            accepted = cache.associate(initial_vertices).distance <= gating_distance
+            initial_association = cache.associate(initial_vertices)
+            accepted = initial_association.distance <= gating_distance
             if not accepted.all():
                 cache = cache.subset(accepted)
+                initial_association = Association(*(getattr(initial_association, name)[accepted] for name in (
+                    "triangle", "closest", "barycentric", "region", "distance")))
         self.num_points_rejected = int(np.count_nonzero(~accepted))
         self.points = points[accepted]
         self.noise = noise.subset(accepted)
@@ -285,6 +289,8 @@ class PointToSurfaceFactor(Factor):
         self.robust = robust
         self._cache = cache if len(self.points) else None
         self._frozen_triangle: np.ndarray | None = None
+        # Last (vertices, association): LM linearises where the gating or a trial's cost associated.
+        self._last_association = None if initial_association is None else (initial_vertices.copy(), initial_association)
 
     @property
     def num_points(self) -> int:
@@ -303,11 +309,17 @@ class PointToSurfaceFactor(Factor):
             projection = project_onto_triangles(self.points, corners[:, 0], corners[:, 1], corners[:, 2])
             return Association(self._frozen_triangle, projection.closest, projection.barycentric,
                                projection.region, np.sqrt(projection.squared_distance))
-        return self._cache.associate(vertices)
+        last = self._last_association
+        if last is not None and np.array_equal(last[0], vertices):
+            return last[1]
+        association = self._cache.associate(vertices)
+        self._last_association = (np.array(vertices, dtype=np.float64), association)
+        return association
 
     def freeze_association(self, states) -> np.ndarray:
         """Pin every point to its closest triangle at `states`; returns those triangle indices."""
         self._frozen_triangle = self.associate(states).triangle.copy()
+        self._last_association = None
         return self._frozen_triangle
 
     def _terms(self, states):
@@ -649,9 +661,17 @@ class FactorGraph:
 
     def _signed_volumes(self, state: np.ndarray) -> np.ndarray:
         """Signed tetrahedron volumes of a state (N, 3) -> (M,), or of states (W, N, 3) -> (W, M)."""
-        corners = state[..., self.tetrahedra, :]
-        edges = corners[..., 1:, :] - corners[..., :1, :]
-        return np.einsum("...i,...i->...", np.cross(edges[..., 0, :], edges[..., 1, :]), edges[..., 2, :]) / 6.0
+        # Coordinate-major triple product: ~2x faster than np.cross + einsum on (W, M, 3, 3) corners.
+        x, y, z = np.moveaxis(state, -1, 0)
+        first = self.tetrahedra[:, 0]
+
+        def edge(coordinate, corner):
+            return coordinate[..., self.tetrahedra[:, corner]] - coordinate[..., first]
+
+        ux, uy, uz = edge(x, 1), edge(y, 1), edge(z, 1)
+        vx, vy, vz = edge(x, 2), edge(y, 2), edge(z, 2)
+        wx, wy, wz = edge(x, 3), edge(y, 3), edge(z, 3)
+        return ((uy * vz - uz * vy) * wx + (uz * vx - ux * vz) * wy + (ux * vy - uy * vx) * wz) / 6.0
 
     def acceptable(self, x: np.ndarray) -> bool:
         """False when x inverts (signed volume <= 0) a tetrahedron that was positive at the
