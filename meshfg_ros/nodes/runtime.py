@@ -28,16 +28,18 @@ def init_without_signal_handlers(args=None) -> None:
 
 
 class _MultiThreadedExecutor(MultiThreadedExecutor):
-    """MultiThreadedExecutor whose shutdown also waits for its worker threads.
+    """MultiThreadedExecutor whose shutdown first waits for its worker threads.
 
-    rclpy 7.1 (Jazzy) leaves the thread pool running after shutdown, so callbacks still queued
-    there would run on destroyed nodes; later rclpy releases shut the pool down the same way.
+    rclpy 7.1 (Jazzy) leaves the thread pool running after shutdown, and its
+    Executor.shutdown destroys the executor's guard condition without waiting for running
+    callbacks (its wait is unreachable); a callback that finishes afterwards then fails on the
+    destroyed guard ("exception was never retrieved: cannot use Destroyable"). So the pool is
+    drained first (the spin loop has already stopped, nothing new is submitted), then shut down.
     """
 
     def shutdown(self, timeout_sec: float | None = None) -> bool:
-        stopped = super().shutdown(timeout_sec)
         self._executor.shutdown(wait=True)
-        return stopped
+        return super().shutdown(timeout_sec)
 
 
 def run_nodes(program: str, node_factories: Sequence[Callable[[], Node]], threads: int, args=None) -> int:
