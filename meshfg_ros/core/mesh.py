@@ -36,6 +36,13 @@ _TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]], dtype=np
 _MAX_NAMED_ELEMENTS = 5
 
 
+def name_elements(indices: np.ndarray) -> str:
+    """'elements [i, j, ...]' naming the first few of `indices`, for one-line error messages."""
+    shown = ", ".join(str(i) for i in indices[:_MAX_NAMED_ELEMENTS])
+    more = ", ..." if len(indices) > _MAX_NAMED_ELEMENTS else ""
+    return f"elements [{shown}{more}]"
+
+
 class InvalidMeshError(ValueError):
     """Mesh arrays with a wrong shape, dtype, index range or unused vertices."""
 
@@ -45,11 +52,8 @@ class DegenerateMeshError(ValueError):
 
     def __init__(self, element_indices: np.ndarray, reason: str):
         self.element_indices = np.asarray(element_indices, dtype=np.int64)
-        shown = ", ".join(str(i) for i in self.element_indices[:_MAX_NAMED_ELEMENTS])
-        more = ", ..." if self.element_indices.size > _MAX_NAMED_ELEMENTS else ""
         super().__init__(
-            f"{self.element_indices.size} degenerate tetrahedra ({reason}): "
-            f"elements [{shown}{more}]"
+            f"{self.element_indices.size} degenerate tetrahedra ({reason}): {name_elements(self.element_indices)}"
         )
 
 

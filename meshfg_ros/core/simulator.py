@@ -40,7 +40,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from .fem import ElasticModel
-from .mesh import TetMesh, signed_volumes
+from .mesh import TetMesh, name_elements, signed_volumes
 
 __all__ = [
     "SOLVERS",
@@ -59,7 +59,6 @@ TOOL_MODES = ("sphere", "grasp")
 TOOL_CONTACTS = ("stick", "slide")
 SOLVERS = ("vbd", "xpbd")
 
-_MAX_NAMED_ELEMENTS = 5
 # Shape-function gradients of the 4 corners from the rows of Dm^-1 (corner 0: minus their sum).
 _CORNER_FROM_EDGES = np.array([[-1.0, -1.0, -1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
 _DIAGONAL = np.arange(3)
@@ -90,11 +89,9 @@ class ElementInversionError(RuntimeError):
 
     def __init__(self, element_indices: np.ndarray):
         self.element_indices = np.asarray(element_indices, dtype=np.int64)
-        shown = ", ".join(str(i) for i in self.element_indices[:_MAX_NAMED_ELEMENTS])
-        more = ", ..." if self.element_indices.size > _MAX_NAMED_ELEMENTS else ""
         super().__init__(
             f"{self.element_indices.size} tetrahedra inverted (or not finite) after the simulation step: "
-            f"elements [{shown}{more}]"
+            f"{name_elements(self.element_indices)}"
         )
 
 
