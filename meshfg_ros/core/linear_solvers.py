@@ -7,9 +7,9 @@ product never builds the global matrix), and converts to one sparse matrix for d
 
 Solvers (all return the solution and `SolveStats`):
   "pcg"       conjugate gradients with a preconditioner built on the time structure (see
-              PCGSolver): sparse Cholesky factors (cholespy / CHOLMOD) made once and reused
-              across LM iterations and updates while they stay accurate.
-  "cholesky"  sparse Cholesky of the whole window (cholespy); raises NotPositiveDefiniteError.
+              PCGSolver): sparse Cholesky factors (CHOLMOD, sparse_cholesky.py) made once and
+              reused across LM iterations and updates while they stay accurate.
+  "cholesky"  sparse Cholesky of the whole window (CHOLMOD); raises NotPositiveDefiniteError.
   "superlu"   scipy SuperLU (LU, no definiteness check).
 `FallbackSolver` tries solvers in order and says in its message when one failed; a
 NotPositiveDefiniteError is not a failure to fall back from: Levenberg-Marquardt answers it
@@ -21,16 +21,16 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
-import cholespy
 import numpy as np
 import scipy.sparse
 import scipy.sparse.linalg
 
 from .noise import NotPositiveDefiniteError
+from .sparse_cholesky import SparseCholesky
 
 __all__ = [
     "LINEAR_SOLVERS",
-        "CholeskySolver",
+    "CholeskySolver",
     "FallbackSolver",
     "LinearSolveError",
     "LinearSolver",
@@ -184,25 +184,24 @@ class LinearSolver:
         raise NotImplementedError
 
 
-def _cholesky(rows, cols, data, size):
-    """cholespy factor of a COO matrix; NotPositiveDefiniteError when CHOLMOD finds a pivot <= 0."""
-    try:
-        return cholespy.CholeskySolverD(size, rows, cols, data, cholespy.MatrixType.COO)
-    except ValueError as error:
-        raise NotPositiveDefiniteError(f"Cholesky failed: {error}") from None
-
-
 class CholeskySolver(LinearSolver):
-    """Sparse Cholesky (CHOLMOD through cholespy) of the whole window."""
+    """Sparse Cholesky (CHOLMOD) of the whole window; the symbolic analysis is kept while the
+    window's pattern stays the same (a full window)."""
 
     name = "cholesky"
 
+    def __init__(self):
+        self._factor: SparseCholesky | None = None
+
     def solve(self, system, rhs):
         start = time.perf_counter()
-        rows, cols, data = system.to_coo()
-        factor = _cholesky(rows, cols, data, system.size)
-        x = np.zeros(system.size)
-        factor.solve(np.ascontiguousarray(rhs, dtype=np.float64), x)
+        matrix = system.to_csr()
+        matrix.sort_indices()
+        if self._factor is not None and self._factor.same_pattern(matrix):
+            self._factor.refactor(matrix.data)
+        else:
+            self._factor = SparseCholesky(matrix)
+        x = self._factor.solve(rhs)
         if not np.all(np.isfinite(x)):
             raise NotPositiveDefiniteError("Cholesky solve produced non-finite values")
         return x, SolveStats(self.name, 1e3 * (time.perf_counter() - start), factorizations=1)
@@ -275,6 +274,7 @@ class PCGSolver(LinearSolver):
     def reset(self) -> None:
         """Drop every cached factor."""
         self._block_factors: dict = {}   # key -> (factor, data and coupling diagonal it was made from)
+        self._spare: list = []           # factors no longer in use, their symbolic analysis reusable
         self._time: dict | None = None   # laplacian, eigenvectors, factors, mean data
         self.factorizations = 0
 
@@ -289,10 +289,20 @@ class PCGSolver(LinearSolver):
             return np.inf
         return float(np.linalg.norm(data - reference) / max(np.linalg.norm(reference), 1e-300))
 
-    def _factor(self, data: np.ndarray, like) -> object:
+    def _factor(self, data: np.ndarray, like: scipy.sparse.csr_matrix) -> SparseCholesky:
+        """Factor of the matrix with values `data` on `like`'s pattern; reuses the symbolic
+        analysis of a spare factor (a state that left the window) when the pattern matches."""
         self.factorizations += 1
-        matrix = scipy.sparse.csr_matrix((data, like.indices, like.indptr), shape=like.shape).tocoo()
-        return _cholesky(matrix.row.astype(np.int32), matrix.col.astype(np.int32), matrix.data, like.shape[0])
+        while self._spare:
+            factor = self._spare.pop()
+            if factor.same_pattern(like):
+                try:
+                    factor.refactor(data)
+                except NotPositiveDefiniteError:
+                    self._spare.append(factor)
+                    raise
+                return factor
+        return SparseCholesky(scipy.sparse.csr_matrix((data, like.indices, like.indptr), shape=like.shape))
 
     # ------------------------------------------------------------------ preparation
     def _mean_block_data(self, system: WindowSystem) -> np.ndarray:
@@ -304,12 +314,15 @@ class PCGSolver(LinearSolver):
         if mode == "block":
             for key in list(self._block_factors):
                 if key not in system.keys:
-                    del self._block_factors[key]
+                    self._spare.append(self._block_factors.pop(key)[0])
             for t, (block, key) in enumerate(zip(system.blocks, system.keys)):
                 cached = self._block_factors.get(key)
                 stale = (force or cached is None or cached[2] != system.coupling_diagonal[t]
                          or self._change(block.data, cached[1]) > self.refresh_change)
                 if stale:
+                    if cached is not None:
+                        self._spare.append(cached[0])
+                        del self._block_factors[key]
                     self._block_factors[key] = (self._factor(block.data, block), block.data.copy(),
                                                 system.coupling_diagonal[t])
             return
@@ -321,6 +334,9 @@ class PCGSolver(LinearSolver):
                 and self._change(mean, cached["mean"]) <= self.refresh_change):
             return
         eigenvalues, eigenvectors = np.linalg.eigh(laplacian)
+        if cached is not None and cached["mode"] == "time":
+            self._spare.extend(cached["factors"])
+            self._time = None
         if mode == "time":
             factors = []
             for eigenvalue in eigenvalues:
@@ -341,14 +357,14 @@ class PCGSolver(LinearSolver):
         if mode == "block":
             out = np.zeros_like(parts)
             for t, key in enumerate(system.keys):
-                self._block_factors[key][0].solve(np.ascontiguousarray(parts[t]), out[t])
+                out[t] = self._block_factors[key][0].solve(parts[t])
             return out.reshape(-1)
         eigenvectors = self._time["eigenvectors"]
         rotated = eigenvectors.T @ parts
         if mode == "time":
             solved = np.zeros_like(rotated)
             for j, factor in enumerate(self._time["factors"]):
-                factor.solve(np.ascontiguousarray(rotated[j]), solved[j])
+                solved[j] = factor.solve(rotated[j])
         else:
             solved = np.einsum("wvij,wvj->wvi", self._time["factors"], rotated.reshape(len(parts), -1, 3))
             solved = solved.reshape(rotated.shape)

@@ -35,11 +35,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cholespy
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from .fem import ElasticModel
+from .sparse_cholesky import SparseCholesky
 from .mesh import TetMesh, name_elements, signed_volumes
 
 __all__ = [
@@ -373,22 +373,16 @@ class XpbdSimulator:
             )
         return colours
 
-    def _factorised_rest_stiffness(self) -> cholespy.CholeskySolverD:
+    def _factorised_rest_stiffness(self) -> SparseCholesky:
         """Sparse Cholesky factor of K0 (small-strain stiffness: the Hessian at rest) on the movable dofs."""
         mesh, config = self.rest_mesh, self.config
         model = ElasticModel(mesh.vertices, mesh.tetrahedra, config.youngs_modulus, config.poisson_ratio)
         dofs = (3 * self.movable_vertices[:, None] + np.arange(3)).reshape(-1)
-        block = model.stiffness(kind="linear")[dofs][:, dofs].tocoo()
-        rows, columns = block.row.astype(np.int32), block.col.astype(np.int32)
-        return cholespy.CholeskySolverD(block.shape[0], rows, columns, block.data, cholespy.MatrixType.COO)
+        return SparseCholesky(model.stiffness(kind="linear")[dofs][:, dofs])
 
     def _rest_solve(self, right_hand_side: np.ndarray) -> np.ndarray:
         """K0^-1 applied to a vector (3 n,) or to the columns (3 n, k) of a matrix on the movable dofs."""
-        right_hand_side = np.ascontiguousarray(right_hand_side)
-        solution = np.empty_like(right_hand_side)
-        if right_hand_side.size:
-            self._rest_stiffness.solve(right_hand_side, solution)
-        return solution
+        return self._rest_stiffness.solve(right_hand_side)
 
     def _element_colours(self, tets, volumes, rest_inverse, corner_gradient, inverse_mass):
         """xpbd set-up: tetrahedron colours with their constant metric and compliance data."""
