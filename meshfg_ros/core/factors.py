@@ -382,6 +382,7 @@ class _StateLinearization:
     gradient: np.ndarray     # (3N,)
     cost: float
     block: scipy.sparse.csr_matrix | None = None  # block over the free dofs (for the model)
+    revision: int = 0        # FactorGraph.relinearizations when it was made: names its values
 
 
 class FactorGraph:
@@ -558,7 +559,7 @@ class FactorGraph:
         self.relinearizations += 1
         pattern = self._pattern
         block = scipy.sparse.csr_matrix((data[:nnz], pattern.indices, pattern.indptr), shape=pattern.shape)
-        return _StateLinearization(state.copy(), data, gradient, cost, block)
+        return _StateLinearization(state.copy(), data, gradient, cost, block, self.relinearizations)
 
     def _accumulate(self, terms: FactorLinearization, key, data: np.ndarray, gradient: np.ndarray) -> None:
         nnz = self._pattern_keys.size
@@ -618,6 +619,7 @@ class FactorGraph:
         coupling_diagonal = np.zeros(window)
         cost = 0.0
         self._active = set()
+        revisions = []
         for t, key in enumerate(self.keys):
             cached = self._cache.get(key)
             threshold = 0.0 if key in self.exact_keys else self.relinearize_threshold
@@ -631,6 +633,7 @@ class FactorGraph:
                 cost += model_cost
                 gradient[t] = model_gradient
             data[t] = cached.data
+            revisions.append(cached.revision)
         position = {key: t for t, key in enumerate(self.keys)}
         for factor in self._cross_factors():
             terms = factor.linearize(states)
@@ -654,7 +657,7 @@ class FactorGraph:
             for t in range(window)
         ]
         system = WindowSystem(blocks, couplings, list(self.keys), self._diagonal_index, coupling_diagonal,
-                              self._vertex_block_slots)
+                              self._vertex_block_slots, revisions)
         positive = self._signed_volumes(np.stack([states[key] for key in self.keys])) > 0.0
         self._positive = dict(zip(self.keys, positive))
         return system, gradient[:, self.free_dofs].reshape(-1), cost

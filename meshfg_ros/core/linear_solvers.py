@@ -63,10 +63,13 @@ class WindowSystem:
     couplings[t] * I between block t and t + 1; keys name the blocks (for factor caching).
 
     All blocks share one sparse pattern whose diagonal is at `diagonal_index` in `data`.
+    revisions[t] (optional) names block t's off-diagonal values: two blocks with the same key
+    and revision differ at most on the diagonal (damping, temporal terms), which lets the PCG
+    preconditioner compare them on the diagonal alone.
     """
 
     def __init__(self, blocks, couplings, keys, diagonal_index: np.ndarray, coupling_diagonal=None,
-                 vertex_block_index: np.ndarray | None = None):
+                 vertex_block_index: np.ndarray | None = None, revisions=None):
         self.blocks = list(blocks)
         self.couplings = np.asarray(couplings, dtype=np.float64).reshape(-1)
         self.keys = list(keys)
@@ -77,6 +80,7 @@ class WindowSystem:
             np.zeros(len(self.blocks)) if coupling_diagonal is None else np.asarray(coupling_diagonal, dtype=np.float64)
         )
         self._vertex_block_index = vertex_block_index
+        self.revisions = [None] * len(self.blocks) if revisions is None else list(revisions)
         if len(self.couplings) != max(len(self.blocks) - 1, 0) or len(self.keys) != len(self.blocks):
             raise ValueError("a window system needs W blocks, W keys and W - 1 couplings")
         self.block_size = self.blocks[0].shape[0]
@@ -136,7 +140,7 @@ class WindowSystem:
             data[self.diagonal_index] += parts[t]
             blocks.append(scipy.sparse.csr_matrix((data, block.indices, block.indptr), shape=block.shape))
         return WindowSystem(blocks, self.couplings, self.keys, self.diagonal_index, self.coupling_diagonal,
-                            self._vertex_block_index)
+                            self._vertex_block_index, self.revisions)
 
     def to_coo(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(rows, cols, data) of the whole matrix, int32 indices."""
@@ -224,6 +228,31 @@ class SuperLUSolver(LinearSolver):
         return x, SolveStats(self.name, 1e3 * (time.perf_counter() - start), factorizations=1)
 
 
+class _BlockFactor:
+    """A state block's cached Cholesky factor and the block values it was made from.
+
+    `change` is the relative Frobenius distance of a block to those values. Blocks of one
+    revision (WindowSystem.revisions) differ only on the diagonal, so the off-diagonal part of
+    the distance is computed once per revision and the diagonal (1/36 of the entries) per call.
+    """
+
+    def __init__(self, factor: SparseCholesky, reference: np.ndarray, revision):
+        self.factor = factor
+        self.reference = reference
+        self.reference_norm = max(float(np.linalg.norm(reference)), 1e-300)
+        self.revision = revision
+        self.off_diagonal_squared = 0.0
+
+    def change(self, data: np.ndarray, revision, diagonal_index: np.ndarray) -> float:
+        if data.shape != self.reference.shape:
+            return np.inf
+        diagonal_squared = float(np.sum((data[diagonal_index] - self.reference[diagonal_index]) ** 2))
+        if revision is None or revision != self.revision:
+            self.off_diagonal_squared = max(float(np.sum((data - self.reference) ** 2)) - diagonal_squared, 0.0)
+            self.revision = revision
+        return np.sqrt(self.off_diagonal_squared + diagonal_squared) / self.reference_norm
+
+
 class PCGSolver(LinearSolver):
     """Preconditioned conjugate gradients exploiting the window's time structure.
 
@@ -238,20 +267,22 @@ class PCGSolver(LinearSolver):
                 misses: the smooth deformation modes, weakly held by K, are mostly tied
                 through time.
       "block"   block Jacobi over the time steps: each state's block Cholesky-factored and
-                cached by its key, refreshed when its temporal coupling changes (a state
-                that stops being the newest gains a neighbour), when it drifts by more than
-                `refresh_change`, or after `refresh_iterations` (exact without couplings).
+                cached by its key, refreshed when the block drifts by more than
+                `refresh_change` (a re-linearisation, damping, a new temporal neighbour) or
+                PCG needs more than `refresh_iterations` (exact without couplings).
                 (Measured: a new state's own factor pays for itself; borrowing the previous
                 newest state's factor took its first solve from 2 to ~30 iterations.)
       "vertex"  like "time" with Bbar reduced to its 3x3 vertex blocks (no factorisation:
                 for large meshes where sparse Cholesky is too slow).
       "auto"    "block" up to `cholesky_max_block` dofs per state, else "vertex". Measured on
-                the estimator's windows (tolerance 1e-8): 512 vertices, W=10, 13k unknowns:
-                block 49 ms with cached factors (20 its), vertex 90 ms (120 its), time
-                215 ms (84 its: the blocks' measurement terms differ too much from their
-                mean), whole-window Cholesky 7.9 s, SuperLU 8.6 s. 10.6k vertices, W=5,
-                152k unknowns: vertex 3.2 s (252 its), time 94 s (one state's sparse
-                Cholesky with cholespy's reference BLAS takes ~12 s).
+                the estimator's windows (tolerance 1e-8, cholespy factors at the time):
+                512 vertices, W=10, 13k unknowns: block 49 ms with cached factors (20 its),
+                vertex 90 ms (120 its), time 215 ms (84 its: the blocks' measurement terms
+                differ too much from their mean), whole-window Cholesky 7.9 s, SuperLU
+                8.6 s. With CHOLMOD through cvxopt, in the estimator (tolerance 1e-3,
+                simulation_sigma 1e-4): 10.6k vertices, W=5, 152k unknowns, median linear
+                solve block 0.61 s (one 30k-dof factorisation 0.74 s, one solve 25 ms),
+                vertex 1.8 s; update 2.6 s against 4.9 s.
     tolerance: relative residual |b - A x| / |b|; max_iterations: cap (LinearSolveError).
     The loop is hand-written because scipy's cg cannot report negative curvature, which is
     how an indefinite system is detected (NotPositiveDefiniteError).
@@ -260,7 +291,7 @@ class PCGSolver(LinearSolver):
     name = "pcg"
 
     def __init__(self, tolerance: float = 1e-8, max_iterations: int = 1000, preconditioner: str = "auto",
-                 refresh_iterations: int = 100, refresh_change: float = 0.05, cholesky_max_block: int = 12000):
+                 refresh_iterations: int = 100, refresh_change: float = 0.05, cholesky_max_block: int = 100_000):
         if preconditioner not in ("auto", "time", "block", "vertex"):
             raise ValueError(f"preconditioner must be auto, time, block or vertex, got {preconditioner!r}")
         self.tolerance = float(tolerance)
@@ -273,7 +304,7 @@ class PCGSolver(LinearSolver):
 
     def reset(self) -> None:
         """Drop every cached factor."""
-        self._block_factors: dict = {}   # key -> (factor, data and coupling diagonal it was made from)
+        self._block_factors: dict = {}   # key -> _BlockFactor
         self._spare: list = []           # factors no longer in use, their symbolic analysis reusable
         self._time: dict | None = None   # laplacian, eigenvectors, factors, mean data
         self.factorizations = 0
@@ -314,17 +345,17 @@ class PCGSolver(LinearSolver):
         if mode == "block":
             for key in list(self._block_factors):
                 if key not in system.keys:
-                    self._spare.append(self._block_factors.pop(key)[0])
+                    self._spare.append(self._block_factors.pop(key).factor)
             for t, (block, key) in enumerate(zip(system.blocks, system.keys)):
                 cached = self._block_factors.get(key)
-                stale = (force or cached is None or cached[2] != system.coupling_diagonal[t]
-                         or self._change(block.data, cached[1]) > self.refresh_change)
-                if stale:
-                    if cached is not None:
-                        self._spare.append(cached[0])
-                        del self._block_factors[key]
-                    self._block_factors[key] = (self._factor(block.data, block), block.data.copy(),
-                                                system.coupling_diagonal[t])
+                if not force and cached is not None:
+                    change = cached.change(block.data, system.revisions[t], system.diagonal_index)
+                    if change <= self.refresh_change:
+                        continue
+                if cached is not None:
+                    self._spare.append(self._block_factors.pop(key).factor)
+                self._block_factors[key] = _BlockFactor(self._factor(block.data, block), block.data.copy(),
+                                                        system.revisions[t])
             return
         laplacian = system.time_laplacian()
         mean = self._mean_block_data(system)
@@ -357,7 +388,7 @@ class PCGSolver(LinearSolver):
         if mode == "block":
             out = np.zeros_like(parts)
             for t, key in enumerate(system.keys):
-                out[t] = self._block_factors[key][0].solve(parts[t])
+                out[t] = self._block_factors[key].factor.solve(parts[t])
             return out.reshape(-1)
         eigenvectors = self._time["eigenvectors"]
         rotated = eigenvectors.T @ parts
