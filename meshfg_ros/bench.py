@@ -114,18 +114,21 @@ def _single_update_problem(scale: dict):
     _, graph = pending_window(mesh, sequence, EstimatorConfig(window_size=scale["window_size"], **BENCH_ESTIMATOR))
     problem = (f"one window update: box {mesh.vertex_count} vertices, W={scale['window_size']}, "
                f"{scale['points_per_step']} points/step, association frozen, information fixed, same start, "
-               f"stop at relative cost decrease {BASELINE_TOLERANCE:g}")
+               f"stop at relative cost decrease {BASELINE_TOLERANCE:g}, meshfg's PCG to its default relative "
+               f"residual {EstimatorConfig.linear_tolerance:g}")
     return graph, problem
 
 
 def _compare(graph, solvers, repeats: int, progress: bool, label: str) -> dict:
     from .core.baselines import compare_single_update
+    from .core.estimator import EstimatorConfig
 
     out = {}
     for name in tqdm(solvers, desc=f"bench baselines ({label})", file=sys.stderr, disable=not progress):
         runs = repeats if name == "meshfg" else 1
         median_ms, results = _median_time(
-            lambda: compare_single_update(graph, solvers=(name,), tolerance=BASELINE_TOLERANCE), runs)
+            lambda: compare_single_update(graph, solvers=(name,), tolerance=BASELINE_TOLERANCE,
+                                          linear_tolerance=EstimatorConfig.linear_tolerance), runs)
         out[name] = {"median_ms": median_ms, "final_cost": float(results[name].cost)}
     for name in solvers:
         if name != "meshfg":
