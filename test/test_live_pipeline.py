@@ -14,7 +14,7 @@ import pytest
 from meshfg_ros.core.scenarios import generate
 from meshfg_ros.io.messages import PointCloudRecord
 from meshfg_ros.io.recording import RecordingReader
-from meshfg_ros.nodes.latency import LIVE_TIMEOUTS, run_live_pipeline
+from meshfg_ros.nodes.latency import LIVE_OVERRIDES, run_live_pipeline
 from meshfg_ros.replay import replay_recording
 from meshfg_ros.synth import write_scenario
 from meshfg_ros.topics import POINTS_TOPIC
@@ -41,7 +41,7 @@ def live(recording, tmp_path_factory):
 def test_every_cloud_gives_an_estimate_equal_to_the_offline_replay(recording, live):
     with RecordingReader(recording) as reader:
         cloud_stamps = [cloud.stamp_ns for cloud in reader.records(POINTS_TOPIC, PointCloudRecord)]
-    replay = replay_recording(recording, LIVE_TIMEOUTS)
+    replay = replay_recording(recording, LIVE_OVERRIDES)
     assert live.parameters == replay.parameters
     assert live.stamps_ns.tolist() == cloud_stamps == [step.stamp_ns for step in replay.steps]
     assert live.steps.tolist() == list(range(1, len(cloud_stamps) + 1))

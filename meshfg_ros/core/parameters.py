@@ -198,6 +198,10 @@ PARAMETERS: tuple[Parameter, ...] = (
     Parameter("mesh_file", "",
               "Initial mesh file (.msh, .vtu, .vtk) used when no initial_mesh message arrives; empty: wait for "
               "initial_mesh.", "string"),
+    Parameter("points_reliable", False,
+              "Subscribe to points with reliable QoS (depth 100): for recordings played back by bag_player, where "
+              "every cloud counts; false: the sensor-data profile of live cameras (best effort, depth 5), which "
+              "drops clouds the transport loses when the CPU is saturated.", "bool"),
     Parameter("prediction_timeout", 0.5,
               "Seconds (wall time) a cloud waits for its simulator prediction before the step runs degraded "
               "without it.", "double", (0.0, 60.0)),

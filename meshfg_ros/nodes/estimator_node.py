@@ -63,6 +63,7 @@ _SIMULATOR_ONLY = {"tool_mode", "tool_contact", "tool_radius", "grasped_vertices
 PARAMETER_NAMES = tuple(p.name for p in PARAMETERS if p.name not in _SIMULATOR_ONLY)
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 STREAM_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+RELIABLE_POINTS_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 MAX_QUEUED_CLOUDS = 100
 MAX_STORED_PREDICTIONS = 100
 _TIMEOUT_CHECK_PERIOD_S = 0.02
@@ -120,7 +121,8 @@ class EstimatorNode(Node):
         self._diagnostics_publisher = self.create_publisher(DiagnosticArray, "/diagnostics", STREAM_QOS)
         self.create_subscription(TetraMesh, "initial_mesh", self._on_initial_mesh, LATCHED_QOS, callback_group=inputs)
         self.create_subscription(TetraMesh, "predicted_mesh", self._on_prediction, STREAM_QOS, callback_group=inputs)
-        self.create_subscription(PointCloud2, "points", self._on_cloud, qos_profile_sensor_data, callback_group=inputs)
+        points_qos = RELIABLE_POINTS_QOS if self.params["points_reliable"] else qos_profile_sensor_data
+        self.create_subscription(PointCloud2, "points", self._on_cloud, points_qos, callback_group=inputs)
         self._wake_solver = self.create_guard_condition(self._solve, callback_group=solver)
         self.create_timer(_TIMEOUT_CHECK_PERIOD_S, self._solve, callback_group=solver, clock=steady)
         self._wake_outputs = self.create_guard_condition(self._publish_reports, callback_group=outputs)
