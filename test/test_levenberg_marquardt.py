@@ -140,6 +140,21 @@ def test_linear_solvers_agree(cube, model):  # noqa: F811
     assert first.factorizations == 3 and second.factorizations == 0  # block factors are reused
 
 
+def test_newton_decrement_estimates(cube, model):  # noqa: F811
+    """decrement = 0.5 g^T A^-1 g: exact for direct solvers, and for PCG on one block (its
+    preconditioner is that block's Cholesky factor); on a window PCG's block-Jacobi estimate
+    ignores only the weak temporal coupling."""
+    system, rhs = window_system(cube, model)
+    exact = 0.5 * float(rhs @ np.linalg.solve(system.to_csr().toarray(), rhs))
+    assert CholeskySolver().decrement(system, rhs) == pytest.approx(exact, rel=1e-10)
+    estimate = PCGSolver(preconditioner="block").decrement(system, rhs)
+    assert estimate == pytest.approx(exact, rel=0.05)
+    single = WindowSystem.single(system.blocks[0])
+    block_rhs = rhs[:system.block_size]
+    single_exact = 0.5 * float(block_rhs @ np.linalg.solve(system.blocks[0].toarray(), block_rhs))
+    assert PCGSolver(preconditioner="block").decrement(single, block_rhs) == pytest.approx(single_exact, rel=1e-10)
+
+
 def test_indefinite_systems_are_reported():
     matrix = scipy.sparse.csr_matrix(np.array([[2.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]]))
     system = WindowSystem.single(matrix)

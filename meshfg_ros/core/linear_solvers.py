@@ -187,6 +187,12 @@ class LinearSolver:
     def solve(self, system: WindowSystem, rhs: np.ndarray) -> tuple[np.ndarray, SolveStats]:
         raise NotImplementedError
 
+    def decrement(self, system: WindowSystem, gradient: np.ndarray) -> float:
+        """0.5 g^T A^-1 g: the cost decrease a Newton step on A would predict (LM's stopping
+        test). This base version solves; PCG estimates it with its preconditioner alone."""
+        step, _ = self.solve(system, -gradient)
+        return -0.5 * float(gradient @ step)
+
 
 class CholeskySolver(LinearSolver):
     """Sparse Cholesky (CHOLMOD) of the whole window; the symbolic analysis is kept while the
@@ -423,6 +429,14 @@ class PCGSolver(LinearSolver):
                            self.factorizations - before)
         return x, stats
 
+    def decrement(self, system, gradient):
+        """0.5 g^T M^-1 g with the preconditioner M (cached factors, block Jacobi: exact in each
+        state's block, blind to the weak temporal coupling): one preconditioner application
+        instead of a PCG solve."""
+        mode = self._mode(system)
+        self._prepare(system, mode, force=False)
+        return 0.5 * float(gradient @ self._precondition(system, mode, np.asarray(gradient, dtype=np.float64)))
+
     def _pcg(self, system: WindowSystem, mode: str, b: np.ndarray, x: np.ndarray, limit: int):
         """Preconditioned CG from x for at most `limit` iterations: (x, iterations, converged)."""
         norm_b = np.linalg.norm(b)
@@ -479,6 +493,12 @@ class FallbackSolver(LinearSolver):
                 stats.message = "; ".join(failures) + f"; solved with {solver.name}"
             return x, stats
         raise LinearSolveError("; ".join(failures))
+
+    def decrement(self, system, gradient):
+        """PCG's estimate when PCG comes first, else a full solve through the fallbacks."""
+        if isinstance(self.solvers[0], PCGSolver):
+            return self.solvers[0].decrement(system, gradient)
+        return super().decrement(system, gradient)
 
     def reset(self) -> None:
         for solver in self.solvers:
