@@ -140,6 +140,23 @@ def test_linear_solvers_agree(cube, model):  # noqa: F811
     assert first.factorizations == 3 and second.factorizations == 0  # block factors are reused
 
 
+def test_block_factors_are_refreshed_by_revision_and_drift(cube, model):  # noqa: F811
+    """A damping-sized diagonal change keeps every cached factor; a block re-linearised (new
+    revision) that drifted beyond refresh_change is factored again, and only that block."""
+    system, rhs = window_system(cube, model)
+    pcg = PCGSolver(tolerance=1e-10, preconditioner="block")
+    assert pcg.solve(system, rhs)[1].factorizations == len(system.blocks)
+    damped = system.with_added_diagonal(1e-4 * system.diagonal())
+    assert pcg.solve(damped, rhs)[1].factorizations == 0
+    blocks = list(system.blocks)
+    blocks[0] = blocks[0] * 1.5
+    relinearized = WindowSystem(blocks, system.couplings, system.keys, system.diagonal_index,
+                                system.coupling_diagonal, revisions=["new"] + system.revisions[1:])
+    x, stats = pcg.solve(relinearized, rhs)
+    assert stats.factorizations == 1
+    np.testing.assert_allclose(relinearized.matvec(x), rhs, rtol=1e-8, atol=1e-8 * np.abs(rhs).max())
+
+
 def test_newton_decrement_estimates(cube, model):  # noqa: F811
     """decrement = 0.5 g^T A^-1 g: exact for direct solvers, and for PCG on one block (its
     preconditioner is that block's Cholesky factor); on a window PCG's block-Jacobi estimate

@@ -246,16 +246,16 @@ class _BlockFactor:
         self.factor = factor
         self.reference = reference
         self.reference_norm = max(float(np.linalg.norm(reference)), 1e-300)
-        self.revision = revision
+        self.seen_revision = revision    # the revision off_diagonal_squared was computed for
         self.off_diagonal_squared = 0.0
 
     def change(self, data: np.ndarray, revision, diagonal_index: np.ndarray) -> float:
         if data.shape != self.reference.shape:
             return np.inf
         diagonal_squared = float(np.sum((data[diagonal_index] - self.reference[diagonal_index]) ** 2))
-        if revision is None or revision != self.revision:
+        if revision is None or revision != self.seen_revision:
             self.off_diagonal_squared = max(float(np.sum((data - self.reference) ** 2)) - diagonal_squared, 0.0)
-            self.revision = revision
+            self.seen_revision = revision
         return np.sqrt(self.off_diagonal_squared + diagonal_squared) / self.reference_norm
 
 
