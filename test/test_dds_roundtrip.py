@@ -14,7 +14,8 @@ def run_pair(tmp_path: Path, type_name: str, sent: dict) -> dict:
     np.savez(sent_path, **sent)
     env = dict(os.environ, PYTHONPATH=str(HERE))
     command = [sys.executable, "-m", "ros_helpers.roundtrip"]
-    publisher = subprocess.Popen(command + ["publish", type_name, str(sent_path)], env=env)
+    publisher = subprocess.Popen(command + ["publish", type_name, str(sent_path),
+                                            str(received_path)], env=env)
     try:
         receiver = subprocess.run(command + ["receive", type_name, str(received_path)],
                                   env=env, timeout=90, capture_output=True, text=True)

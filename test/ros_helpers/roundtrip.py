@@ -1,13 +1,18 @@
 """Child process of the DDS round-trip tests: publish or receive one message, via real DDS.
 
-    python -m ros_helpers.roundtrip publish  TYPE IN.npz   # publishes until a subscriber confirms
-    python -m ros_helpers.roundtrip receive  TYPE OUT.npz  # writes the received fields
+    python -m ros_helpers.roundtrip publish  TYPE IN.npz OUT.npz  # publishes until OUT.npz exists
+    python -m ros_helpers.roundtrip receive  TYPE OUT.npz         # writes the received fields
 
 TYPE is TetraMesh or EstimatorStatus; the fields travel through .npz files so the parent
-compares what was sent with what arrived.
+compares what was sent with what arrived. The receiver writes OUT.npz atomically; its
+appearance is the publisher's signal to stop (waiting for DDS to report the subscriber gone
+instead depends on Fast DDS noticing a departed participant, which a loaded machine can
+delay past any fixed timeout).
 """
+import os
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import rclpy
@@ -52,7 +57,8 @@ def arrays_to_msg(msg_type, arrays) -> object:
     return msg
 
 
-def main(mode: str, type_name: str, path: str, timeout_s: float = 60.0) -> int:
+def main(mode: str, type_name: str, path: str, received_path: str = "",
+         timeout_s: float = 60.0) -> int:
     msg_type = TYPES[type_name]
     rclpy.init()
     node = rclpy.create_node(f"roundtrip_{mode}")
@@ -62,10 +68,11 @@ def main(mode: str, type_name: str, path: str, timeout_s: float = 60.0) -> int:
             publisher = node.create_publisher(msg_type, TOPIC, QOS)
             publisher.publish(arrays_to_msg(msg_type, dict(np.load(path))))
             # Transient-local + reliable: the late-joining subscriber gets it; stay alive
-            # until the subscriber has matched and gone again.
-            while publisher.get_subscription_count() == 0 and time.monotonic() < deadline:
-                rclpy.spin_once(node, timeout_sec=0.05)
-            while publisher.get_subscription_count() > 0 and time.monotonic() < deadline:
+            # until the receiver has written what it got.
+            while not Path(received_path).exists():
+                if time.monotonic() > deadline:
+                    print("receiver never confirmed", file=sys.stderr)
+                    return 2
                 rclpy.spin_once(node, timeout_sec=0.05)
             return 0
         received = []
@@ -75,7 +82,9 @@ def main(mode: str, type_name: str, path: str, timeout_s: float = 60.0) -> int:
         if not received:
             print("no message received", file=sys.stderr)
             return 2
-        np.savez(path, **fields_to_arrays(received[0]))
+        partial = f"{path}.partial.npz"
+        np.savez(partial, **fields_to_arrays(received[0]))
+        os.replace(partial, path)
         return 0
     finally:
         node.destroy_node()
@@ -83,4 +92,4 @@ def main(mode: str, type_name: str, path: str, timeout_s: float = 60.0) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(*sys.argv[1:4]))
+    sys.exit(main(*sys.argv[1:5]))
