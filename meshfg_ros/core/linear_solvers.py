@@ -210,7 +210,7 @@ class CholeskySolver(LinearSolver):
         if self._factor is not None and self._factor.same_pattern(matrix):
             self._factor.refactor(matrix.data)
         else:
-            self._factor = SparseCholesky(matrix)
+            self._factor = SparseCholesky(matrix, node_size=3)
         x = self._factor.solve(rhs)
         if not np.all(np.isfinite(x)):
             raise NotPositiveDefiniteError("Cholesky solve produced non-finite values")
@@ -339,7 +339,8 @@ class PCGSolver(LinearSolver):
                     self._spare.append(factor)
                     raise
                 return factor
-        return SparseCholesky(scipy.sparse.csr_matrix((data, like.indices, like.indptr), shape=like.shape))
+        return SparseCholesky(scipy.sparse.csr_matrix((data, like.indices, like.indptr), shape=like.shape),
+                              node_size=3)
 
     # ------------------------------------------------------------------ preparation
     def _mean_block_data(self, system: WindowSystem) -> np.ndarray:

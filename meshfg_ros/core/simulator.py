@@ -378,7 +378,7 @@ class XpbdSimulator:
         mesh, config = self.rest_mesh, self.config
         model = ElasticModel(mesh.vertices, mesh.tetrahedra, config.youngs_modulus, config.poisson_ratio)
         dofs = (3 * self.movable_vertices[:, None] + np.arange(3)).reshape(-1)
-        return SparseCholesky(model.stiffness(kind="linear")[dofs][:, dofs])
+        return SparseCholesky(model.stiffness(kind="linear")[dofs][:, dofs], node_size=3)
 
     def _rest_solve(self, right_hand_side: np.ndarray) -> np.ndarray:
         """K0^-1 applied to a vector (3 n,) or to the columns (3 n, k) of a matrix on the movable dofs."""

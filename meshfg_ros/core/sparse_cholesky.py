@@ -7,27 +7,58 @@ CHOLMOD with an optimised BLAS (supernodal): measured on a 1,344-dof block of th
 window, numeric factorisation 1.7 ms against 10.4 ms for cholespy's CHOLMOD (which analyses
 again at every factorisation, with a reference BLAS) and 12 ms for SuperLU; on a 30k-dof
 organ-scale block 0.74 s against ~12 s.
+
+The fill-reducing ordering is METIS nested dissection (pymetis) of the node graph: cvxopt's
+CHOLMOD is built without its METIS module (libcholmod has no cholmod_metis symbol) and orders by AMD, whose fill on 3D tetrahedral meshes is
+much larger. Measured on the elastic stiffness of the organ-scale box (10,648 vertices, 31,944
+dofs): nnz(L) 16.5M against 25.8M, numeric factorisation 0.46 s against 0.97 s, solve 22 ms
+against 32 ms; 2,744 vertices: nnz(L) 2.3M against 3.3M, 40 ms against 69 ms.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import scipy.sparse
+import pymetis
 from cvxopt import cholmod, matrix, spmatrix
 
 from .noise import NotPositiveDefiniteError
 
-__all__ = ["SparseCholesky"]
+__all__ = ["SparseCholesky", "nested_dissection"]
+
+# Below this many nodes AMD (CHOLMOD's own choice) is as good and METIS's call costs more.
+NESTED_DISSECTION_MIN_NODES = 256
+
+
+def nested_dissection(matrix_: scipy.sparse.csr_matrix, node_size: int = 1) -> np.ndarray | None:
+    """Fill-reducing permutation p (P A P^T factored, row k of it is row p[k] of A) from METIS
+    nested dissection of the graph whose nodes are consecutive groups of `node_size` dofs (a
+    mesh vertex's x, y, z), the dofs of a node kept together; None for small matrices."""
+    size = matrix_.shape[0]
+    if size % node_size or size // node_size < NESTED_DISSECTION_MIN_NODES:
+        return None
+    coo = matrix_.tocoo()
+    nodes = size // node_size
+    graph = scipy.sparse.csr_matrix((np.ones(coo.nnz, dtype=np.int8), (coo.row // node_size, coo.col // node_size)),
+                                    shape=(nodes, nodes))
+    graph = (graph + graph.T).tocsr()  # METIS needs both directions; `matrix_` may hold one triangle
+    graph.setdiag(0)
+    graph.eliminate_zeros()
+    graph.sort_indices()
+    node_order, _ = pymetis.nested_dissection(pymetis.CSRAdjacency(graph.indptr, graph.indices))
+    node_order = np.asarray(node_order, dtype=np.int64)
+    return (node_size * node_order[:, None] + np.arange(node_size)).reshape(-1)
 
 
 class SparseCholesky:
     """CHOLMOD factor of a symmetric positive definite matrix with a fixed sparsity pattern.
 
     `matrix`: scipy sparse, symmetric (both triangles stored or not: only the lower triangle
-    is read). Raises NotPositiveDefiniteError when CHOLMOD meets a non-positive pivot.
+    is read); `node_size`: dofs per graph node for the ordering (3 for mesh vertices). Raises
+    NotPositiveDefiniteError when CHOLMOD meets a non-positive pivot.
     """
 
-    def __init__(self, matrix_: scipy.sparse.spmatrix):
+    def __init__(self, matrix_: scipy.sparse.spmatrix, node_size: int = 1):
         csr = scipy.sparse.csr_matrix(matrix_, dtype=np.float64)
         csr.sort_indices()
         if csr.shape[0] != csr.shape[1]:
@@ -38,7 +69,9 @@ class SparseCholesky:
         self._lower = np.flatnonzero(csr.indices <= rows)
         self._rows = matrix(rows[self._lower])
         self._columns = matrix(csr.indices[self._lower].astype(np.int64))
-        self._factor = cholmod.symbolic(self._cvxopt(csr.data), uplo="L")
+        order = nested_dissection(csr, node_size)
+        ordering = {} if order is None else {"p": matrix(order.tolist(), tc="i")}
+        self._factor = cholmod.symbolic(self._cvxopt(csr.data), uplo="L", **ordering)
         self.refactor(csr.data)
 
     def _cvxopt(self, data: np.ndarray) -> spmatrix:
