@@ -66,17 +66,19 @@ class SparseCholesky:
         self.size = csr.shape[0]
         self._indptr, self._indices = csr.indptr.copy(), csr.indices.copy()
         rows = np.repeat(np.arange(self.size, dtype=np.int64), np.diff(csr.indptr))
-        self._lower = np.flatnonzero(csr.indices <= rows)
-        self._rows = matrix(rows[self._lower])
-        self._columns = matrix(csr.indices[self._lower].astype(np.int64))
+        lower = np.flatnonzero(csr.indices <= rows)
+        # cvxopt stores column-major; the lower entries in that order, so a refactor only
+        # assigns values to one kept spmatrix (2 ms against 24 ms to build one, organ scale).
+        self._lower = lower[np.lexsort((rows[lower], csr.indices[lower]))]
+        self._matrix = spmatrix(self._values(csr.data), matrix(rows[self._lower]),
+                                matrix(csr.indices[self._lower].astype(np.int64)), (self.size, self.size))
         order = nested_dissection(csr, node_size)
         ordering = {} if order is None else {"p": matrix(order.tolist(), tc="i")}
-        self._factor = cholmod.symbolic(self._cvxopt(csr.data), uplo="L", **ordering)
+        self._factor = cholmod.symbolic(self._matrix, uplo="L", **ordering)
         self.refactor(csr.data)
 
-    def _cvxopt(self, data: np.ndarray) -> spmatrix:
-        values = matrix(np.ascontiguousarray(data[self._lower], dtype=np.float64))
-        return spmatrix(values, self._rows, self._columns, (self.size, self.size))
+    def _values(self, data: np.ndarray) -> matrix:
+        return matrix(np.ascontiguousarray(data[self._lower], dtype=np.float64))
 
     def same_pattern(self, matrix_: scipy.sparse.csr_matrix) -> bool:
         """True when `matrix_` (csr, sorted indices) has the pattern this factor was analysed for."""
@@ -88,7 +90,8 @@ class SparseCholesky:
         if not np.all(np.isfinite(data)):
             raise NotPositiveDefiniteError("Cholesky of a matrix with non-finite entries")
         try:
-            cholmod.numeric(self._cvxopt(data), self._factor)
+            self._matrix.V = self._values(data)
+            cholmod.numeric(self._matrix, self._factor)
         except ArithmeticError as error:
             raise NotPositiveDefiniteError(f"Cholesky failed: pivot {error} not positive") from None
 
