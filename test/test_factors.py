@@ -259,6 +259,44 @@ def test_relinearization_threshold_reuses_the_quadratic_model(cube, model):
     assert graph.relinearizations == 6
 
 
+def test_gradient_without_hessians_rebases_the_model(cube, model):
+    """FactorGraph.gradient gives linearize's gradient and cost without new Hessians: a moved
+    state's quadratic is re-based at x (exact cost and gradient, Hessian and revision kept)."""
+    exact = build_window(cube, model, threshold=0.0)
+    x = exact.get_x()
+    step = np.random.default_rng(11).normal(scale=2e-4, size=x.size)
+    reference = build_window(cube, model, threshold=0.0)
+    reference.linearize(x)
+    _, reference_gradient, reference_cost = reference.linearize(x + step)
+    system, _, _ = exact.linearize(x)
+    revisions = list(system.revisions)
+    gradient, cost = exact.gradient(x + step)
+    np.testing.assert_allclose(gradient, reference_gradient, rtol=1e-10, atol=1e-8)
+    assert cost == pytest.approx(reference_cost, rel=1e-12)
+    assert exact.relinearizations == 3  # no state re-linearised (no new Hessians)
+    assert exact.cost(x + step) == pytest.approx(reference_cost, rel=1e-12)
+    # Threshold 0: the next linearize re-linearises the re-based states all the same.
+    system_after, gradient_after, _ = exact.linearize(x + step)
+    assert exact.relinearizations == 6 and system_after.revisions != revisions
+    np.testing.assert_allclose(gradient_after, reference_gradient, rtol=1e-10, atol=1e-8)
+    # Threshold 1 mm, states moved by more: gradient re-bases them; the next linearize keeps
+    # their Hessians (the threshold counts from the re-based point) and their model is exact
+    # to first order there. Only the exact key (threshold 0) is re-linearised.
+    relaxed = build_window(cube, model, threshold=1e-3)
+    relaxed.exact_keys = {2}
+    far = 10.0 * step
+    reference = build_window(cube, model, threshold=0.0)
+    reference.linearize(x)  # K is held from the first linearisation (relinearize=False)
+    _, reference_gradient, reference_cost = reference.linearize(x + far)
+    system, _, _ = relaxed.linearize(x)
+    relaxed.gradient(x + far)
+    system_next, gradient_next, cost_next = relaxed.linearize(x + far)
+    assert relaxed.relinearizations == 4
+    assert system_next.revisions[:2] == system.revisions[:2]
+    np.testing.assert_allclose(gradient_next, reference_gradient, rtol=1e-10, atol=1e-8)
+    assert cost_next == pytest.approx(reference_cost, rel=1e-12)
+
+
 def test_graph_rejects_bad_factors(cube, model):
     graph = FactorGraph(cube.vertex_count, cube.tetrahedra, cube.surface_triangles)
     with pytest.raises(FactorError, match="unknown state"):

@@ -172,6 +172,43 @@ def test_newton_decrement_estimates(cube, model):  # noqa: F811
     assert PCGSolver(preconditioner="block").decrement(single, block_rhs) == pytest.approx(single_exact, rel=1e-10)
 
 
+class CountingProblem:
+    """A FactorGraph seen through LM's problem interface, counting calls; `with_gradient`
+    False hides FactorGraph.gradient (LM then re-linearises after every accepted step)."""
+
+    def __init__(self, graph, with_gradient: bool):
+        self.graph, self.calls = graph, {"linearize": 0, "gradient": 0}
+        self.cost, self.acceptable = graph.cost, graph.acceptable
+        if with_gradient:
+            self.gradient = self._gradient
+
+    def linearize(self, x):
+        self.calls["linearize"] += 1
+        return self.graph.linearize(x)
+
+    def _gradient(self, x):
+        self.calls["gradient"] += 1
+        return self.graph.gradient(x)
+
+
+def test_converged_runs_skip_the_last_hessians(cube, model):  # noqa: F811
+    """After a step whose model error is below the cost tolerance, LM tests convergence with
+    the new gradient and the kept Hessians: same optimum, fewer linearisations."""
+    config = LevenbergMarquardtConfig(cost_tolerance=1e-2)  # converges after one step here
+    runs = {}
+    for with_gradient in (True, False):
+        graph = build_window(cube, model, threshold=1e-3)
+        graph.exact_keys = {2}
+        problem = CountingProblem(graph, with_gradient)
+        runs[with_gradient] = (levenberg_marquardt(problem, graph.get_x(), config, PCGSolver(tolerance=1e-3)),
+                               problem.calls)
+    (fast, fast_calls), (plain, plain_calls) = runs[True], runs[False]
+    assert fast.converged and plain.converged and fast.reason == plain.reason == "decrement"
+    assert fast_calls == {"linearize": 1, "gradient": 1} and plain_calls == {"linearize": 2, "gradient": 0}
+    assert fast.final_cost == pytest.approx(plain.final_cost, rel=1e-12)
+    np.testing.assert_array_equal(fast.x, plain.x)
+
+
 def test_indefinite_systems_are_reported():
     matrix = scipy.sparse.csr_matrix(np.array([[2.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]]))
     system = WindowSystem.single(matrix)

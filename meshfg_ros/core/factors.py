@@ -57,10 +57,10 @@ def _as_state(array, vertex_count: int, what: str) -> np.ndarray:
 class PointBlocks:
     """Per-point normal-equation terms of point-to-triangle residuals: triangle (P,) surface
     triangle index, hessian (P, 81) = w J^T J (9x9 over the triangle's 9 coordinates, row
-    major), gradient (P, 9) = w J^T r."""
+    major), gradient (P, 9) = w J^T r. hessian is None when only the gradient was asked for."""
 
     triangle: np.ndarray
-    hessian: np.ndarray
+    hessian: np.ndarray | None
     gradient: np.ndarray
 
 
@@ -95,7 +95,9 @@ class Factor:
     def cost(self, states: dict) -> float:
         raise NotImplementedError
 
-    def linearize(self, states: dict) -> FactorLinearization:
+    def linearize(self, states: dict, hessian: bool = True) -> FactorLinearization:
+        """Cost, gradient and (hessian=True) Gauss-Newton terms at `states`; hessian=False may
+        leave the Hessian terms out, for a gradient-only evaluation."""
         raise NotImplementedError
 
 
@@ -178,7 +180,7 @@ class PhysicsPriorFactor(Factor):
         r = self.residual(states)
         return 0.5 * float(r @ (self._information @ r))
 
-    def linearize(self, states):
+    def linearize(self, states, hessian=True):
         key = self.keys[0]
         information = self.information(states[key])
         r = self.residual(states)
@@ -186,7 +188,7 @@ class PhysicsPriorFactor(Factor):
         return FactorLinearization(
             cost=0.5 * float(r @ weighted),
             gradients={key: -weighted},
-            hessians={(key, key): information},
+            hessians={(key, key): information} if hessian else {},
         )
 
 
@@ -224,7 +226,7 @@ class TemporalFactor(Factor):
         r = self.residual(states)
         return 0.5 * self.weight * float(r @ r)
 
-    def linearize(self, states):
+    def linearize(self, states, hessian=True):
         r = self.residual(states)
         out = FactorLinearization(cost=0.5 * self.weight * float(r @ r))
         out.gradients[self.key] = self.weight * r
@@ -360,16 +362,16 @@ class PointToSurfaceFactor(Factor):
             return 0.0
         return self._terms(states)[2]
 
-    def linearize(self, states):
+    def linearize(self, states, hessian=True):
         key = self.keys[0]
         if not self.num_points:
             return FactorLinearization(cost=0.0)
         association, residual, cost, irls = self._terms(states)
         jacobian = self._point_jacobians(states, association)  # (K, 3, 9)
         weighted = jacobian * irls[:, None, None]
-        hessian = np.einsum("kia,kib->kab", weighted, jacobian).reshape(-1, 81)
         gradient = np.einsum("kia,ki->ka", weighted, residual)
-        blocks = PointBlocks(association.triangle, hessian, gradient)
+        point_hessian = np.einsum("kia,kib->kab", weighted, jacobian).reshape(-1, 81) if hessian else None
+        blocks = PointBlocks(association.triangle, point_hessian, gradient)
         return FactorLinearization(cost=cost, point_blocks={key: blocks})
 
 
@@ -429,6 +431,7 @@ class FactorGraph:
         self._cache: dict = {}
         self._active: set = set()
         self.exact_keys: set = set()  # states re-linearised whenever they move at all
+        self._stale_hessians: set = set()  # states whose cache `gradient` re-based (Hessian kept)
         self.relinearizations = 0
 
     # ------------------------------------------------------------------------ pattern
@@ -571,8 +574,9 @@ class FactorGraph:
         for value in terms.identity_terms.values():
             data[self._diagonal_index] += value
         for blocks in terms.point_blocks.values():
-            slots = self._triangle_slots[blocks.triangle].reshape(-1)
-            data += np.bincount(slots, weights=blocks.hessian.reshape(-1), minlength=nnz + 1)
+            if blocks.hessian is not None:
+                slots = self._triangle_slots[blocks.triangle].reshape(-1)
+                data += np.bincount(slots, weights=blocks.hessian.reshape(-1), minlength=nnz + 1)
             gradient += np.bincount(
                 self._triangle_dofs[blocks.triangle].reshape(-1), weights=blocks.gradient.reshape(-1),
                 minlength=self.dof_count,
@@ -608,6 +612,45 @@ class FactorGraph:
         total += sum(factor.cost(states) for factor in self._cross_factors())
         return float(total)
 
+    def gradient(self, x: np.ndarray):
+        """(gradient over the free dofs, cost) at x, as `linearize` gives them, without new
+        Hessians: a state `linearize` would re-linearise gets its exact cost and gradient and
+        its cached quadratic re-based at x (cost and gradient exact there, Hessian kept, same
+        revision). LM calls this after an accepted step to test for convergence before paying
+        for Hessians it may not need. A re-based state whose threshold is 0 (the estimator's
+        newest, or exact LM) is re-linearised by the next `linearize`; the others follow the
+        threshold rule from x, their quadratic exact to first order there (so the estimator's
+        next update does not re-linearise the state it just finished)."""
+        states = self.states_from_x(x)
+        gradient = np.zeros((len(self.keys), self.dof_count))
+        cost = 0.0
+        position = {key: t for t, key in enumerate(self.keys)}
+        for t, key in enumerate(self.keys):
+            cached = self._cache.get(key)
+            threshold = 0.0 if key in self.exact_keys else self.relinearize_threshold
+            if cached is None:
+                cached = self._cache[key] = self._relinearize(key, states[key])
+                self._active.add(key)
+            elif (key in self._stale_hessians and threshold == 0.0) or self._moved(cached, states[key]) > threshold:
+                cached.cost, cached.gradient = 0.0, np.zeros(self.dof_count)
+                ignored_hessian = np.zeros_like(cached.data)  # cached.data backs cached.block: kept
+                for factor in self._single_state_factors(key):
+                    terms = factor.linearize({key: states[key]}, hessian=False)
+                    cached.cost += terms.cost
+                    self._accumulate(terms, key, ignored_hessian, cached.gradient)
+                cached.x_lin = states[key].copy()
+                self._stale_hessians.add(key)
+                self._active.add(key)
+            cost_t, gradient[t] = self._model(cached, states[key])
+            cost += cost_t
+        for factor in self._cross_factors():
+            terms = factor.linearize(states, hessian=False)
+            cost += terms.cost
+            for key, values in terms.gradients.items():
+                gradient[position[key]] += values
+        self._positive = dict(zip(self.keys, self._signed_volumes(np.stack([states[key] for key in self.keys])) > 0.0))
+        return gradient[:, self.free_dofs].reshape(-1), float(cost)
+
     def linearize(self, x: np.ndarray):
         """(WindowSystem of J^T W J, gradient J^T W r over the free dofs, cost) at x."""
         states = self.states_from_x(x)
@@ -623,8 +666,10 @@ class FactorGraph:
         for t, key in enumerate(self.keys):
             cached = self._cache.get(key)
             threshold = 0.0 if key in self.exact_keys else self.relinearize_threshold
-            if cached is None or self._moved(cached, states[key]) > threshold:
+            stale = key in self._stale_hessians and threshold == 0.0
+            if cached is None or stale or self._moved(cached, states[key]) > threshold:
                 cached = self._cache[key] = self._relinearize(key, states[key])
+                self._stale_hessians.discard(key)
                 self._active.add(key)
                 cost += cached.cost
                 gradient[t] = cached.gradient

@@ -16,7 +16,10 @@ Termination (converged=True): relative cost decrease of an accepted step below
 `cost_tolerance` (or a step whose predicted decrease is below it: even its success would
 end the run; after an accepted step that predicted decrease is first estimated without a
 solve, solver.decrement: 0.5 g^T M^-1 g with PCG's preconditioner M, and a small estimate
-ends the run before the solve, reason "decrement"), step norm below
+ends the run before the solve, reason "decrement"; when the accepted step's model error
+|actual - predicted decrease| was itself below the cost tolerance, the run has probably
+converged, and a problem with `gradient(x) -> (g, F)` is asked for the new gradient alone,
+tested with the kept Hessian before new Hessians are paid for), step norm below
 `step_tolerance` * (|x| + step_tolerance), or |g|_inf below `gradient_tolerance` *
 max(1, |g_0|_inf); otherwise max_iterations (one iteration = one linear solve) or lambda
 above `max_damping` end it unconverged.
@@ -79,7 +82,8 @@ def levenberg_marquardt(problem, x0: np.ndarray, config: LevenbergMarquardtConfi
     """Minimise problem's cost from x0.
 
     problem: linearize(x) -> (WindowSystem H, gradient, cost); cost(x) -> float;
-    acceptable(x) -> bool (optional: no inverted elements).
+    acceptable(x) -> bool (optional: no inverted elements); gradient(x) -> (gradient, cost)
+    (optional: the same gradient and cost without Hessians).
     """
     config = config or LevenbergMarquardtConfig()
     solver = solver or make_linear_solver("pcg")
@@ -93,27 +97,48 @@ def levenberg_marquardt(problem, x0: np.ndarray, config: LevenbergMarquardtConfi
     damping, nu = config.initial_damping, 2.0
     if config.damping_mode == "identity":
         damping *= float(np.max(np.abs(system.diagonal())))
-    linearized, moved = True, False
-    while result.iterations < config.max_iterations:
-        if not linearized:
-            system, gradient, cost = problem.linearize(x)
-            linearized, moved = True, True
-        if np.max(np.abs(gradient), initial=0.0) <= config.gradient_tolerance * initial_gradient:
-            result.converged, result.reason = True, "gradient"
-            break
+
+    def damped_system(system, damping):
         if config.damping_mode == "marquardt":
             diagonal = np.abs(system.diagonal())
             scaling = np.maximum(diagonal, config.damping_floor * max(float(diagonal.mean()), 1e-300))
         else:
             scaling = np.ones(system.size)
-        damped = system.with_added_diagonal(damping * scaling)
+        return system.with_added_diagonal(damping * scaling)
+
+    def small_decrement(damped, gradient, cost) -> bool:
+        try:
+            estimate = solver.decrement(damped, gradient)
+        except (NotPositiveDefiniteError, LinearSolveError):
+            return False
+        return 0.0 <= estimate <= config.cost_tolerance * cost
+
+    def small_gradient(gradient) -> bool:
+        return np.max(np.abs(gradient), initial=0.0) <= config.gradient_tolerance * initial_gradient
+
+    linearized, moved, gradient_first = True, False, False
+    while result.iterations < config.max_iterations:
+        if not linearized:
+            if gradient_first:
+                # The last step's model error was below the tolerance: probably converged.
+                # Test with the new gradient and the kept Hessian before paying for new ones.
+                gradient, cost = problem.gradient(x)
+                if small_gradient(gradient):
+                    result.converged, result.reason = True, "gradient"
+                    break
+                if small_decrement(damped_system(system, damping), gradient, cost):
+                    result.converged, result.reason = True, "decrement"
+                    break
+            system, gradient, cost = problem.linearize(x)
+            # (moved: test the decrement again with the new Hessians, which estimate it better)
+            linearized, moved = True, True
+        if small_gradient(gradient):
+            result.converged, result.reason = True, "gradient"
+            break
+        damped = damped_system(system, damping)
         if moved:
             moved = False
-            try:
-                estimate = solver.decrement(damped, gradient)
-            except (NotPositiveDefiniteError, LinearSolveError):
-                estimate = np.inf
-            if 0.0 <= estimate <= config.cost_tolerance * cost:
+            if small_decrement(damped, gradient, cost):
                 result.converged, result.reason = True, "decrement"
                 break
         result.iterations += 1
@@ -143,6 +168,8 @@ def levenberg_marquardt(problem, x0: np.ndarray, config: LevenbergMarquardtConfi
                 gain = (cost - trial_cost) / predicted
                 if np.isfinite(trial_cost) and gain > 0.0:
                     accepted = True
+                    gradient_first = (hasattr(problem, "gradient") and
+                                      abs(cost - trial_cost - predicted) <= config.cost_tolerance * trial_cost)
                     relative_decrease = (cost - trial_cost) / max(cost, 1e-300)
                     step_norm, x_norm = float(np.linalg.norm(step)), float(np.linalg.norm(x))
                     x, cost = trial, trial_cost
