@@ -596,6 +596,17 @@ class FactorGraph:
         sharp surface edges, where the closest triangle flips, re-linearise every state)."""
         return float(np.sqrt(np.mean(np.sum((state - cached.x_lin) ** 2, axis=1))))
 
+    def _outdated(self, key, cached: _StateLinearization, state: np.ndarray) -> bool:
+        """Whether `linearize` must re-linearise state `key` (its cached quadratic stands in otherwise)."""
+        threshold = 0.0 if key in self.exact_keys else self.relinearize_threshold
+        stale = key in self._stale_hessians and threshold == 0.0
+        return stale or self._moved(cached, state) > threshold
+
+    def _record_positive(self, states: dict) -> None:
+        """Which tetrahedra are positive at these states (what `acceptable` protects)."""
+        volumes = self._signed_volumes(np.stack([states[key] for key in self.keys]))
+        self._positive = dict(zip(self.keys, volumes > 0.0))
+
     def _cross_factors(self) -> list:
         return [factor for factor in self.factors if len(factor.keys) != 1 or isinstance(factor, TemporalFactor)]
 
@@ -627,11 +638,10 @@ class FactorGraph:
         position = {key: t for t, key in enumerate(self.keys)}
         for t, key in enumerate(self.keys):
             cached = self._cache.get(key)
-            threshold = 0.0 if key in self.exact_keys else self.relinearize_threshold
             if cached is None:
                 cached = self._cache[key] = self._relinearize(key, states[key])
                 self._active.add(key)
-            elif (key in self._stale_hessians and threshold == 0.0) or self._moved(cached, states[key]) > threshold:
+            elif self._outdated(key, cached, states[key]):
                 cached.cost, cached.gradient = 0.0, np.zeros(self.dof_count)
                 ignored_hessian = np.zeros_like(cached.data)  # cached.data backs cached.block: kept
                 for factor in self._single_state_factors(key):
@@ -648,7 +658,7 @@ class FactorGraph:
             cost += terms.cost
             for key, values in terms.gradients.items():
                 gradient[position[key]] += values
-        self._positive = dict(zip(self.keys, self._signed_volumes(np.stack([states[key] for key in self.keys])) > 0.0))
+        self._record_positive(states)
         return gradient[:, self.free_dofs].reshape(-1), float(cost)
 
     def linearize(self, x: np.ndarray):
@@ -665,9 +675,7 @@ class FactorGraph:
         revisions = []
         for t, key in enumerate(self.keys):
             cached = self._cache.get(key)
-            threshold = 0.0 if key in self.exact_keys else self.relinearize_threshold
-            stale = key in self._stale_hessians and threshold == 0.0
-            if cached is None or stale or self._moved(cached, states[key]) > threshold:
+            if cached is None or self._outdated(key, cached, states[key]):
                 cached = self._cache[key] = self._relinearize(key, states[key])
                 self._stale_hessians.discard(key)
                 self._active.add(key)
@@ -703,8 +711,7 @@ class FactorGraph:
         ]
         system = WindowSystem(blocks, couplings, list(self.keys), self._diagonal_index, coupling_diagonal,
                               self._vertex_block_slots, revisions)
-        positive = self._signed_volumes(np.stack([states[key] for key in self.keys])) > 0.0
-        self._positive = dict(zip(self.keys, positive))
+        self._record_positive(states)
         return system, gradient[:, self.free_dofs].reshape(-1), cost
 
     def _signed_volumes(self, state: np.ndarray) -> np.ndarray:
