@@ -385,6 +385,7 @@ class _StateLinearization:
     cost: float
     block: scipy.sparse.csr_matrix | None = None  # block over the free dofs (for the model)
     revision: int = 0        # FactorGraph.relinearizations when it was made: names its values
+    rebased: bool = False    # FactorGraph.gradient moved x_lin, cost, gradient; data is older
 
 
 class FactorGraph:
@@ -431,7 +432,6 @@ class FactorGraph:
         self._cache: dict = {}
         self._active: set = set()
         self.exact_keys: set = set()  # states re-linearised whenever they move at all
-        self._stale_hessians: set = set()  # states whose cache `gradient` re-based (Hessian kept)
         self.relinearizations = 0
 
     # ------------------------------------------------------------------------ pattern
@@ -599,8 +599,7 @@ class FactorGraph:
     def _outdated(self, key, cached: _StateLinearization, state: np.ndarray) -> bool:
         """Whether `linearize` must re-linearise state `key` (its cached quadratic stands in otherwise)."""
         threshold = 0.0 if key in self.exact_keys else self.relinearize_threshold
-        stale = key in self._stale_hessians and threshold == 0.0
-        return stale or self._moved(cached, state) > threshold
+        return (cached.rebased and threshold == 0.0) or self._moved(cached, state) > threshold
 
     def _record_positive(self, states: dict) -> None:
         """Which tetrahedra are positive at these states (what `acceptable` protects)."""
@@ -649,7 +648,7 @@ class FactorGraph:
                     cached.cost += terms.cost
                     self._accumulate(terms, key, ignored_hessian, cached.gradient)
                 cached.x_lin = states[key].copy()
-                self._stale_hessians.add(key)
+                cached.rebased = True
                 self._active.add(key)
             cost_t, gradient[t] = self._model(cached, states[key])
             cost += cost_t
@@ -677,7 +676,6 @@ class FactorGraph:
             cached = self._cache.get(key)
             if cached is None or self._outdated(key, cached, states[key]):
                 cached = self._cache[key] = self._relinearize(key, states[key])
-                self._stale_hessians.discard(key)
                 self._active.add(key)
                 cost += cached.cost
                 gradient[t] = cached.gradient
