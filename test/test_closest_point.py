@@ -1,5 +1,5 @@
 """Closest point on triangles: Voronoi regions, exact Jacobian (autograd + finite differences),
-and the k-d tree association against brute force."""
+and the AABB-tree association against brute force (a perturbed cube, the liver)."""
 
 import numpy as np
 import pytest
@@ -14,7 +14,6 @@ from meshfg_ros.core.closest_point import (
     REGION_VERTEX_A,
     REGION_VERTEX_B,
     REGION_VERTEX_C,
-    CandidateCache,
     ClosestPointIndex,
     InvalidGeometryError,
     brute_force_closest,
@@ -177,20 +176,6 @@ def test_index_gating_rejects_far_points(cube_surface):
     assert np.isinf(association.distance[1:]).all()
 
 
-def test_candidate_cache_stays_exact_under_motion(cube_surface):
-    vertices, triangles = cube_surface
-    rng = np.random.default_rng(6)
-    points = rng.uniform(-0.1, 1.1, size=(800, 3))
-    cache = CandidateCache(points, triangles, margin=0.03)
-    moved = vertices.copy()
-    for _ in range(6):
-        moved = moved + rng.normal(scale=0.006, size=moved.shape)
-        cached = cache.associate(moved)
-        slow = brute_force_closest(points, moved, triangles)
-        np.testing.assert_allclose(cached.distance, slow.distance, rtol=0, atol=1e-14)
-    assert cache.rebuild_count < 6  # small motions reuse the candidates
-
-
 def test_bad_input_raises():
     with pytest.raises(InvalidGeometryError, match="points"):
         ClosestPointIndex(np.zeros((3, 3)), np.array([[0, 1, 2]])).associate(np.zeros((4, 2)))
@@ -198,20 +183,31 @@ def test_bad_input_raises():
         ClosestPointIndex(np.zeros((3, 3)), np.array([[0, 1, 3]]))
 
 
-def test_candidate_cache_exact_between_one_and_two_margins(cube_surface):
-    """Motion past the margin is accepted only where each point's new distance proves it."""
-    vertices, triangles = cube_surface
-    rng = np.random.default_rng(7)
-    points = rng.uniform(-0.1, 1.1, size=(800, 3))
-    cache = CandidateCache(points, triangles, margin=0.03)
-    cache.associate(vertices)
-    for shift in (0.04, 0.055):  # a rigid shift: distances move by at most the shift
-        moved = vertices + np.array([shift, 0.0, 0.0])
-        cached = cache.associate(moved)
-        slow = brute_force_closest(points, moved, triangles)
-        np.testing.assert_allclose(cached.distance, slow.distance, rtol=0, atol=1e-14)
-    moved = vertices + rng.normal(scale=0.05, size=vertices.shape)  # beyond 2 margins: rebuilt
-    before = cache.rebuild_count
-    np.testing.assert_allclose(cache.associate(moved).distance, brute_force_closest(points, moved, triangles).distance,
-                               rtol=0, atol=1e-14)
-    assert cache.rebuild_count == before + 1
+def test_index_association_on_the_liver_equals_brute_force():
+    """A real anatomical surface (SOFA's liver: curved, uneven triangles) and points on both
+    sides of it, near and far: same distances and closest points as all pairs."""
+    from meshfg_ros.core.scenarios import liver_mesh
+
+    mesh = liver_mesh()
+    vertices, triangles = mesh.vertices, mesh.surface_triangles
+    rng = np.random.default_rng(8)
+    anchors = vertices[rng.choice(np.unique(triangles), 600)]
+    scale = np.ptp(vertices, axis=0).max()
+    points = anchors + rng.normal(scale=0.02 * scale, size=anchors.shape)
+    points = np.concatenate([points, rng.uniform(vertices.min(0) - 0.2 * scale, vertices.max(0) + 0.2 * scale, (200, 3))])
+    fast = ClosestPointIndex(vertices, triangles).associate(points)
+    slow = brute_force_closest(points, vertices, triangles)
+    np.testing.assert_allclose(fast.distance, slow.distance, rtol=0, atol=1e-15 * scale)
+    np.testing.assert_allclose(fast.closest, slow.closest, rtol=0, atol=1e-14 * scale)
+    assert np.all(fast.triangle >= 0) and np.all(np.isin(fast.region, ALL_REGIONS))
+
+
+def test_index_of_one_triangle_and_empty_queries():
+    vertices = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [5.0, 5.0, 5.0]])
+    index = ClosestPointIndex(vertices, np.array([[0, 1, 2]]))
+    association = index.associate(np.array([[0.2, 0.2, 1.0], [2.0, -1.0, 0.0]]))
+    np.testing.assert_allclose(association.closest, [[0.2, 0.2, 0.0], [1.0, 0.0, 0.0]])
+    np.testing.assert_array_equal(association.region, [REGION_FACE, REGION_VERTEX_B])
+    np.testing.assert_allclose(association.distance, [1.0, np.sqrt(2.0)])
+    empty = index.associate(np.zeros((0, 3)))
+    assert empty.triangle.shape == (0,) and empty.closest.shape == (0, 3)

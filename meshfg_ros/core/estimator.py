@@ -127,7 +127,6 @@ class EstimatorConfig:
     linear_solver: str = "pcg"
     growing: bool = False
     prior_ridge: float = 1e-6
-    association_margin: float | None = None
     covariance: str = "auto"
     exact_covariance_max_dofs: int = 1000
     relinearize_threshold: float | None = None
@@ -281,7 +280,6 @@ class SlidingWindowEstimator:
         if "measurement" in self.enabled and points is not None and len(points):
             factor = PointToSurfaceFactor(
                 key, points, graph.surface_triangles, initial, self.noise, self.robust, cfg.gating_distance,
-                cfg.association_margin,
             )
             pending.num_points = factor.num_points
             pending.num_points_rejected += factor.num_points_rejected

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse
 
-from .closest_point import Association, CandidateCache, project_onto_triangles, projection_jacobian
+from .closest_point import Association, ClosestPointIndex, project_onto_triangles, projection_jacobian
 from .linear_solvers import WindowSystem, diagonal_positions
 from .noise import IdentityNoise, InformationMatrixNoise, PointNoise
 from .robust import RobustKernel
@@ -243,13 +243,11 @@ class PointToSurfaceFactor(Factor):
 
     r_k = q_k - m_k with q_k the closed-form closest point (closest_point.py) on the closest
     surface triangle; its Jacobian is the exact derivative of that projection (barycentrics
-    included). Association: the closest triangle is re-found whenever the residual is
-    evaluated (every cost evaluation and linearisation), exactly and cheaply through a
-    candidate cache that only re-queries the k-d tree after a surface vertex moved more than
-    `association_margin` [m] (default a tenth of the mean surface edge length); so the cost
-    is the true point-to-surface distance, continuous in X, and LM's gain ratio compares like
-    with like. `freeze_association` pins each point to its current triangle (for cross-checks
-    with other solvers).
+    included). Association: the closest triangle is re-found exactly (closest_point.py's AABB
+    tree) whenever the residual is evaluated at a new state (every cost evaluation and
+    linearisation), so the cost is the true point-to-surface distance, continuous in X, and
+    LM's gain ratio compares like with like. `freeze_association` pins each point to its
+    current triangle (for cross-checks with other solvers).
 
     Points farther than `gating_distance` from the surface at `initial_vertices` are rejected
     once, at construction (num_points_rejected), so the objective does not change while LM
@@ -258,8 +256,7 @@ class PointToSurfaceFactor(Factor):
     """
 
     def __init__(self, key, points, surface_triangles, initial_vertices, noise: PointNoise | None = None,
-                 robust: RobustKernel | None = None, gating_distance: float = np.inf,
-                 association_margin: float | None = None):
+                 robust: RobustKernel | None = None, gating_distance: float = np.inf):
         points = np.asarray(points, dtype=np.float64)
         if points.ndim != 2 or points.shape[1] != 3:
             raise FactorError(f"points must have shape (K, 3), got {points.shape}")
@@ -271,17 +268,12 @@ class PointToSurfaceFactor(Factor):
         self.vertex_count = len(initial_vertices)
         noise = IdentityNoise() if noise is None else noise
         noise.point_weights(len(points))  # validates per-point sizes
-        corners = initial_vertices[self.triangles]
-        edge_length = float(np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).mean())
-        self.association_margin = 0.1 * edge_length if association_margin is None else float(association_margin)
         accepted = np.ones(len(points), dtype=bool)
-        cache = CandidateCache(points, self.triangles, self.association_margin) if len(points) else None
         initial_association = None
-        if np.isfinite(gating_distance) and cache is not None:
-            initial_association = cache.associate(initial_vertices)
+        if np.isfinite(gating_distance) and len(points):
+            initial_association = ClosestPointIndex(initial_vertices, self.triangles).associate(points)
             accepted = initial_association.distance <= gating_distance
             if not accepted.all():
-                cache = cache.subset(accepted)
                 initial_association = Association(*(getattr(initial_association, name)[accepted] for name in (
                     "triangle", "closest", "barycentric", "region", "distance")))
         self.num_points_rejected = int(np.count_nonzero(~accepted))
@@ -289,7 +281,6 @@ class PointToSurfaceFactor(Factor):
         self.noise = noise.subset(accepted)
         self.weights = self.noise.point_weights(len(self.points))
         self.robust = robust
-        self._cache = cache if len(self.points) else None
         self._frozen_triangle: np.ndarray | None = None
         # Last (vertices, association): LM linearises where the gating or a trial's cost associated.
         self._last_association = None if initial_association is None else (initial_vertices.copy(), initial_association)
@@ -314,7 +305,7 @@ class PointToSurfaceFactor(Factor):
         last = self._last_association
         if last is not None and np.array_equal(last[0], vertices):
             return last[1]
-        association = self._cache.associate(vertices)
+        association = ClosestPointIndex(vertices, self.triangles).associate(self.points)
         self._last_association = (np.array(vertices, dtype=np.float64), association)
         return association
 
