@@ -44,6 +44,21 @@ def test_refactor_uses_the_new_values(stiffness):
     assert np.linalg.norm(stiffness @ solution - rhs) > 0.5 * np.linalg.norm(rhs)  # not the old factor
 
 
+def test_sibling_factors_its_own_values_and_leaves_the_original(stiffness):
+    rng = np.random.default_rng(2)
+    factor = SparseCholesky(stiffness)
+    doubled = stiffness.copy()
+    doubled.data = doubled.data * 2.0
+    twin = factor.sibling(doubled.data)
+    rhs = rng.normal(size=stiffness.shape[0])
+    np.testing.assert_allclose(doubled @ twin.solve(rhs), rhs, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(stiffness @ factor.solve(rhs), rhs, rtol=1e-9, atol=1e-9)
+    twin.refactor(3.0 * stiffness.data)  # refactoring one leaves the other's values alone
+    np.testing.assert_allclose(3.0 * (stiffness @ twin.solve(rhs)), rhs, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(stiffness @ factor.solve(rhs), rhs, rtol=1e-9, atol=1e-9)
+    assert twin.same_pattern(stiffness)
+
+
 def test_reads_only_the_lower_triangle(stiffness):
     lower_only = scipy.sparse.tril(stiffness).tocsr()
     rhs = np.arange(stiffness.shape[0], dtype=float)

@@ -420,6 +420,7 @@ class FactorGraph:
         self.states: dict = {}
         self.factors: list[Factor] = []
         self._positive: dict = {}
+        self._last_volumes: tuple | None = None  # (x, volumes): see _window_volumes
         self._cache: dict = {}
         self._active: set = set()
         self.exact_keys: set = set()  # states re-linearised whenever they move at all
@@ -592,10 +593,21 @@ class FactorGraph:
         threshold = 0.0 if key in self.exact_keys else self.relinearize_threshold
         return (cached.rebased and threshold == 0.0) or self._moved(cached, state) > threshold
 
-    def _record_positive(self, states: dict) -> None:
-        """Which tetrahedra are positive at these states (what `acceptable` protects)."""
+    def _window_volumes(self, x: np.ndarray, states: dict) -> np.ndarray:
+        """Signed volumes (W, M) of the window's states at x. The last result is kept: LM asks
+        at one x twice (`acceptable` on a trial, then `gradient` or `linearize` once it is
+        accepted). Equal x means equal positions (fixed vertices are constants)."""
+        x = np.asarray(x, dtype=np.float64)
+        last = self._last_volumes
+        if last is not None and last[0].shape == x.shape and np.array_equal(last[0], x):
+            return last[1]
         volumes = self._signed_volumes(np.stack([states[key] for key in self.keys]))
-        self._positive = dict(zip(self.keys, volumes > 0.0))
+        self._last_volumes = (x.copy(), volumes)
+        return volumes
+
+    def _record_positive(self, x: np.ndarray, states: dict) -> None:
+        """Which tetrahedra are positive at these states (what `acceptable` protects)."""
+        self._positive = dict(zip(self.keys, self._window_volumes(x, states) > 0.0))
 
     def _cross_factors(self) -> list:
         return [factor for factor in self.factors if len(factor.keys) != 1 or isinstance(factor, TemporalFactor)]
@@ -648,7 +660,7 @@ class FactorGraph:
             cost += terms.cost
             for key, values in terms.gradients.items():
                 gradient[position[key]] += values
-        self._record_positive(states)
+        self._record_positive(x, states)
         return gradient[:, self.free_dofs].reshape(-1), float(cost)
 
     def linearize(self, x: np.ndarray):
@@ -700,7 +712,7 @@ class FactorGraph:
         ]
         system = WindowSystem(blocks, couplings, list(self.keys), self._diagonal_index, coupling_diagonal,
                               self._vertex_block_slots, revisions)
-        self._record_positive(states)
+        self._record_positive(x, states)
         return system, gradient[:, self.free_dofs].reshape(-1), cost
 
     def _signed_volumes(self, state: np.ndarray) -> np.ndarray:
@@ -723,6 +735,6 @@ class FactorGraph:
         if len(self._positive) != len(self.keys):
             return True
         states = self.states_from_x(x)
-        volumes = self._signed_volumes(np.stack([states[key] for key in self.keys]))
+        volumes = self._window_volumes(x, states)
         positive = np.stack([self._positive[key] for key in self.keys])
         return not np.any(positive & (volumes <= 0.0))

@@ -329,7 +329,8 @@ class PCGSolver(LinearSolver):
 
     def _factor(self, data: np.ndarray, like: scipy.sparse.csr_matrix) -> SparseCholesky:
         """Factor of the matrix with values `data` on `like`'s pattern; reuses the symbolic
-        analysis of a spare factor (a state that left the window) when the pattern matches."""
+        analysis of a spare factor (a state that left the window) when the pattern matches,
+        else the pattern work and ordering of a factor in use (`SparseCholesky.sibling`)."""
         self.factorizations += 1
         while self._spare:
             factor = self._spare.pop()
@@ -340,6 +341,9 @@ class PCGSolver(LinearSolver):
                     self._spare.append(factor)
                     raise
                 return factor
+        for cached in self._block_factors.values():
+            if cached.factor.same_pattern(like):
+                return cached.factor.sibling(data)
         return SparseCholesky(scipy.sparse.csr_matrix((data, like.indices, like.indptr), shape=like.shape),
                               node_size=3)
 

@@ -17,6 +17,8 @@ against 32 ms; 2,744 vertices: nnz(L) 2.3M against 3.3M, 40 ms against 69 ms.
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import scipy.sparse
 import pymetis
@@ -75,9 +77,22 @@ class SparseCholesky:
         self._matrix = spmatrix(self._values(csr.data), matrix(rows[self._lower]),
                                 matrix(csr.indices[self._lower].astype(np.int64)), (self.size, self.size))
         order = nested_dissection(csr, node_size)
-        ordering = {} if order is None else {"p": matrix(order.tolist(), tc="i")}
-        self._factor = cholmod.symbolic(self._matrix, uplo="L", **ordering)
-        self.refactor(csr.data)
+        self._ordering = {} if order is None else {"p": matrix(order.tolist(), tc="i")}
+        self._analyse(csr.data)
+
+    def _analyse(self, data: np.ndarray) -> None:
+        """Symbolic analysis of the kept matrix with the kept ordering, then the numeric one."""
+        self._factor = cholmod.symbolic(self._matrix, uplo="L", **self._ordering)
+        self.refactor(data)
+
+    def sibling(self, data: np.ndarray) -> SparseCholesky:
+        """A new factor of the matrix with values `data` on this factor's pattern, sharing the
+        pattern bookkeeping and the ordering (a new state's block in a window whose factors are
+        all in use: 3.0 ms against 4.6 ms for a new SparseCholesky on a paper-scale block)."""
+        twin = copy.copy(self)
+        twin._matrix = self._matrix * 1.0  # its own copy (8 us; building one takes 0.7 ms)
+        twin._analyse(data)
+        return twin
 
     def _values(self, data: np.ndarray) -> matrix:
         return matrix(np.ascontiguousarray(data[self._lower], dtype=np.float64))
