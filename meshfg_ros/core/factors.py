@@ -297,15 +297,16 @@ class PointToSurfaceFactor(Factor):
     def associate(self, states) -> Association:
         """Closest triangle per point on the surface of the current state (or the frozen ones)."""
         vertices = states[self.keys[0]]
-        if self._frozen_triangle is not None:
-            corners = vertices[self.triangles[self._frozen_triangle]]
-            projection = project_onto_triangles(self.points, corners[:, 0], corners[:, 1], corners[:, 2])
-            return Association(self._frozen_triangle, projection.closest, projection.barycentric,
-                               projection.region, np.sqrt(projection.squared_distance))
         last = self._last_association
         if last is not None and np.array_equal(last[0], vertices):
             return last[1]
-        association = ClosestPointIndex(vertices, self.triangles).associate(self.points)
+        if self._frozen_triangle is not None:
+            corners = vertices[self.triangles[self._frozen_triangle]]
+            projection = project_onto_triangles(self.points, corners[:, 0], corners[:, 1], corners[:, 2])
+            association = Association(self._frozen_triangle, projection.closest, projection.barycentric,
+                                      projection.region, np.sqrt(projection.squared_distance))
+        else:
+            association = ClosestPointIndex(vertices, self.triangles).associate(self.points)
         self._last_association = (np.array(vertices, dtype=np.float64), association)
         return association
 
