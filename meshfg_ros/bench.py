@@ -22,8 +22,11 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-PAPER_SCALE = dict(target_vertices=500, points_per_step=2000, window_size=10, steps=20)
-ORGAN_SCALE = dict(target_vertices=10_000, points_per_step=20_000, window_size=5, steps=8)
+# Latency statistics are over the updates from the one that fills the window (included: it
+# factors a new block from scratch) to the end: 21 at paper scale, 12 at organ scale, so the
+# p95 is not simply the slowest of a handful.
+PAPER_SCALE = dict(target_vertices=500, points_per_step=2000, window_size=10, steps=30)
+ORGAN_SCALE = dict(target_vertices=10_000, points_per_step=20_000, window_size=5, steps=16)
 TARGETS_MS = {"paper_scale": 30.0, "organ_scale": 1000.0}
 SPEEDUP_TARGET = 10.0
 # Estimator settings of every estimator and baseline figure. The synthetic sequence's
@@ -92,7 +95,8 @@ def bench_estimator(scale: dict, progress: bool = True) -> dict:
     result = benchmark_update(mesh, tqdm(sequence, desc=f"bench {mesh.vertex_count} vertices", file=sys.stderr,
                                          disable=not progress), config)
     return {"vertices": mesh.vertex_count, "points": scale["points_per_step"], "window_size": scale["window_size"],
-            "median_ms": result["median_ms"], "p95_ms": result["p95_ms"], "iterations": result["mean_iterations"],
+            "median_ms": result["median_ms"], "p95_ms": result["p95_ms"], "latencies_ms": result["latencies_ms"],
+            "iterations": result["mean_iterations"],
             "linear_solve_ms": result["linear_solve_ms"], "rmse_mm": 1e3 * float(np.mean(result["rmse_m"])),
             "prediction_rmse_mm": 1e3 * float(np.mean([_rmse(step.predicted, step.truth) for step in sequence])),
             "simulation_sigma_m": config.simulation_sigma}
@@ -188,7 +192,8 @@ def format_report(result: dict) -> str:
             row, target = result[key], TARGETS_MS[key]
             verdict = "met" if row["p95_ms"] <= target else "NOT met"
             lines.append(f"Estimator {key}: {row['vertices']} vertices, {row['points']} points, W={row['window_size']}: "
-                         f"median {row['median_ms']:.1f} ms, p95 {row['p95_ms']:.1f} ms (target {target:g} ms: {verdict}), "
+                         f"median {row['median_ms']:.1f} ms, p95 {row['p95_ms']:.1f} ms over {len(row['latencies_ms'])} "
+                         f"updates, max {max(row['latencies_ms']):.1f} ms (target p95 {target:g} ms: {verdict}), "
                          f"{row['iterations']:.1f} LM iterations, linear solve {row['linear_solve_ms']:.2f} ms, "
                          f"RMSE {row['rmse_mm']:.3f} mm (prediction {row['prediction_rmse_mm']:.3f} mm, "
                          f"simulation_sigma {row['simulation_sigma_m']:g} m)")
