@@ -359,10 +359,15 @@ class PointToSurfaceFactor(Factor):
         if not self.num_points:
             return FactorLinearization(cost=0.0)
         association, residual, cost, irls = self._terms(states)
-        jacobian = self._point_jacobians(states, association)  # (K, 3, 9)
-        weighted = jacobian * irls[:, None, None]
-        gradient = np.einsum("kia,ki->ka", weighted, residual)
-        point_hessian = np.einsum("kia,kib->kab", weighted, jacobian).reshape(-1, 81) if hessian else None
+        # J^T W r without J: q is the closest point of the triangle, so (dq/dX)^T r equals the
+        # derivative with the barycentrics held fixed, beta_i r for corner i (envelope theorem;
+        # test_jacobian_times_residual_is_the_fixed_barycentric_gradient checks it per region).
+        weighted_residual = irls[:, None] * residual
+        gradient = (association.barycentric[:, :, None] * weighted_residual[:, None, :]).reshape(-1, 9)
+        point_hessian = None
+        if hessian:
+            jacobian = self._point_jacobians(states, association)  # (K, 3, 9)
+            point_hessian = np.einsum("kia,kib->kab", jacobian * irls[:, None, None], jacobian).reshape(-1, 81)
         blocks = PointBlocks(association.triangle, point_hessian, gradient)
         return FactorLinearization(cost=cost, point_blocks={key: blocks})
 
