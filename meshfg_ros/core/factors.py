@@ -464,6 +464,7 @@ class FactorGraph:
             keys, (free_vertex_dofs * n + free_vertex_dofs.transpose(0, 2, 1)).reshape(-1)
         ).reshape(-1, 3, 3)
         self._csr_slot_cache: tuple | None = None
+        self._scattered_hessians: dict = {}  # factor -> (its Hessian matrix, values on the pattern)
 
     def _slots(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """Pattern data positions of full-dof pairs (rows, cols); nnz (a sink slot) where a dof
@@ -518,6 +519,8 @@ class FactorGraph:
         self._cache.pop(key, None)
         self._active.discard(key)
         self.factors = [factor for factor in self.factors if key not in factor.keys]
+        self._scattered_hessians = {factor: kept for factor, kept in self._scattered_hessians.items()
+                                    if key not in factor.keys}
         return state
 
     def add_factor(self, factor: Factor) -> None:
@@ -557,19 +560,30 @@ class FactorGraph:
         for factor in self._single_state_factors(key):
             terms = factor.linearize(states)
             cost += terms.cost
-            self._accumulate(terms, key, data, gradient)
+            self._accumulate(terms, key, data, gradient, factor)
         self.relinearizations += 1
         pattern = self._pattern
         block = scipy.sparse.csr_matrix((data[:nnz], pattern.indices, pattern.indptr), shape=pattern.shape)
         return _StateLinearization(state.copy(), data, gradient, cost, block, self.relinearizations)
 
-    def _accumulate(self, terms: FactorLinearization, key, data: np.ndarray, gradient: np.ndarray) -> None:
+    def _scattered_hessian(self, factor, matrix) -> np.ndarray:
+        """A factor's sparse Hessian as values on the block pattern (nnz + 1,). Kept while the
+        factor hands back the same matrix object: the physics prior's information is one matrix
+        for a whole update (factors replace, never modify, a Hessian they returned)."""
+        cached = self._scattered_hessians.get(factor)
+        if cached is not None and cached[0] is matrix:
+            return cached[1]
+        csr = scipy.sparse.csr_matrix(matrix)
+        scattered = np.bincount(self._csr_slots(csr), weights=csr.data, minlength=self._pattern_keys.size + 1)
+        self._scattered_hessians[factor] = (matrix, scattered)
+        return scattered
+
+    def _accumulate(self, terms: FactorLinearization, key, data: np.ndarray, gradient: np.ndarray, factor) -> None:
         nnz = self._pattern_keys.size
         for values in terms.gradients.values():
             gradient += values
         for matrix in terms.hessians.values():
-            matrix = scipy.sparse.csr_matrix(matrix)
-            data += np.bincount(self._csr_slots(matrix), weights=matrix.data, minlength=nnz + 1)
+            data += self._scattered_hessian(factor, matrix)
         for value in terms.identity_terms.values():
             data[self._diagonal_index] += value
         for blocks in terms.point_blocks.values():
@@ -656,7 +670,7 @@ class FactorGraph:
                 for factor in self._single_state_factors(key):
                     terms = factor.linearize({key: states[key]}, hessian=False)
                     cached.cost += terms.cost
-                    self._accumulate(terms, key, ignored_hessian, cached.gradient)
+                    self._accumulate(terms, key, ignored_hessian, cached.gradient, factor)
                 cached.x_lin = states[key].copy()
                 cached.rebased = True
                 self._active.add(key)
