@@ -384,6 +384,7 @@ class _StateLinearization:
     block: scipy.sparse.csr_matrix | None = None  # block over the free dofs (for the model)
     revision: int = 0        # FactorGraph.relinearizations when it was made: names its values
     rebased: bool = False    # FactorGraph.gradient moved x_lin, cost, gradient; data is older
+    model_at: tuple | None = None  # (state, cost, gradient) of the last model evaluation
 
 
 class FactorGraph:
@@ -596,13 +597,18 @@ class FactorGraph:
             )
 
     def _model(self, cached: _StateLinearization, state: np.ndarray):
-        """(cost, gradient (3N,)) of the cached quadratic at `state`."""
+        """(cost, gradient (3N,)) of the cached quadratic at `state`; the last evaluation is
+        kept (LM's trial cost and its convergence test ask at one x)."""
+        if cached.model_at is not None and np.array_equal(cached.model_at[0], state):
+            return cached.model_at[1], cached.model_at[2]
         delta = (state - cached.x_lin).reshape(-1)
         free_delta = delta[self.free_dofs]
         product = np.zeros(self.dof_count)
         product[self.free_dofs] = cached.block @ free_delta
         cost = cached.cost + float(cached.gradient @ delta) + 0.5 * float(free_delta @ product[self.free_dofs])
-        return cost, cached.gradient + product
+        gradient = cached.gradient + product
+        cached.model_at = (state.copy(), cost, gradient)
+        return cost, gradient
 
     def _moved(self, cached: _StateLinearization, state: np.ndarray) -> float:
         """RMS vertex displacement since the linearisation (a max would let the few vertices at
@@ -673,6 +679,7 @@ class FactorGraph:
                     self._accumulate(terms, key, ignored_hessian, cached.gradient, factor)
                 cached.x_lin = states[key].copy()
                 cached.rebased = True
+                cached.model_at = None
                 self._active.add(key)
             cost_t, gradient[t] = self._model(cached, states[key])
             cost += cost_t
