@@ -428,7 +428,7 @@ class FactorGraph:
         self.states: dict = {}
         self.factors: list[Factor] = []
         self._positive: dict = {}
-        self._last_volumes: tuple | None = None  # (x, volumes): see _window_volumes
+        self._state_volumes: dict = {}  # key -> (state, its signed volumes): see _window_volumes
         self._cache: dict = {}
         self._active: set = set()
         self.exact_keys: set = set()  # states re-linearised whenever they move at all
@@ -517,6 +517,7 @@ class FactorGraph:
         state = self.states.pop(key)
         self.keys.remove(key)
         self._positive.pop(key, None)
+        self._state_volumes.pop(key, None)
         self._cache.pop(key, None)
         self._active.discard(key)
         self.factors = [factor for factor in self.factors if key not in factor.keys]
@@ -620,21 +621,29 @@ class FactorGraph:
         threshold = 0.0 if key in self.exact_keys else self.relinearize_threshold
         return (cached.rebased and threshold == 0.0) or self._moved(cached, state) > threshold
 
-    def _window_volumes(self, x: np.ndarray, states: dict) -> np.ndarray:
-        """Signed volumes (W, M) of the window's states at x. The last result is kept: LM asks
-        at one x twice (`acceptable` on a trial, then `gradient` or `linearize` once it is
-        accepted). Equal x means equal positions (fixed vertices are constants)."""
-        x = np.asarray(x, dtype=np.float64)
-        last = self._last_volumes
-        if last is not None and last[0].shape == x.shape and np.array_equal(last[0], x):
-            return last[1]
-        volumes = self._signed_volumes(np.stack([states[key] for key in self.keys]))
-        self._last_volumes = (x.copy(), volumes)
-        return volumes
+    def _window_volumes(self, states: dict) -> np.ndarray:
+        """Signed volumes (W, M) of the window's states. Each state's last result is kept: LM
+        asks at one x twice (`acceptable` on a trial, then `gradient` or `linearize` once it is
+        accepted), and a new update finds its older states where the last one left them."""
+        volumes = [None] * len(self.keys)
+        missing = []
+        for t, key in enumerate(self.keys):
+            kept = self._state_volumes.get(key)
+            if kept is not None and np.array_equal(kept[0], states[key]):
+                volumes[t] = kept[1]
+            else:
+                missing.append(t)
+        if missing:
+            computed = self._signed_volumes(np.stack([states[self.keys[t]] for t in missing]))
+            for t, values in zip(missing, computed):
+                key = self.keys[t]
+                self._state_volumes[key] = (states[key].copy(), values)
+                volumes[t] = values
+        return np.stack(volumes)
 
-    def _record_positive(self, x: np.ndarray, states: dict) -> None:
+    def _record_positive(self, states: dict) -> None:
         """Which tetrahedra are positive at these states (what `acceptable` protects)."""
-        self._positive = dict(zip(self.keys, self._window_volumes(x, states) > 0.0))
+        self._positive = dict(zip(self.keys, self._window_volumes(states) > 0.0))
 
     def _cross_factors(self) -> list:
         return [factor for factor in self.factors if len(factor.keys) != 1 or isinstance(factor, TemporalFactor)]
@@ -688,7 +697,7 @@ class FactorGraph:
             cost += terms.cost
             for key, values in terms.gradients.items():
                 gradient[position[key]] += values
-        self._record_positive(x, states)
+        self._record_positive(states)
         return gradient[:, self.free_dofs].reshape(-1), float(cost)
 
     def linearize(self, x: np.ndarray):
@@ -740,7 +749,7 @@ class FactorGraph:
         ]
         system = WindowSystem(blocks, couplings, list(self.keys), self._diagonal_index, coupling_diagonal,
                               self._vertex_block_slots, revisions)
-        self._record_positive(x, states)
+        self._record_positive(states)
         return system, gradient[:, self.free_dofs].reshape(-1), cost
 
     def _signed_volumes(self, state: np.ndarray) -> np.ndarray:
@@ -763,6 +772,6 @@ class FactorGraph:
         if len(self._positive) != len(self.keys):
             return True
         states = self.states_from_x(x)
-        volumes = self._window_volumes(x, states)
+        volumes = self._window_volumes(states)
         positive = np.stack([self._positive[key] for key in self.keys])
         return not np.any(positive & (volumes <= 0.0))
