@@ -257,6 +257,8 @@ def _association(points, vertices, triangles, triangle, max_distance=np.inf) -> 
     projection = project_onto_triangles(points, corners[:, 0], corners[:, 1], corners[:, 2])
     distance = np.sqrt(projection.squared_distance)
     found = distance <= max_distance
+    if found.all():
+        return Association(triangle, projection.closest, projection.barycentric, projection.region, distance)
     return Association(
         np.where(found, triangle, -1),
         np.where(found[:, None], projection.closest, np.nan),
