@@ -521,8 +521,6 @@ class FactorGraph:
         self._cache.pop(key, None)
         self._active.discard(key)
         self.factors = [factor for factor in self.factors if key not in factor.keys]
-        self._scattered_hessians = {factor: kept for factor, kept in self._scattered_hessians.items()
-                                    if key not in factor.keys}
         return state
 
     def add_factor(self, factor: Factor) -> None:
@@ -750,6 +748,10 @@ class FactorGraph:
         system = WindowSystem(blocks, couplings, list(self.keys), self._diagonal_index, coupling_diagonal,
                               self._vertex_block_slots, revisions)
         self._record_positive(states)
+        # Scattered Hessians serve states that get re-linearised; keep only those of this round's
+        # (memory stays bounded by the active states, also in growing mode).
+        self._scattered_hessians = {factor: kept for factor, kept in self._scattered_hessians.items()
+                                    if factor.keys[0] in self._active}
         return system, gradient[:, self.free_dofs].reshape(-1), cost
 
     def _signed_volumes(self, state: np.ndarray) -> np.ndarray:
