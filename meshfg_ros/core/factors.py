@@ -560,7 +560,7 @@ class FactorGraph:
         for factor in self._single_state_factors(key):
             terms = factor.linearize(states)
             cost += terms.cost
-            self._accumulate(terms, key, data, gradient, factor)
+            self._accumulate(terms, factor, data, gradient)
         self.relinearizations += 1
         pattern = self._pattern
         block = scipy.sparse.csr_matrix((data[:nnz], pattern.indices, pattern.indptr), shape=pattern.shape)
@@ -578,7 +578,7 @@ class FactorGraph:
         self._scattered_hessians[factor] = (matrix, scattered)
         return scattered
 
-    def _accumulate(self, terms: FactorLinearization, key, data: np.ndarray, gradient: np.ndarray, factor) -> None:
+    def _accumulate(self, terms: FactorLinearization, factor, data: np.ndarray, gradient: np.ndarray) -> None:
         nnz = self._pattern_keys.size
         for values in terms.gradients.values():
             gradient += values
@@ -683,7 +683,7 @@ class FactorGraph:
                 for factor in self._single_state_factors(key):
                     terms = factor.linearize({key: states[key]}, hessian=False)
                     cached.cost += terms.cost
-                    self._accumulate(terms, key, ignored_hessian, cached.gradient, factor)
+                    self._accumulate(terms, factor, ignored_hessian, cached.gradient)
                 cached.x_lin = states[key].copy()
                 cached.rebased = True
                 cached.model_at = None
