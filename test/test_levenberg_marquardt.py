@@ -176,6 +176,21 @@ def test_block_factors_are_refreshed_by_revision_and_drift(cube, model):  # noqa
     np.testing.assert_allclose(relinearized.matvec(x), rhs, rtol=1e-8, atol=1e-8 * np.abs(rhs).max())
 
 
+def test_stale_factors_are_refreshed_and_pcg_resumes_from_its_iterate(cube, model):  # noqa: F811
+    """Factors kept from a different system (within refresh_change, under a new revision) fail
+    to converge in refresh_iterations; PCG refactors every block and resumes from where it
+    stopped, reaching the exact solution."""
+    system, rhs = window_system(cube, model)
+    reference = np.linalg.solve(system.to_csr().toarray(), rhs)
+    pcg = PCGSolver(tolerance=1e-12, preconditioner="block", refresh_iterations=1, refresh_change=1.0)
+    shifted = system.with_added_diagonal(0.5 * system.diagonal())  # factors of a 1.5x diagonal
+    pcg.solve(shifted, rhs)
+    x, stats = pcg.solve(system, rhs)
+    assert stats.factorizations == len(system.blocks)
+    assert stats.iterations > 1  # the one stale iteration, then the refreshed ones
+    np.testing.assert_allclose(x, reference, rtol=1e-8, atol=1e-10 * np.abs(reference).max())
+
+
 def test_newton_decrement_estimates(cube, model):  # noqa: F811
     """decrement = 0.5 g^T A^-1 g: exact for direct solvers, and for PCG on one block (its
     preconditioner is that block's Cholesky factor); on a window PCG's block-Jacobi estimate

@@ -325,6 +325,14 @@ class PCGSolver(LinearSolver):
                 solve block 0.61 s (one 30k-dof factorisation 0.74 s, one solve 25 ms),
                 vertex 1.8 s; update 2.6 s against 4.9 s. With METIS ordering
                 (sparse_cholesky.py) the factorisation is 0.44 s and a solve 18 ms.
+                Tried at that scale, with "block" at 1.28 s median per update (3 PCG its):
+                borrowing the previous newest factor 1.17 s (5-7 its, growing as the factor
+                ages); Cholesky for the two newest states and vertex blocks for the rest
+                1.09 s, but one update took 43 its (3.2 s); x/y/z-separated scalar blocks
+                (trace of each 3x3 block, a 9x smaller factor) 25-29 its, 1.65 s; MKL PARDISO
+                with 2 threads factors in 0.24 s, but its solves took 25-45 ms and its OpenMP
+                threads slowed numpy: 1.43-1.51 s. cvxopt's OpenBLAS is a single-threaded
+                build, so CHOLMOD here uses one of the machine's two cores.
     tolerance: relative residual |b - A x| / |b|; max_iterations: cap (LinearSolveError).
     The loop is hand-written because scipy's cg cannot report negative curvature, which is
     how an indefinite system is detected (NotPositiveDefiniteError).
@@ -482,7 +490,7 @@ class PCGSolver(LinearSolver):
         norm_b = np.linalg.norm(b)
         if norm_b == 0.0:
             return np.zeros_like(b), 0, True
-        residual = b - system.matvec(x)
+        residual = b - system.matvec(x) if x.any() else b  # a cold start needs no product
         if np.linalg.norm(residual) <= self.tolerance * norm_b:
             return x, 0, True
         z = self._precondition(system, mode, residual)
