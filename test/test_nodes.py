@@ -23,7 +23,7 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import MarkerArray
 
-from meshfg_msgs.msg import EstimatorStatus, TetraMesh
+from meshfg_msgs.msg import EstimatorStatus, PredictionFailure, TetraMesh
 from meshfg_ros.core.meshing import cube_mesh
 from meshfg_ros.core.parameters import load_parameters, simulator_config
 from meshfg_ros.core.simulator import XpbdSimulator
@@ -199,14 +199,17 @@ def test_simulation_node_predicts_from_the_latest_estimate(probe, processes, tmp
     node = Process(tmp_path, "simulation_node",
                    *ros_args("/sim", "tool_radius:=0.01", "estimate_timeout:=1.0"))
     processes.append(node)
-    predictions = []
+    predictions, failures = [], []
     prediction_subscription = probe.create_subscription(TetraMesh, "/sim/predicted_mesh", predictions.append, KEEP)
+    failure_subscription = probe.create_subscription(PredictionFailure, "/sim/prediction_failed", failures.append,
+                                                     KEEP)
     mesh_publisher = probe.create_publisher(TetraMesh, "/sim/initial_mesh", LATCHED)
     estimate_publisher = probe.create_publisher(TetraMesh, "/sim/estimated_mesh", LATCHED)
     pose_publisher = probe.create_publisher(PoseStamped, "/sim/tool_pose", KEEP)
     assert spin_until(probe, lambda: pose_publisher.get_subscription_count() == 1
                       and estimate_publisher.get_subscription_count() == 1
-                      and prediction_subscription.get_publisher_count() == 1)
+                      and prediction_subscription.get_publisher_count() == 1
+                      and failure_subscription.get_publisher_count() == 1)
     mesh_publisher.publish(mesh_msg(mesh))
     centre = np.array([SIDE / 2, SIDE / 2, SIDE + 0.011])
     poses = [centre - [0.0, 0.0, 1e-3 * k] for k in range(5)]
@@ -231,6 +234,15 @@ def test_simulation_node_predicts_from_the_latest_estimate(probe, processes, tmp
     received(3)
     send_pose(4, 5 * S)
     received(4)
+    # An estimate with the top face pushed through the fixed bottom: the next pose cannot be
+    # predicted, and the node says so on prediction_failed (stamped like the pose) instead.
+    crushed = mesh.vertices.copy()
+    crushed[np.isclose(crushed[:, 2], SIDE), 2] = -SIDE
+    estimate_publisher.publish(mesh_msg(mesh, 5 * S, crushed))
+    send_pose(4, 6 * S)
+    assert spin_until(probe, lambda: len(failures) == 1)
+    assert stamp_ns_from_msg(failures[0].header.stamp) == 6 * S and failures[0].header.frame_id == "world"
+    assert "inverted" in failures[0].reason
     # A looped recording: the stamps jump back, the simulation restarts from the initial mesh.
     send_pose(0, 1 * S)
     send_pose(1, 2 * S)
@@ -362,6 +374,37 @@ def test_estimator_node_survives_bad_input_and_recovers_from_a_missing_simulator
     assert_clean_exit(node, node.interrupt())
 
 
+def test_estimator_node_runs_a_step_at_once_when_the_simulator_reports_a_failure(probe, processes, tmp_path):
+    """A PredictionFailure for a cloud's stamp releases that cloud degraded without waiting for
+    prediction_timeout (60 s here, twice as long as any wait below)."""
+    mesh = pushed_cube()
+    node = Process(tmp_path, "estimator_node", *ros_args("/fail", "prediction_timeout:=60.0", "window_size:=3"))
+    processes.append(node)
+    io = EstimatorProbe(probe, "/fail")
+    failure = probe.create_publisher(PredictionFailure, "/fail/prediction_failed", KEEP)
+    assert spin_until(probe, lambda: io.cloud.get_subscription_count() == 1
+                      and io.prediction.get_subscription_count() == 1 and failure.get_subscription_count() == 1)
+    io.wait_for(clouds_received=0)  # the node is up and its diagnostics reach the probe
+    io.mesh.publish(mesh_msg(mesh))
+    points = top_points()
+
+    def report_failure(stamp_ns):
+        failure.publish(PredictionFailure(header=header_msg(stamp_ns, "world", FACTORY), reason="test: inverted"))
+
+    io.cloud.publish(cloud_msg(points, 1 * S))
+    report_failure(1 * S)
+    io.wait_for(steps=1, degraded_steps=1, predictions_failed=1)
+    report_failure(2 * S)  # before its cloud: kept for it
+    io.send(cloud_msg(points, 2 * S), steps=2, degraded_steps=2, predictions_failed=2)
+    report_failure(2 * S)  # its cloud is done: counted, nothing else
+    io.wait_for(predictions_failed=3, steps=2)
+    io.prediction.publish(mesh_msg(mesh, 3 * S))  # the simulator is back: the next step pairs
+    io.send(cloud_msg(points, 3 * S), steps=3, degraded_steps=2)
+    assert [status.degraded for status in io.statuses] == [True, True, False]
+    assert node.alive()
+    assert_clean_exit(node, node.interrupt())
+
+
 def test_estimated_mesh_reaches_a_late_subscriber(probe, processes, tmp_path):
     mesh = pushed_cube()
     node = Process(tmp_path, "estimator_node", *ros_args("/late", "prediction_timeout:=0.0"))
@@ -451,6 +494,7 @@ def test_launch_file_is_valid_python():
     launch_file = REPOSITORY / "launch" / "meshfg.launch.py"
     py_compile.compile(str(launch_file), doraise=True)
     launch = pytest.importorskip("launch")
+    pytest.importorskip("launch_ros")  # (with the repository on sys.path, `launch` alone is its launch/ folder)
     namespace = {}
     exec(compile(launch_file.read_text(), str(launch_file), "exec"), namespace)
     assert isinstance(namespace["generate_launch_description"](), launch.LaunchDescription)

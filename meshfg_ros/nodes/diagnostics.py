@@ -31,6 +31,7 @@ class EstimatorCounters:
     clock_jumps_back: int = 0
     predictions_received: int = 0
     predictions_rejected: int = 0
+    predictions_failed: int = 0  # the simulator reported it could not predict a stamp
     steps: int = 0
     degraded_steps: int = 0
     failed_steps: int = 0

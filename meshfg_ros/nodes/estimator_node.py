@@ -1,10 +1,11 @@
 """estimator_node: the sliding-window factor-graph estimator, as a ROS 2 node.
 
 Subscribes `points` (sensor_msgs/PointCloud2, sensor-data QoS), `predicted_mesh` and
-`initial_mesh` (meshfg_msgs/TetraMesh; or parameter mesh_file). Each cloud at stamp t is
-paired with the prediction stamped t; without one after prediction_timeout seconds of wall
-time (counted from when the solver is free for that cloud), or once a prediction for a later
-cloud has arrived, the step runs degraded without it. Publishes `estimated_mesh` (TetraMesh
+`initial_mesh` (meshfg_msgs/TetraMesh; or parameter mesh_file) and `prediction_failed`
+(meshfg_msgs/PredictionFailure). Each cloud at stamp t is paired with the prediction stamped t;
+without one after prediction_timeout seconds of wall time (counted from when the solver is
+free for that cloud), once a prediction for a later cloud has arrived, or at once when the
+simulator reports that it failed for t, the step runs degraded without it. Publishes `estimated_mesh` (TetraMesh
 with position_std; reliable, transient-local, depth 1: a late-joining planner gets the latest
 state), `status` (meshfg_msgs/EstimatorStatus), `markers` (visualization_msgs/MarkerArray,
 built only while someone subscribes) and `/diagnostics` (counters, see diagnostics.py).
@@ -33,7 +34,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profi
 from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import MarkerArray
 
-from meshfg_msgs.msg import EstimatorStatus, TetraMesh
+from meshfg_msgs.msg import EstimatorStatus, PredictionFailure, TetraMesh
 from meshfg_ros.core.estimator import SlidingWindowEstimator, StepResult
 from meshfg_ros.core.mesh import TetMesh, load_mesh
 from meshfg_ros.core.parameters import PARAMETERS, FrameError, cloud_to_world, estimator_config
@@ -97,6 +98,7 @@ class EstimatorNode(Node):
         self._lock = threading.Lock()
         self._queue: deque[_Cloud | str] = deque()
         self._predictions: dict[int, np.ndarray] = {}
+        self._failed_predictions: set[int] = set()  # stamps the simulator reported it cannot predict
         self._newest_cloud_ns: int | None = None
         self._newest_prediction_ns: int | None = None
         self._last_step_ns: int | None = None
@@ -121,6 +123,8 @@ class EstimatorNode(Node):
         self._diagnostics_publisher = self.create_publisher(DiagnosticArray, "/diagnostics", STREAM_QOS)
         self.create_subscription(TetraMesh, "initial_mesh", self._on_initial_mesh, LATCHED_QOS, callback_group=inputs)
         self.create_subscription(TetraMesh, "predicted_mesh", self._on_prediction, STREAM_QOS, callback_group=inputs)
+        self.create_subscription(PredictionFailure, "prediction_failed", self._on_prediction_failure, STREAM_QOS,
+                                 callback_group=inputs)
         points_qos = RELIABLE_POINTS_QOS if self.params["points_reliable"] else qos_profile_sensor_data
         self.create_subscription(PointCloud2, "points", self._on_cloud, points_qos, callback_group=inputs)
         self._wake_solver = self.create_guard_condition(self._solve, callback_group=solver)
@@ -162,17 +166,39 @@ class EstimatorNode(Node):
                 self.counters.predictions_rejected += 1
                 self.get_logger().warning(f"predicted_mesh at {stamp_ns} ns is malformed or not finite: ignored")
                 return
-            newest = self._newest_prediction_ns
-            if newest is not None and newest - stamp_ns > self._jump_ns:
-                self._predictions.clear()  # the simulator restarted: older predictions are void
-            elif self._last_step_ns is not None and 0 <= self._last_step_ns - stamp_ns <= self._jump_ns:
+            if not self._wanted_simulator_stamp(stamp_ns):
                 self.counters.predictions_rejected += 1  # its cloud has been processed already
                 return
-            self._newest_prediction_ns = stamp_ns
             self._predictions[stamp_ns] = positions.reshape(-1, 3)
             while len(self._predictions) > MAX_STORED_PREDICTIONS:
                 del self._predictions[min(self._predictions)]
         self._wake_solver.trigger()
+
+    def _on_prediction_failure(self, msg: PredictionFailure) -> None:
+        stamp_ns = stamp_ns_from_msg(msg.header.stamp)
+        with self._lock:
+            self.counters.predictions_failed += 1
+            if not self._wanted_simulator_stamp(stamp_ns):
+                return  # its cloud has been processed already
+            self._failed_predictions.add(stamp_ns)
+            while len(self._failed_predictions) > MAX_STORED_PREDICTIONS:
+                self._failed_predictions.remove(min(self._failed_predictions))
+        self.get_logger().warning(f"simulator failed for {stamp_ns} ns ({msg.reason}): that step runs without "
+                                  "a prediction", throttle_duration_sec=_WARN_THROTTLE_S)
+        self._wake_solver.trigger()
+
+    def _wanted_simulator_stamp(self, stamp_ns: int) -> bool:
+        """Under the lock: whether the simulator's outcome (a prediction or a failure) for stamp_ns
+        can still serve a cloud. A stamp far older than the newest one means the simulator
+        restarted (a looped recording): the outcomes kept for the old timeline are dropped."""
+        newest = self._newest_prediction_ns
+        if newest is not None and newest - stamp_ns > self._jump_ns:
+            self._predictions.clear()
+            self._failed_predictions.clear()
+        elif self._last_step_ns is not None and 0 <= self._last_step_ns - stamp_ns <= self._jump_ns:
+            return False
+        self._newest_prediction_ns = stamp_ns
+        return True
 
     def _on_cloud(self, msg: PointCloud2) -> None:
         arrival_s = time.monotonic()
@@ -276,7 +302,7 @@ class EstimatorNode(Node):
             if head is _RESTART:
                 return self._queue.popleft()
             predicted = self._predictions.get(head.stamp_ns)
-            if predicted is None:
+            if predicted is None and head.stamp_ns not in self._failed_predictions:
                 newer = any(head.stamp_ns < stamp <= self._newest_cloud_ns for stamp in self._predictions)
                 waited = time.monotonic() - max(head.arrival_s, self._solver_free_s)
                 if not newer and waited < self.params["prediction_timeout"]:
@@ -284,6 +310,7 @@ class EstimatorNode(Node):
             self._queue.popleft()
             for stamp in [stamp for stamp in self._predictions if stamp <= head.stamp_ns]:
                 del self._predictions[stamp]
+            self._failed_predictions = {stamp for stamp in self._failed_predictions if stamp > head.stamp_ns}
             self._last_step_ns = head.stamp_ns
         if predicted is not None and predicted.shape != self._initial.positions.shape:
             self.get_logger().warning(f"prediction at {head.stamp_ns} ns has {predicted.shape[0]} vertices, "

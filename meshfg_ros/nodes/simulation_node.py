@@ -2,7 +2,9 @@
 
 Subscribes `tool_pose` (geometry_msgs/PoseStamped), `estimated_mesh` and `initial_mesh`
 (meshfg_msgs/TetraMesh; or parameter mesh_file) and publishes `predicted_mesh` (TetraMesh
-stamped with the tool pose's stamp). The first tool pose only resets the simulator; each later
+stamped with the tool pose's stamp), or `prediction_failed` (meshfg_msgs/PredictionFailure,
+same stamp, with the reason) when the simulator cannot predict that pose, so that the estimator
+runs that step without a prediction at once instead of waiting for one. The first tool pose only resets the simulator; each later
 pose is predicted from the latest estimate (the initial mesh until one arrives) with
 dt = the time between the two poses' stamps, as the offline replay does.
 
@@ -27,7 +29,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
-from meshfg_msgs.msg import TetraMesh
+from meshfg_msgs.msg import PredictionFailure, TetraMesh
 from meshfg_ros.core.mesh import load_mesh
 from meshfg_ros.core.parameters import simulator_config
 from meshfg_ros.core.simulator import XpbdSimulator
@@ -35,10 +37,12 @@ from meshfg_ros.io.messages import (
     MeshState,
     MessageValidationError,
     mesh_state_from_msg,
+    header_msg,
     pose_from_msg,
     stamp_ns_from_msg,
 )
 from meshfg_ros.nodes.ros_conversions import (
+    RCLPY_FACTORY,
     MeshMessages,
     declare_parameters,
     positions_from_msg,
@@ -81,6 +85,7 @@ class SimulationNode(Node):
         self._reset_timeline()
 
         self._publisher = self.create_publisher(TetraMesh, "predicted_mesh", STREAM_QOS)
+        self._failure_publisher = self.create_publisher(PredictionFailure, "prediction_failed", STREAM_QOS)
         self.create_subscription(TetraMesh, "initial_mesh", self._on_initial_mesh, LATCHED_QOS)
         self.create_subscription(TetraMesh, "estimated_mesh", self._on_estimate, LATCHED_QOS)
         self.create_subscription(PoseStamped, "tool_pose", self._on_tool_pose, STREAM_QOS)
@@ -203,14 +208,19 @@ class SimulationNode(Node):
         try:
             predicted = self._simulator.predict(self._state, pose.pose, dt)
         except (ValueError, RuntimeError) as error:
-            self._simulator.reset(pose.pose)
-            self.get_logger().error(f"prediction for {pose.stamp_ns} ns failed: {error}")
+            self._fail(pose, str(error))
             return
         if not np.isfinite(predicted).all():
-            self._simulator.reset(pose.pose)
-            self.get_logger().error(f"prediction for {pose.stamp_ns} ns is not finite: not published")
+            self._fail(pose, "the predicted positions are not finite")
             return
         self._publisher.publish(self._messages.message(pose.stamp_ns, self._frame, self._step, predicted))
+
+    def _fail(self, pose: _PendingPose, reason: str) -> None:
+        """Restart the simulator at this pose and say so on prediction_failed."""
+        self._simulator.reset(pose.pose)
+        self.get_logger().error(f"prediction for {pose.stamp_ns} ns failed: {reason}")
+        self._failure_publisher.publish(
+            PredictionFailure(header=header_msg(pose.stamp_ns, self._frame, RCLPY_FACTORY), reason=reason))
 
     def _finish(self, pose: _PendingPose) -> None:
         self._pending.popleft()
