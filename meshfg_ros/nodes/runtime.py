@@ -8,7 +8,7 @@ from collections.abc import Callable, Sequence
 
 import rclpy
 from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
@@ -27,23 +27,11 @@ def init_without_signal_handlers(args=None) -> None:
         signal.signal(number, signal.default_int_handler)
 
 
-class _MultiThreadedExecutor(MultiThreadedExecutor):
-    """MultiThreadedExecutor whose shutdown first waits for its worker threads.
+def run_nodes(program: str, node_factories: Sequence[Callable[[], Node]], args=None) -> int:
+    """Create the nodes, spin them on one single-threaded executor until shutdown; the exit code.
 
-    rclpy 7.1 (Jazzy) leaves the thread pool running after shutdown, and its
-    Executor.shutdown destroys the executor's guard condition without waiting for running
-    callbacks (its wait is unreachable); a callback that finishes afterwards then fails on the
-    destroyed guard ("exception was never retrieved: cannot use Destroyable"). So the pool is
-    drained first (the spin loop has already stopped, nothing new is submitted), then shut down.
-    """
-
-    def shutdown(self, timeout_sec: float | None = None) -> bool:
-        self._executor.shutdown(wait=True)
-        return super().shutdown(timeout_sec)
-
-
-def run_nodes(program: str, node_factories: Sequence[Callable[[], Node]], threads: int, args=None) -> int:
-    """Create the nodes, spin them on one executor (`threads` threads) until shutdown; the exit code.
+    Single-threaded: rclpy's MultiThreadedExecutor costs ~3x the CPU per message, and the long
+    work (the estimator's solves) has its own thread (estimator_node).
 
     args: command line with --ros-args (None: sys.argv). Invalid parameters end the program
     with exit code 1 and a one-line message; Ctrl-C / SIGINT / SIGTERM end it with 0.
@@ -54,7 +42,7 @@ def run_nodes(program: str, node_factories: Sequence[Callable[[], Node]], thread
     try:
         for factory in node_factories:
             nodes.append(factory())
-        executor = SingleThreadedExecutor() if threads == 1 else _MultiThreadedExecutor(num_threads=threads)
+        executor = SingleThreadedExecutor()
         for node in nodes:
             executor.add_node(node)
         executor.spin()

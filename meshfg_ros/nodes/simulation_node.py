@@ -231,7 +231,7 @@ class SimulationNode(Node):
 
 def main(args=None) -> int:
     """Console script `simulation_node` (accepts --ros-args)."""
-    return run_nodes("simulation_node", [SimulationNode], threads=1, args=args)
+    return run_nodes("simulation_node", [SimulationNode], args=args)
 
 
 if __name__ == "__main__":

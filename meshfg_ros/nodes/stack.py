@@ -1,4 +1,5 @@
-"""meshfg_stack: the simulation and estimator nodes in one process (one MultiThreadedExecutor).
+"""meshfg_stack: the simulation and estimator nodes in one process (one executor thread, plus
+the estimator's solver thread).
 
 Same topics, parameters and --ros-args as the two separate executables, without the DDS hop
 between the simulator and the estimator being a process boundary.
@@ -15,8 +16,7 @@ from meshfg_ros.nodes.simulation_node import SimulationNode
 
 def main(args=None) -> int:
     """Console script `meshfg_stack` (accepts --ros-args; e.g. -r __ns:=/meshfg --params-file FILE)."""
-    # Threads: the simulator's group, the estimator's inputs, solver, outputs and default groups.
-    return run_nodes("meshfg_stack", [SimulationNode, EstimatorNode], threads=5, args=args)
+    return run_nodes("meshfg_stack", [SimulationNode, EstimatorNode], args=args)
 
 
 if __name__ == "__main__":
