@@ -5,9 +5,9 @@ Subscribes `points` (sensor_msgs/PointCloud2, sensor-data QoS), `predicted_mesh`
 (meshfg_msgs/PredictionFailure). Each cloud at stamp t is paired with the prediction stamped t;
 without one after prediction_timeout seconds of wall time (counted from when the solver is
 free for that cloud), once a prediction for a later cloud has arrived, or at once when the
-simulator reports that it failed for t, the step runs degraded without it. Publishes `estimated_mesh` (TetraMesh
-with position_std; reliable, transient-local, depth 1: a late-joining planner gets the latest
-state), `status` (meshfg_msgs/EstimatorStatus), `markers` (visualization_msgs/MarkerArray,
+simulator reports that it failed for t, the step runs degraded without it. Publishes
+`estimated_mesh` (TetraMesh with position_std; reliable, transient-local, depth 1: a
+late-joining planner gets the latest state), `status` (meshfg_msgs/EstimatorStatus), `markers` (visualization_msgs/MarkerArray,
 built only while someone subscribes) and `/diagnostics` (counters, see diagnostics.py).
 
 Robustness: malformed, empty and wrong-frame clouds are rejected and counted, NaN points are
