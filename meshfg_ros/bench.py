@@ -168,7 +168,9 @@ def bench_live(bag: Path) -> dict:
 def run_bench(sections=("core", "estimator", "baselines", "live"), bag: Path | None = None,
               progress: bool = True) -> dict:
     """Run the chosen sections; the JSON structure of `meshfg bench --json`."""
-    out = {}
+    from .core.sparse_cholesky import BLAS_BACKEND
+
+    out = {"blas": {"name": BLAS_BACKEND.name, "threads": BLAS_BACKEND.threads, "detail": BLAS_BACKEND.detail}}
     if "core" in sections:
         out["core"] = bench_core(progress=progress)
     if "estimator" in sections:
@@ -184,6 +186,9 @@ def run_bench(sections=("core", "estimator", "baselines", "live"), bag: Path | N
 def format_report(result: dict) -> str:
     """Human-readable figures and their ratios to targets and baselines."""
     lines = []
+    if "blas" in result:
+        blas = result["blas"]
+        lines.append(f"Sparse Cholesky BLAS: {blas['name']}, {blas['threads']} thread(s) ({blas['detail']})")
     if "core" in result:
         lines.append("Core (ms): mesh, vertices, K linear, K corotational, one simulator step")
         for name, row in result["core"].items():

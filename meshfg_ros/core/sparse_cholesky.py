@@ -3,10 +3,11 @@
 The estimator factors matrices whose sparsity pattern never changes (every state block of a
 window shares the mesh's pattern), so the fill-reducing ordering and symbolic analysis are done
 once per `SparseCholesky` and every later `refactor` is numeric only. cvxopt's wheels ship
-CHOLMOD with an optimised BLAS (supernodal): measured on a 1,344-dof block of the paper-scale
-window, numeric factorisation 1.7 ms against 10.4 ms for cholespy's CHOLMOD (which analyses
-again at every factorisation, with a reference BLAS) and 12 ms for SuperLU; on a 30k-dof
-organ-scale block 0.74 s against ~12 s.
+CHOLMOD (supernodal) with an optimised BLAS, bound to threaded MKL where installed (blas.py):
+measured on a 1,344-dof block of the paper-scale window, with cvxopt's BLAS, numeric
+factorisation 1.7 ms against 10.4 ms for cholespy's CHOLMOD (which analyses again at every
+factorisation, with a reference BLAS) and 12 ms for SuperLU; on a 30k-dof organ-scale block
+0.74 s against ~12 s.
 
 The fill-reducing ordering is METIS nested dissection (pymetis) of the node graph: cvxopt's
 CHOLMOD is built without its METIS module (libcholmod has no cholmod_metis symbol) and orders by AMD, whose fill on 3D tetrahedral meshes is
@@ -22,11 +23,15 @@ import copy
 import numpy as np
 import scipy.sparse
 import pymetis
-from cvxopt import cholmod, matrix, spmatrix
 
+from .blas import bind_threaded_blas
 from .noise import NotPositiveDefiniteError
 
-__all__ = ["SparseCholesky", "nested_dissection"]
+BLAS_BACKEND = bind_threaded_blas()  # before cvxopt is loaded: its CHOLMOD binds to this BLAS
+
+from cvxopt import cholmod, matrix, spmatrix  # noqa: E402
+
+__all__ = ["BLAS_BACKEND", "SparseCholesky", "nested_dissection"]
 
 # Below this many nodes AMD (CHOLMOD's own choice) is nearly as good and METIS's call costs
 # more than it saves: on the 512-vertex paper-scale block METIS takes 2.3 ms and saves 0.4 ms
