@@ -37,6 +37,7 @@ from meshfg_msgs.msg import EstimatorStatus, PredictionFailure, TetraMesh
 from meshfg_ros.core.estimator import SlidingWindowEstimator, StepResult
 from meshfg_ros.core.mesh import TetMesh, load_mesh
 from meshfg_ros.core.parameters import PARAMETERS, FrameError, cloud_to_world, estimator_config
+from meshfg_ros.core.sparse_cholesky import BLAS_BACKEND
 from meshfg_ros.io.messages import (
     MeshState,
     MessageValidationError,
@@ -314,7 +315,8 @@ class EstimatorNode(Node):
         self._edges = surface_edges(state.surface_triangles)
         with self._lock:
             self._solver_free_s = time.monotonic()
-        self.get_logger().info(f"initial mesh: {mesh.vertex_count} vertices, {mesh.tetrahedron_count} tetrahedra")
+        self.get_logger().info(f"initial mesh: {mesh.vertex_count} vertices, {mesh.tetrahedron_count} tetrahedra; "
+                               f"sparse Cholesky BLAS: {BLAS_BACKEND.name}, {BLAS_BACKEND.threads} thread(s)")
 
     def _next_job(self):
         """The next ready queue entry: _RESTART, or (cloud, its prediction or None); None to wait."""
