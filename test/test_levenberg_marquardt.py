@@ -20,6 +20,7 @@ from meshfg_ros.core.linear_solvers import (
     WindowSystem,
     make_linear_solver,
 )
+from meshfg_ros.core import sparse_cholesky
 from meshfg_ros.core.meshing import cube_mesh
 
 from test_factors import build_window, cube, model  # noqa: F401  (fixtures)
@@ -177,6 +178,25 @@ def test_block_factors_are_refreshed_by_revision_and_drift(cube, model):  # noqa
     x, stats = pcg.solve(relinearized, rhs)
     assert stats.factorizations == 1
     np.testing.assert_allclose(relinearized.matvec(x), rhs, rtol=1e-8, atol=1e-8 * np.abs(rhs).max())
+
+
+@pytest.mark.parametrize("reserved", [0, 3])
+def test_reserved_factors_are_made_with_the_first_and_serve_later_blocks(cube, model, monkeypatch, reserved):  # noqa: F811
+    """With reserved_factors W, the first factor of a pattern comes with W - 1 spares, so the
+    blocks of a later, fuller window need no new factor (no symbolic analysis, no fresh
+    memory); without, each new block makes its own."""
+    system, rhs = window_system(cube, model)
+    pcg = PCGSolver(tolerance=1e-12, preconditioner="block", reserved_factors=reserved)
+    first = WindowSystem([system.blocks[0]], [], ["first"], system.diagonal_index)
+    pcg.solve(first, rhs[:system.block_size])
+    analyses = []
+    original = sparse_cholesky.SparseCholesky._analyse
+    monkeypatch.setattr(sparse_cholesky.SparseCholesky, "_analyse",
+                        lambda factor, data: analyses.append(1) or original(factor, data))
+    x, stats = pcg.solve(system, rhs)
+    assert stats.factorizations == len(system.keys)
+    assert len(analyses) == (0 if reserved else len(system.keys) - 1)  # one factor is "first"'s, reused
+    np.testing.assert_allclose(system.matvec(x), rhs, rtol=1e-8, atol=1e-9 * np.abs(rhs).max())
 
 
 def test_stale_factors_are_refreshed_and_pcg_resumes_from_its_iterate(cube, model):  # noqa: F811

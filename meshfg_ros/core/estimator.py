@@ -221,7 +221,11 @@ class SlidingWindowEstimator:
             self.prior_ridge = cfg.prior_ridge / cfg.simulation_sigma**2
         self.noise = IsotropicNoise(self.config.measurement_sigma)
         self.robust = make_robust_kernel(self.config.robust_kernel, self.config.robust_scale)
-        self.solver = make_linear_solver(self.config.linear_solver, tolerance=self.config.linear_tolerance)
+        # A sliding window's W block factors are made (their memory first touched) at the first
+        # solve, not by the window-filling update.
+        reserved = 0 if self.config.growing else self.config.window_size
+        self.solver = make_linear_solver(self.config.linear_solver, tolerance=self.config.linear_tolerance,
+                                         reserved_factors=reserved)
         self.anchor = initial_mesh.vertices.copy()
         self.step = 0
         self.last_estimate = initial_mesh.vertices.copy()

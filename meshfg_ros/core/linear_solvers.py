@@ -335,6 +335,11 @@ class PCGSolver(LinearSolver):
                 build; with CHOLMOD's BLAS bound to MKL on both cores instead (blas.py) the
                 factorisation takes 0.26 s, a solve 12-14 ms, and the update 0.87-0.92 s.
     tolerance: relative residual |b - A x| / |b|; max_iterations: cap (LinearSolveError).
+    reserved_factors: when the first factor of a sparsity pattern is made, this many in all are
+    made at once (the extra ones spares), so that later updates never factor into fresh memory:
+    the estimator reserves its window's W. On this machine (a VM) the first touch of fresh
+    memory costs ~2.4 ms/MB: a new organ-scale factor (132 MB) took 0.5-0.7 s against 0.23 s
+    for a refactor, which made the window-filling update the slowest of a run.
     The loop is hand-written because scipy's cg cannot report negative curvature, which is
     how an indefinite system is detected (NotPositiveDefiniteError).
     """
@@ -342,7 +347,8 @@ class PCGSolver(LinearSolver):
     name = "pcg"
 
     def __init__(self, tolerance: float = 1e-8, max_iterations: int = 1000, preconditioner: str = "auto",
-                 refresh_iterations: int = 100, refresh_change: float = 0.05, cholesky_max_block: int = 100_000):
+                 refresh_iterations: int = 100, refresh_change: float = 0.05, cholesky_max_block: int = 100_000,
+                 reserved_factors: int = 0):
         if preconditioner not in ("auto", "time", "block", "vertex"):
             raise ValueError(f"preconditioner must be auto, time, block or vertex, got {preconditioner!r}")
         self.tolerance = float(tolerance)
@@ -351,6 +357,7 @@ class PCGSolver(LinearSolver):
         self.refresh_iterations = int(refresh_iterations)
         self.refresh_change = float(refresh_change)
         self.cholesky_max_block = int(cholesky_max_block)
+        self.reserved_factors = int(reserved_factors)
         self.reset()
 
     def reset(self) -> None:
@@ -388,8 +395,10 @@ class PCGSolver(LinearSolver):
         for cached in self._block_factors.values():
             if cached.factor.same_pattern(like):
                 return cached.factor.sibling(data)
-        return SparseCholesky(scipy.sparse.csr_matrix((data, like.indices, like.indptr), shape=like.shape),
-                              node_size=3)
+        factor = SparseCholesky(scipy.sparse.csr_matrix((data, like.indices, like.indptr), shape=like.shape),
+                                node_size=3)
+        self._spare.extend(factor.sibling(data) for _ in range(self.reserved_factors - 1))
+        return factor
 
     # ------------------------------------------------------------------ preparation
     def _mean_block_data(self, system: WindowSystem) -> np.ndarray:
