@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 PROBE = """
-import json, sys
+import json, os, sys
 import numpy as np, scipy.sparse
 from threadpoolctl import threadpool_info
 from meshfg_ros.core.fem import ElasticModel
@@ -30,12 +30,14 @@ print("PROBE " + json.dumps({
     "residual": float(np.linalg.norm(matrix @ solution - rhs) / np.linalg.norm(rhs)),
     "solution": solution.tolist(),
     "openblas_threads": [pool["num_threads"] for pool in threadpool_info() if pool["internal_api"] == "openblas"],
+    "mkl_layers": [pool.get("threading_layer") for pool in threadpool_info() if pool["internal_api"] == "mkl"],
+    "layer_variable": os.environ.get("MKL_THREADING_LAYER"),
 }))
 """
 
 
 def run_probe(**environment):
-    env = {key: value for key, value in os.environ.items() if key != "MESHFG_BLAS"}
+    env = {key: value for key, value in os.environ.items() if key not in ("MESHFG_BLAS", "MKL_THREADING_LAYER")}
     env.update(MKL_VERBOSE="1", **environment)
     result = subprocess.run([sys.executable, "-c", PROBE], capture_output=True, text=True, env=env, timeout=300)
     assert result.returncode == 0, result.stderr[-2000:]
@@ -75,6 +77,8 @@ def test_cholmod_calls_threaded_mkl_and_agrees_with_its_own_blas(bundled):
     reference = np.asarray(bundled["solution"])
     np.testing.assert_allclose(probe["solution"], reference, rtol=0.0, atol=1e-10 * np.abs(reference).max())
     assert probe["openblas_threads"] and set(probe["openblas_threads"]) == {1}  # no pools spinning against MKL's
+    # On torch's GNU OpenMP, chosen through MKL's API: children do not inherit a layer setting.
+    assert probe["mkl_layers"] == ["gnu"] and probe["layer_variable"] is None
 
 
 def test_binding_after_cvxopt_was_loaded_is_refused_and_says_so():

@@ -47,6 +47,7 @@ class BlasBackend:
 
 
 _backend: BlasBackend | None = None
+_MKL_THREADING_LAYERS = {"INTEL": 0, "GNU": 3}  # MKL_THREADING_INTEL, MKL_THREADING_GNU (mkl_service.h)
 
 
 def _mkl_runtime() -> Path | None:
@@ -96,19 +97,22 @@ def bind_threaded_blas() -> BlasBackend:
     if runtime is None:
         _backend = BlasBackend("bundled", 1, "the mkl package is not installed")
         return _backend
-    if "MKL_THREADING_LAYER" not in os.environ:
-        openmp = _torch_openmp()
-        if openmp is not None:
-            ctypes.CDLL(str(openmp), mode=ctypes.RTLD_GLOBAL)
-            os.environ["MKL_THREADING_LAYER"] = "GNU"
+    # The layer is set through MKL's API, not the environment, which child processes inherit.
+    layer = os.environ.get("MKL_THREADING_LAYER", "").upper()
+    openmp = _torch_openmp() if layer in ("", "GNU") else None
+    if openmp is not None:
+        ctypes.CDLL(str(openmp), mode=ctypes.RTLD_GLOBAL)  # libgomp.so.1, found by MKL's GNU layer
     try:
         mkl = ctypes.CDLL(str(runtime), mode=ctypes.RTLD_GLOBAL)
     except OSError as error:
         _backend = BlasBackend("bundled", 1, f"loading {runtime.name} failed: {error}")
         return _backend
+    if not layer:
+        layer = "GNU" if openmp is not None else "INTEL"  # INTEL: the mkl wheel's own libiomp5
+        mkl.MKL_Set_Threading_Layer(ctypes.c_int(_MKL_THREADING_LAYERS[layer]))
     if "MKL_NUM_THREADS" not in os.environ:
         mkl.MKL_Set_Num_Threads(ctypes.c_int(len(os.sched_getaffinity(0))))
     threads = int(mkl.MKL_Get_Max_Threads())
     _limit_openblas_pools()
-    _backend = BlasBackend("mkl", threads, f"{runtime}, {os.environ.get('MKL_THREADING_LAYER', 'INTEL')} threading")
+    _backend = BlasBackend("mkl", threads, f"{runtime}, {layer} threading")
     return _backend
