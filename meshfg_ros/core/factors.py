@@ -578,10 +578,15 @@ class FactorGraph:
         self._scattered_hessians[factor] = (matrix, scattered)
         return scattered
 
-    def _accumulate(self, terms: FactorLinearization, factor, data: np.ndarray, gradient: np.ndarray) -> None:
-        nnz = self._pattern_keys.size
+    def _accumulate(self, terms: FactorLinearization, factor, data: np.ndarray | None, gradient: np.ndarray) -> None:
+        """Add a factor's terms to a state's gradient and block values `data` (None: gradient only)."""
         for values in terms.gradients.values():
             gradient += values
+        for blocks in terms.point_blocks.values():
+            gradient += np.bincount(self._triangle_dofs[blocks.triangle].reshape(-1),
+                                    weights=blocks.gradient.reshape(-1), minlength=self.dof_count)
+        if data is None:
+            return
         for matrix in terms.hessians.values():
             data += self._scattered_hessian(factor, matrix)
         for value in terms.identity_terms.values():
@@ -589,11 +594,7 @@ class FactorGraph:
         for blocks in terms.point_blocks.values():
             if blocks.hessian is not None:
                 slots = self._triangle_slots[blocks.triangle].reshape(-1)
-                data += np.bincount(slots, weights=blocks.hessian.reshape(-1), minlength=nnz + 1)
-            gradient += np.bincount(
-                self._triangle_dofs[blocks.triangle].reshape(-1), weights=blocks.gradient.reshape(-1),
-                minlength=self.dof_count,
-            )
+                data += np.bincount(slots, weights=blocks.hessian.reshape(-1), minlength=self._pattern_keys.size + 1)
 
     def _model(self, cached: _StateLinearization, state: np.ndarray):
         """(cost, gradient (3N,)) of the cached quadratic at `state`; the last evaluation is
@@ -679,11 +680,10 @@ class FactorGraph:
                 self._active.add(key)
             elif self._outdated(key, cached, states[key]):
                 cached.cost, cached.gradient = 0.0, np.zeros(self.dof_count)
-                ignored_hessian = np.zeros_like(cached.data)  # cached.data backs cached.block: kept
-                for factor in self._single_state_factors(key):
+                for factor in self._single_state_factors(key):  # cached.data (the Hessian) is kept
                     terms = factor.linearize({key: states[key]}, hessian=False)
                     cached.cost += terms.cost
-                    self._accumulate(terms, factor, ignored_hessian, cached.gradient)
+                    self._accumulate(terms, factor, None, cached.gradient)
                 cached.x_lin = states[key].copy()
                 cached.rebased = True
                 cached.model_at = None

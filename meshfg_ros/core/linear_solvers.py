@@ -106,12 +106,10 @@ class WindowSystem:
         return self._shifted_blocks
 
     def block_data(self, t: int) -> np.ndarray:
-        """Values of block t on the shared pattern (the base block's own array when unshifted)."""
-        data = self._base_blocks[t].data
-        if self.diagonal_shift is None:
-            return data
-        data = data.copy()
-        data[self.diagonal_index] += self.diagonal_shift[t]
+        """Values of block t on the shared pattern, the shift included (a new array)."""
+        data = self._base_blocks[t].data.copy()
+        if self.diagonal_shift is not None:
+            data[self.diagonal_index] += self.diagonal_shift[t]
         return data
 
     def block_diagonal(self, t: int) -> np.ndarray:
@@ -418,8 +416,7 @@ class PCGSolver(LinearSolver):
                 if cached is not None:
                     self._spare.append(self._block_factors.pop(key).factor)
                 data = system.block_data(t)
-                self._block_factors[key] = _BlockFactor(self._factor(data, system.pattern), data.copy(),
-                                                        system.revisions[t])
+                self._block_factors[key] = _BlockFactor(self._factor(data, system.pattern), data, system.revisions[t])
             return
         laplacian = system.time_laplacian()
         mean = self._mean_block_data(system)
