@@ -65,7 +65,11 @@ _DIAGONAL = np.arange(3)
 # vbd: one move may shrink an element's volume at most to this fraction of its current value.
 _MIN_VOLUME_FRACTION_PER_MOVE = 0.1
 # vbd: vertices within this factor of the tool radius touch the tool.
-_CONTACT_BAND = 1.0 + 1e-9
+_CONTACT_BAND = 1.0 + 1e-4
+# stick contact: a vertex stuck to the tool at the end of the last prediction is still stuck
+# when the next prediction starts from a state that puts it within this fraction of the tool
+# radius of the sphere's surface (an estimate's correction moves it by about the sensor noise).
+_CONTACT_MEMORY_BAND = 0.25
 # vbd: halvings of a global step before it is skipped; energy rise accepted as rounding.
 _MAX_STEP_HALVINGS = 6
 _ENERGY_ROUNDING = 1e-12
@@ -280,7 +284,12 @@ class XpbdSimulator:
     surface. With tool_contact "stick", vertices touching the sphere when a sub-step starts
     move with it for that sub-step unless it moves away from them: frictionless contact of a
     single vertex on a sphere is an unstable equilibrium (the tissue slides off the pole,
-    differently for every iteration count), which sticking removes. In "grasp" mode
+    differently for every iteration count), which sticking removes. Sticking persists across
+    predictions: a vertex stuck at the end of the last one is put back on the sphere and stays
+    stuck when the next starting state (an estimate) has it within _CONTACT_MEMORY_BAND tool
+    radii of the surface. Without that memory a 0.1 mm correction that lifts the vertex off the
+    tool releases it, it slides off the pole, the tool passes between the vertices of a coarse
+    mesh and the prediction jumps by centimetres (measured on the SOFA liver). In "grasp" mode
     `grasped_vertices` follow the tool rigidly: at pose T they sit at T T0^-1 applied to their
     rest positions, T0 being the first tool pose (set by `reset`, or by the first `predict`).
     """
@@ -320,6 +329,7 @@ class XpbdSimulator:
             self._colours = self._element_colours(tets, volumes, rest_inverse, corner_gradient, inverse_mass)
         self._first_pose: np.ndarray | None = None
         self._previous_pose: np.ndarray | None = None
+        self._stuck: np.ndarray = np.zeros(0, dtype=np.int64)  # stuck at the end of the last prediction
 
     @staticmethod
     def _checked_grasp(grasped_vertices, rest_mesh: TetMesh, config: SimulatorConfig) -> np.ndarray:
@@ -414,7 +424,9 @@ class XpbdSimulator:
         return None if self._previous_pose is None else self._previous_pose.copy()
 
     def reset(self, tool_pose=None) -> None:
-        """Set the tool's previous and first (grasp reference) pose; None forgets both."""
+        """Set the tool's previous and first (grasp reference) pose and forget the stuck
+        vertices; None forgets both poses."""
+        self._stuck = np.zeros(0, dtype=np.int64)
         if tool_pose is None:
             self._first_pose = self._previous_pose = None
             return
@@ -444,6 +456,7 @@ class XpbdSimulator:
         centres, rotations = self._interpolated_poses(self._previous_pose, pose, fractions)
         velocity = np.zeros_like(state)
         previous_centre = self._previous_pose[:3]
+        self._restore_stuck_vertices(state, previous_centre)
         for substep in range(substeps):
             if self.config.tool_mode == "grasp":
                 state[self.grasped_vertices] = self._grasp_targets(centres[substep], rotations[substep])
@@ -459,6 +472,7 @@ class XpbdSimulator:
         inverted = np.flatnonzero(~(signed_volumes(state, self.rest_mesh.tetrahedra) > 0.0))  # NaN too
         if inverted.size:
             raise ElementInversionError(inverted)
+        self._stuck = self._touching(state, pose[:3], _CONTACT_BAND)
         return state
 
     # ------------------------------------------------------------------------------ tool
@@ -476,17 +490,32 @@ class XpbdSimulator:
         anchors = self.rest_mesh.vertices[self.grasped_vertices] - self._first_pose[:3]
         return anchors @ (rotation @ first_rotation.T).T + centre
 
+    def _touching(self, state: np.ndarray, centre, band: float) -> np.ndarray:
+        """Movable vertices within band * tool_radius of the tool centre (stick contact only)."""
+        if self.config.tool_mode != "sphere" or self.config.tool_contact != "stick":
+            return np.zeros(0, dtype=np.int64)
+        offsets = state[self.movable_vertices] - centre
+        inside = np.einsum("ij,ij->i", offsets, offsets) <= (self.config.tool_radius * band) ** 2
+        return self.movable_vertices[inside]
+
+    def _restore_stuck_vertices(self, state: np.ndarray, centre) -> None:
+        """Put the vertices stuck at the end of the last prediction back on the sphere, in
+        place, where `state` has them within _CONTACT_MEMORY_BAND radii of its surface."""
+        if self._stuck.size == 0:
+            return
+        offsets = state[self._stuck] - centre
+        distances = np.sqrt(np.einsum("ij,ij->i", offsets, offsets))
+        radius = self.config.tool_radius
+        near = (np.abs(distances - radius) <= _CONTACT_MEMORY_BAND * radius) & (distances > 0.0)
+        state[self._stuck[near]] = centre + radius * offsets[near] / distances[near, None]
+
     def _carry_stuck_vertices(self, state: np.ndarray, previous_centre, centre) -> np.ndarray:
         """Stick contact: move the vertices touching the tool with it, in place; returns them (sorted).
 
         A vertex is released when the tool moves away from it (negative normal motion).
         """
-        if self.config.tool_mode != "sphere" or self.config.tool_contact != "stick":
-            return np.zeros(0, dtype=np.int64)
-        movable = self.movable_vertices
-        offsets = state[movable] - previous_centre
-        touching = np.einsum("ij,ij->i", offsets, offsets) <= (self.config.tool_radius * _CONTACT_BAND) ** 2
-        stuck = movable[touching & (offsets @ (centre - previous_centre) >= 0.0)]
+        touching = self._touching(state, previous_centre, _CONTACT_BAND)
+        stuck = touching[(state[touching] - previous_centre) @ (centre - previous_centre) >= 0.0]
         state[stuck] += centre - previous_centre
         return stuck
 
