@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial import cKDTree
 from trimesh.ray.ray_triangle import RayMeshIntersector
 
 from meshfg_ros.core.camera import CaptureOptions, PinholeCamera, capture, first_ray_hits
@@ -127,6 +128,81 @@ def test_occluder_in_front_blocks_target_and_leaks_are_labelled():
     assert abs(leaks - fraction * len(blocked)) < 5 * np.sqrt(len(blocked) * fraction * (1 - fraction))
 
 
+def pixels_within(candidates, targets, radius):
+    """Pixels of `candidates` within `radius` (Euclidean) of a pixel of `targets` (k-d tree)."""
+    candidates = np.asarray(sorted(candidates))
+    gaps, _ = cKDTree(np.asarray(sorted(targets), dtype=float)).query(candidates.astype(float))
+    return set(map(tuple, candidates[gaps <= radius]))
+
+
+@pytest.mark.parametrize("stride, dilation", [(1, 3.0), (2, 3.0), (2, 4.5)])
+def test_leak_dilation_keeps_only_occluder_hits_near_the_target(stride, dilation):
+    """A tissue patch in front of a background plane, half covered by a tool: with every hit
+    leaking, exactly the tool and background pixels within `dilation` pixels of a tissue pixel
+    leak, at the occluders' depths."""
+    camera = forward_camera()
+    tissue = square(0.1, 0.02)
+    background = (*square(0.2, 1.0), 1)
+    tool = (*square(0.05, 0.006, center_xy=(0.008, 0.0)), 2)
+    occluders = [background, tool]
+    base = CaptureOptions(stride=stride, leak_fraction=1.0)
+    everything = capture(camera, *tissue, occluders=occluders, rng=0, options=base)
+    tissue_pixels = set(map(tuple, everything.pixels[everything.labels == 0]))
+    tool_pixels = set(map(tuple, everything.pixels[everything.labels == 2]))
+    background_pixels = set(map(tuple, everything.pixels[everything.labels == 1]))
+    assert len(tissue_pixels) > 50 and len(tool_pixels) > 20 and len(background_pixels) > 200
+
+    leaky = capture(camera, *tissue, occluders=occluders, rng=0,
+                    options=CaptureOptions(stride=stride, leak_fraction=1.0, leak_dilation_pixels=dilation))
+    assert set(map(tuple, leaky.pixels[leaky.labels == 0])) == tissue_pixels
+    expected_tool = pixels_within(tool_pixels, tissue_pixels, dilation)
+    expected_background = pixels_within(background_pixels, tissue_pixels, dilation)
+    assert set(map(tuple, leaky.pixels[leaky.labels == 2])) == expected_tool
+    assert set(map(tuple, leaky.pixels[leaky.labels == 1])) == expected_background
+    assert 0 < len(expected_tool) < len(tool_pixels)  # the tool's far side does not leak
+    assert 0 < len(expected_background) < len(background_pixels) / 2
+    np.testing.assert_allclose(leaky.depths[leaky.labels == 2], 0.05, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(leaky.depths[leaky.labels == 1], 0.2, rtol=0, atol=1e-15)
+
+
+def test_leak_dilation_thins_eligible_hits_by_leak_fraction():
+    camera = forward_camera(width=160, height=120, fx=125.0)
+    tissue = square(0.1, 0.02)
+    occluders = [(*square(0.2, 1.0), 1)]
+    dilation, fraction = 6.0, 0.4
+    everything = capture(camera, *tissue, occluders=occluders, rng=0, options=CaptureOptions(leak_fraction=1.0))
+    eligible = pixels_within(set(map(tuple, everything.pixels[everything.labels == 1])),
+                             set(map(tuple, everything.pixels[everything.labels == 0])), dilation)
+    result = capture(camera, *tissue, occluders=occluders, rng=5,
+                     options=CaptureOptions(leak_fraction=fraction, leak_dilation_pixels=dilation))
+    leaked = set(map(tuple, result.pixels[result.labels == 1]))
+    assert leaked <= eligible
+    count = len(eligible)
+    assert abs(len(leaked) - fraction * count) < 5 * np.sqrt(count * fraction * (1 - fraction))
+
+
+def test_leak_dilation_beyond_the_image_equals_no_dilation():
+    """A dilation larger than the image makes every occluder hit eligible, as with the option
+    off, and draws the same random numbers: the captures are equal."""
+    camera = forward_camera()
+    occluders = [(*square(0.2, 1.0), 1), (*square(0.05, 0.006, center_xy=(0.008, 0.0)), 2)]
+    off = CaptureOptions(stride=2, noise_constant=1e-3, grazing_exponent=1.0, leak_fraction=0.3)
+    wide = CaptureOptions(stride=2, noise_constant=1e-3, grazing_exponent=1.0, leak_fraction=0.3,
+                          leak_dilation_pixels=1e4)
+    first = capture(camera, *square(0.1, 0.02), occluders=occluders, rng=9, options=off)
+    second = capture(camera, *square(0.1, 0.02), occluders=occluders, rng=9, options=wide)
+    np.testing.assert_array_equal(first.points, second.points)
+    np.testing.assert_array_equal(first.labels, second.labels)
+    assert (first.labels > 0).sum() > 10
+
+
+def test_leak_dilation_without_target_in_view_leaks_nothing():
+    camera = forward_camera()
+    result = capture(camera, *square(0.1, 0.01, center_xy=(5.0, 5.0)), occluders=[(*square(0.2, 1.0), 1)], rng=0,
+                     options=CaptureOptions(leak_fraction=1.0, leak_dilation_pixels=3.0))
+    assert len(result.points) == 0
+
+
 def test_capture_is_deterministic_by_seed():
     camera = forward_camera()
     options = CaptureOptions(noise_constant=0.002, grazing_exponent=1.0)
@@ -190,6 +266,8 @@ def test_bad_input_raises():
         PinholeCamera(np.zeros(3), [0, 0, 0, 1], 4, 4, 0.0, 1.0, 1.5, 1.5)
     with pytest.raises(ValueError, match="leak_fraction"):
         CaptureOptions(leak_fraction=1.5)
+    with pytest.raises(ValueError, match="leak_dilation_pixels"):
+        CaptureOptions(leak_dilation_pixels=-1.0)
     with pytest.raises(ValueError, match="label"):
         capture(forward_camera(), *square(0.1, 1.0), occluders=[(*square(0.05, 0.01), 0)])
     with pytest.raises(ValueError, match="90 degrees"):

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from typing import NamedTuple, Sequence
 
 import numpy as np
+import scipy.ndimage
 from scipy.spatial.transform import Rotation
 
 # Upper bound on (triangle, ray) candidate pairs tested at once, to bound memory (~100 MB).
@@ -345,6 +346,10 @@ class CaptureOptions:
     grazing_exponent: a hit is kept with probability |cos(incidence)|^grazing_exponent
         (0 keeps all), thinning returns where the surface is seen edge-on.
     leak_fraction: probability that a hit on an occluder survives segmentation.
+    leak_dilation_pixels: 0 lets every occluder hit leak (with probability leak_fraction);
+        a positive value restricts leaks to occluder hits within that many pixels (Euclidean,
+        full-resolution pixels) of a pixel whose ray hits the target, as a segmentation mask
+        that bleeds over the tissue's silhouette and the tool's contour does.
     """
 
     stride: int = 1
@@ -352,11 +357,12 @@ class CaptureOptions:
     noise_quadratic: float = 0.0
     grazing_exponent: float = 0.0
     leak_fraction: float = 0.0
+    leak_dilation_pixels: float = 0.0
 
     def __post_init__(self):
         if int(self.stride) != self.stride or self.stride < 1:
             raise ValueError(f"stride must be a positive integer, got {self.stride}")
-        for name in ("noise_constant", "noise_quadratic", "grazing_exponent"):
+        for name in ("noise_constant", "noise_quadratic", "grazing_exponent", "leak_dilation_pixels"):
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be finite and non-negative, got {value}")
@@ -390,8 +396,9 @@ def capture(
 ) -> DepthCapture:
     """Ray-cast the camera's pixel grid against target and occluders (first hit wins).
 
-    Target hits are kept; occluder hits are kept with probability options.leak_fraction and
-    labelled with their occluder's label. Every hit is then thinned by incidence angle and its
+    Target hits are kept; occluder hits are kept with probability options.leak_fraction (only
+    within options.leak_dilation_pixels of a target hit, when that is positive) and labelled
+    with their occluder's label. Every hit is then thinned by incidence angle and its
     depth perturbed along its pixel ray; points whose noisy depth is not positive are dropped.
     `occluders` holds (vertices, triangles, label) triples; `rng` is a Generator or a seed.
     """
@@ -431,6 +438,8 @@ def capture(
     labels = triangle_label[hit_triangles]
     keep_by_angle = rng.random(len(hit_rays)) < cosine**options.grazing_exponent
     keep_by_mask = (labels == 0) | (rng.random(len(hit_rays)) < options.leak_fraction)
+    if options.leak_dilation_pixels > 0:
+        keep_by_mask &= (labels == 0) | _near_target(pixels[hit_rays], labels == 0, options)
     kept = np.flatnonzero(keep_by_angle & keep_by_mask)
     sigma = options.noise_constant + options.noise_quadratic * depths[kept] ** 2
     noisy_depths = depths[kept] + sigma * rng.standard_normal(len(kept))
@@ -444,3 +453,16 @@ def capture(
         depths=noisy_depths,
         triangle_ids=triangle_local[hit_triangles[kept]],
     )
+
+
+def _near_target(hit_pixels: np.ndarray, on_target: np.ndarray, options: CaptureOptions) -> np.ndarray:
+    """Whether each hit pixel [u, v] lies within options.leak_dilation_pixels (full-resolution
+    pixels) of a target hit: Euclidean distance transform of the strided image's target mask."""
+    if not on_target.any():
+        return np.zeros(len(hit_pixels), dtype=bool)
+    stride = options.stride
+    grid = hit_pixels // stride
+    outside_target = np.ones(tuple(grid.max(axis=0)[::-1] + 1), dtype=bool)  # rows v, columns u
+    outside_target[grid[on_target, 1], grid[on_target, 0]] = False
+    distance = scipy.ndimage.distance_transform_edt(outside_target) * stride
+    return distance[grid[:, 1], grid[:, 0]] <= options.leak_dilation_pixels
