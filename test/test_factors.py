@@ -16,6 +16,7 @@ from meshfg_ros.core.factors import (
     TemporalFactor,
     prior_scale,
 )
+from meshfg_ros.core.closest_point import REGION_FACE
 from meshfg_ros.core.fem import ElasticModel
 from meshfg_ros.core.meshing import cube_mesh
 from meshfg_ros.core.metrics import sample_surface
@@ -127,7 +128,19 @@ def test_linearize_equals_weighted_normal_equations(cube, model):
         np.testing.assert_allclose(gradient, jacobian.T @ (weight_rows @ residual.reshape(-1)), rtol=1e-10, atol=1e-6)
         hessian = np.zeros((jacobian.shape[1],) * 2)
         np.add.at(hessian, (np.repeat(tri_dofs, 9, axis=1), np.tile(tri_dofs, (1, 9))), blocks.hessian)
-        np.testing.assert_allclose(hessian, (jacobian.T @ weight_rows @ jacobian).toarray(), rtol=1e-10, atol=1e-3)
+        # Gauss-Newton on the distances: a point inside its face contributes the normal row
+        # n^T J (the derivative of its signed distance), one on an edge or vertex all of J.
+        association = factor.associate({0: state})
+        corners = state[cube.surface_triangles[association.triangle]]
+        normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        normals /= np.linalg.norm(normals, axis=1)[:, None]
+        dense = jacobian.toarray().reshape(len(points), 3, -1)
+        face = association.region == REGION_FACE
+        normal_rows = np.einsum("ki,kic->kc", normals[face], dense[face])
+        expected = (normal_rows.T * weights[face]) @ normal_rows
+        other_rows = dense[~face].reshape(-1, dense.shape[2])
+        expected += (other_rows.T * np.repeat(weights[~face], 3)) @ other_rows
+        np.testing.assert_allclose(hessian, expected, rtol=1e-10, atol=1e-3)
         expected_cost = 0.5 * np.sum(squared / sigmas**2) if robust is None else 0.5 * np.sum(robust.rho(squared) / sigmas**2)
         assert terms.cost == pytest.approx(expected_cost, rel=1e-12)
 
@@ -307,3 +320,45 @@ def test_graph_rejects_bad_factors(cube, model):
         PointToSurfaceFactor(0, np.zeros((3, 2)), cube.surface_triangles, cube.vertices)
     with pytest.raises(FactorError):
         prior_scale(model.stiffness(), 0.0)
+
+
+def test_volume_barrier_gradient_hessian_and_bounds(cube):
+    """Zero on states that keep half their reference volume; its gradient is the derivative of
+    its cost (finite differences) and its Gauss-Newton term the outer product of the residual's
+    Jacobian; infinite once an element inverts."""
+    from meshfg_ros.core.factors import BARRIER_VOLUME_RATIO, VolumeBarrierFactor
+    from meshfg_ros.core.mesh import signed_volumes
+
+    reference = signed_volumes(cube.vertices, cube.tetrahedra)
+    barrier = VolumeBarrierFactor(0, cube.tetrahedra, reference, 2.0)
+    assert barrier.cost({0: cube.vertices}) == 0.0
+    assert not barrier.linearize({0: cube.vertices}).element_blocks
+    corner = int(np.argmax(cube.vertices.sum(axis=1)))
+    inward = cube.vertices.mean(axis=0) - cube.vertices[corner]
+    for fraction in np.linspace(0.05, 1.0, 96):  # the first move that squashes an element below J_c
+        squashed = cube.vertices.copy()
+        squashed[corner] += fraction * inward
+        ratios = signed_volumes(squashed, cube.tetrahedra) / reference
+        if ratios.min() < 0.8 * BARRIER_VOLUME_RATIO:
+            break
+    assert ratios.min() > 0.0 and ratios.min() < BARRIER_VOLUME_RATIO
+    terms = barrier.linearize({0: squashed})
+    blocks = terms.element_blocks[0]
+    gradient = np.zeros(squashed.size)
+    np.add.at(gradient, (3 * cube.tetrahedra[blocks.tetrahedron][:, :, None] + np.arange(3)).reshape(-1),
+              blocks.gradient.reshape(-1))
+    step = 1e-7
+    direction = np.random.default_rng(9).normal(size=squashed.shape)
+    plus = barrier.cost({0: squashed + step * direction})
+    minus = barrier.cost({0: squashed - step * direction})
+    assert (plus - minus) / (2 * step) == pytest.approx(gradient @ direction.reshape(-1), rel=1e-5)
+    jacobian = barrier.jacobians({0: squashed})[0].toarray()
+    hessian = np.zeros((squashed.size,) * 2)
+    dofs = (3 * cube.tetrahedra[blocks.tetrahedron][:, :, None] + np.arange(3)).reshape(-1, 12)
+    np.add.at(hessian, (np.repeat(dofs, 12, axis=1), np.tile(dofs, (1, 12))), blocks.hessian)
+    residual = barrier.residual({0: squashed})
+    np.testing.assert_allclose(jacobian.T @ residual, gradient, rtol=1e-9, atol=1e-12 * np.abs(gradient).max())
+    assert np.all(np.linalg.eigvalsh(hessian) > -1e-9 * np.abs(hessian).max())
+    inverted = cube.vertices.copy()
+    inverted[corner] = cube.vertices.mean(axis=0) - (cube.vertices[corner] - cube.vertices.mean(axis=0))
+    assert barrier.cost({0: inverted}) == np.inf

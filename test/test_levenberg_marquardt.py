@@ -7,7 +7,7 @@ import scipy.optimize
 import scipy.sparse
 
 from meshfg_ros.core.baselines import compare_single_update
-from meshfg_ros.core.factors import FactorGraph, PhysicsPriorFactor, prior_scale
+from meshfg_ros.core.factors import MIN_VOLUME_RATIO_PER_STEP, FactorGraph, PhysicsPriorFactor, prior_scale
 from meshfg_ros.core.fem import ElasticModel
 from meshfg_ros.core.levenberg_marquardt import LevenbergMarquardtConfig, levenberg_marquardt
 from meshfg_ros.core.linear_solvers import (
@@ -89,7 +89,9 @@ def test_indefinite_hessian_raises_damping_and_converges(solver):
     assert any("not positive definite" in message for message in result.messages)
 
 
-def test_steps_that_invert_tetrahedra_are_rejected():
+def test_steps_that_would_invert_tetrahedra_are_shortened_not_dropped():
+    """A prior pulling a corner through the cube: every step is cut to the fraction that keeps
+    each element at MIN_VOLUME_RATIO_PER_STEP of its volume, and LM still makes progress."""
     mesh = cube_mesh(side=0.1, divisions=1)
     elastic = ElasticModel(mesh.vertices, mesh.tetrahedra, 3e3, 0.45)
     corner = int(np.argmax(mesh.vertices.sum(axis=1)))
@@ -101,11 +103,50 @@ def test_steps_that_invert_tetrahedra_are_rejected():
     graph.fixed_vertices = np.flatnonzero(fixed)
     scale = prior_scale(elastic.stiffness(), 1e-3)
     graph.add_factor(PhysicsPriorFactor(0, target, elastic, "linear", scale=scale, ridge=1.0))
+    start_volumes = graph._signed_volumes(mesh.vertices)
     result = levenberg_marquardt(graph, graph.get_x(), LevenbergMarquardtConfig(max_iterations=30), CholeskySolver())
-    final = graph.states_from_x(result.x)[0]
-    assert result.inverting_steps > 0
-    assert np.all(graph._signed_volumes(final) > 0.0)
-    assert result.final_cost < result.initial_cost
+    final = graph._signed_volumes(graph.states_from_x(result.x)[0])
+    assert result.shortened_steps > 0 and result.accepted_steps > 0
+    assert np.all(final > 0.0)
+    assert result.final_cost < 0.5 * result.initial_cost
+    assert not result.converged or result.reason in ("gradient", "decrement", "cost", "step", "predicted decrease")
+    assert np.all(final >= MIN_VOLUME_RATIO_PER_STEP ** result.accepted_steps * start_volumes * (1 - 1e-9))
+
+
+def test_step_fraction_keeps_the_margin_exactly():
+    """The fraction is the largest that keeps every volume at the margin: a little more breaks it."""
+    mesh = cube_mesh(side=0.1, divisions=3)
+    graph = FactorGraph(mesh.vertex_count, mesh.tetrahedra, mesh.surface_triangles)
+    graph.add_state(0, mesh.vertices)
+    graph.add_state(1, mesh.vertices * 1.01)
+    x = graph.get_x()
+    rng = np.random.default_rng(0)
+    before = np.stack([graph._signed_volumes(state) for state in graph.states_from_x(x).values()])
+    for scale, full in ((1e-4, True), (1e-2, False), (3e-2, False)):
+        step = rng.normal(scale=scale, size=x.shape)
+        fraction = graph.step_fraction(x, step)
+        assert (fraction == 1.0) == full
+        after = np.stack([graph._signed_volumes(s) for s in graph.states_from_x(x + fraction * step).values()])
+        assert np.min(after / before) >= MIN_VOLUME_RATIO_PER_STEP * (1 - 1e-9)
+        if not full:
+            beyond = np.stack([graph._signed_volumes(s)
+                               for s in graph.states_from_x(x + 1.01 * fraction * step).values()])
+            assert np.min(beyond / before) < MIN_VOLUME_RATIO_PER_STEP
+
+
+def test_converged_means_optimal_not_stuck():
+    """A run whose every step is rejected ends unconverged ("damping limit" or "max_iterations"),
+    never converged with final == initial cost."""
+
+    class Hopeless(Rosenbrock):
+        def cost(self, x):  # any move from the start looks worse
+            return super().cost(x) + (0.0 if np.array_equal(x, [0.0, 1.0]) else 1e6)
+
+    result = levenberg_marquardt(Hopeless(), np.array([0.0, 1.0]), LevenbergMarquardtConfig(max_iterations=40),
+                                 CholeskySolver())
+    assert result.accepted_steps == 0 and not result.converged
+    assert result.reason in ("damping limit", "max_iterations")
+    assert "0 of" in result.summary() and "not converged" in result.summary()
 
 
 def test_window_optimum_matches_scipy_and_gtsam(cube, model):  # noqa: F811
@@ -235,7 +276,7 @@ class CountingProblem:
 
     def __init__(self, graph, with_gradient: bool):
         self.graph, self.calls = graph, {"linearize": 0, "gradient": 0}
-        self.cost, self.acceptable = graph.cost, graph.acceptable
+        self.cost, self.step_fraction = graph.cost, graph.step_fraction
         if with_gradient:
             self.gradient = self._gradient
 
@@ -296,7 +337,7 @@ def test_estimator_window_problem_matches_scipy():
 
     mesh, sequence = synthetic_sequence(target_vertices=64, points_per_step=200, steps=4, noise_sigma=5e-4,
                                         prediction_error=2e-3, seed=2)
-    _, graph = pending_window(mesh, sequence, EstimatorConfig(window_size=3, measurement_sigma=5e-4))
+    _, graph = pending_window(mesh, sequence, EstimatorConfig(window_size=3, measurement_sigma=5e-4, robust_kernel=None))
     assert len(graph.keys) == 3
     start_cost = graph.cost(graph.get_x())
     results = compare_single_update(graph, solvers=("meshfg", "scipy"), tolerance=1e-13)
