@@ -211,6 +211,7 @@ def iterate_replay(inputs: ReplayInputs, params: Mapping[str, Any]) -> Iterator[
     estimate = mesh.vertices
     simulation_only = mesh.vertices
     predictions: dict[int, np.ndarray] = {}
+    tool_poses: dict[int, np.ndarray] = {}
     open_loop_states: dict[int, np.ndarray] = {}
     previous_pose_stamp: int | None = None
     previous_cloud_stamp: int | None = None
@@ -232,6 +233,7 @@ def iterate_replay(inputs: ReplayInputs, params: Mapping[str, Any]) -> Iterator[
                     simulation_only = advanced
                 open_loop_states[stamp] = simulation_only
             previous_pose_stamp = stamp
+            tool_poses[stamp] = record.pose
             continue
         if len(record.points) == 0 or (previous_cloud_stamp is not None and stamp <= previous_cloud_stamp):
             continue
@@ -240,7 +242,9 @@ def iterate_replay(inputs: ReplayInputs, params: Mapping[str, Any]) -> Iterator[
         predicted = predictions.pop(stamp, None)
         for older in [s for s in predictions if s < stamp]:
             del predictions[older]
-        result = estimator.update(stamp, points, predicted)
+        result = estimator.update(stamp, points, predicted, tool_poses.pop(stamp, None))
+        for older in [s for s in tool_poses if s < stamp]:
+            del tool_poses[older]
         estimate = result.positions
         yield ReplayStep(stamp, points, predicted, open_loop_states.get(stamp), result)
 

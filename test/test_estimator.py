@@ -45,7 +45,9 @@ def test_every_configuration_runs_and_returns_finite_states(scene, factors):
     if factors == "simulation":
         np.testing.assert_allclose(results[-1].positions, sequence[2].predicted, atol=1e-12)
     if factors == "temporal":
-        np.testing.assert_allclose(results[-1].positions, mesh.vertices, atol=1e-9)
+        # One inexact Newton step (PCG to 1e-3 relative residual) ends the run: 10 micrometres of
+        # a 1 cm temporal sigma is far inside the stopping rule (0.25 chi^2 units).
+        np.testing.assert_allclose(results[-1].positions, mesh.vertices, atol=1e-5)
     if "measurement" in factors:
         assert results[-1].num_points == 800
 
@@ -100,7 +102,7 @@ def test_conditioning_window_against_growing_full_batch(scene):
 def test_exact_position_std_equals_dense_marginal(scene):
     mesh, sequence = scene
     estimator, results = run(mesh, sequence, 2, factors="full", window_size=2, covariance="exact",
-                             relinearize_threshold=0.0, stiffness_kind="linear")
+                             relinearize_threshold=0.0, stiffness_kind="linear", robust_kernel=None)
     graph = estimator.graph
     freeze_associations(graph)
     jacobian = WhitenedProblem(graph).jacobian(graph.get_x()).toarray()
@@ -109,7 +111,7 @@ def test_exact_position_std_equals_dense_marginal(scene):
     expected = np.sqrt(np.einsum("vivi->v", newest.reshape(graph.block_size // 3, 3, graph.block_size // 3, 3)) / 3.0)
     np.testing.assert_allclose(results[-1].position_std[graph.free_vertices], expected, rtol=1e-6)
     conditional = SlidingWindowEstimator(mesh, EstimatorConfig(factors="full", window_size=2, stiffness_kind="linear",
-                                                               covariance="vertex-conditional"))
+                                                               covariance="vertex-conditional", robust_kernel=None))
     for step in sequence[:2]:
         approximate = conditional.update(step.stamp_ns, step.points, step.predicted).position_std
     free = graph.free_vertices
@@ -134,14 +136,15 @@ def test_robust_kernel_resists_outliers(scene):
     errors = {}
     for kernel in ("none", "huber", "cauchy"):
         estimator = SlidingWindowEstimator(mesh, EstimatorConfig(factors="simulation+measurement", robust_kernel=kernel,
-                                                                 robust_scale=1e-3, measurement_sigma=5e-4))
+                                                                 robust_scale=1e-3, measurement_sigma=5e-4,
+                                                                 estimate_weights=False))
         errors[kernel] = rmse(estimator.update(1, points, step.predicted).positions, step.truth)
     assert errors["huber"] < errors["none"] and errors["cauchy"] < errors["none"]
 
 
 def test_bad_input_and_nan_points(scene):
     mesh, sequence = scene
-    estimator = SlidingWindowEstimator(mesh, EstimatorConfig(factors="full"))
+    estimator = SlidingWindowEstimator(mesh, EstimatorConfig(factors="full", gating_distance=1.0))
     with pytest.raises(EstimatorInputError, match="points"):
         estimator.update(1, np.zeros((4, 2)), sequence[0].predicted)
     with pytest.raises(EstimatorInputError, match="predicted"):

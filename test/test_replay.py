@@ -91,7 +91,7 @@ def test_a_nominal_model_the_nodes_cannot_express_is_rejected(recording):
 
 def test_loop_matches_the_nodes_semantics(scenario, recording, replayed):
     """First pose resets; each later pose predicts from the latest estimate; the cloud at t
-    pairs with the prediction stamped t; the estimate feeds the next prediction."""
+    pairs with the prediction and the tool pose stamped t; the estimate feeds the next prediction."""
     inputs = load_inputs(recording)
     params = replayed.parameters
     mesh = scenario.initial_mesh
@@ -102,7 +102,7 @@ def test_loop_matches_the_nodes_semantics(scenario, recording, replayed):
     assert len(replayed.steps) == len(scenario.steps) == 3
     for step, cloud, replay_step in zip(scenario.steps, inputs.clouds, replayed.steps):
         predicted = simulator.predict(estimate, step.tool_pose, STEP_PERIOD_NS / 1e9)
-        result = estimator.update(step.stamp_ns, cloud.points, predicted)
+        result = estimator.update(step.stamp_ns, cloud.points, predicted, step.tool_pose)
         estimate = result.positions
         assert replay_step.stamp_ns == step.stamp_ns and not replay_step.result.degraded
         np.testing.assert_array_equal(replay_step.predicted, predicted)

@@ -1,6 +1,6 @@
 """Sliding-window factor-graph estimator of a deforming tetrahedral mesh.
 
-Each `update(stamp_ns, points, predicted)` appends a state X_t to the window with the factors
+Each `update(stamp_ns, points, predicted, tool_pose)` appends a state X_t to the window with the factors
 of the configuration (by name, FACTOR_CONFIGURATIONS): the physics prior (simulator
 prediction Xhat_t, information scale * K(X_t)), the point-to-surface measurements of the
 new cloud, and the temporal factor to the previous state; then Levenberg-Marquardt optimises
@@ -29,22 +29,30 @@ Design decisions (see also factors.py, levenberg_marquardt.py, linear_solvers.py
   gives each update a fixed objective that LM provably decreases, and K still follows X_t
   from one update to the next.
 - Old states are re-linearised only when they moved more than relinearize_threshold
-  (default: measurement_sigma, RMS over vertices) since their last linearisation
+  (default: the nominal measurement_sigma, RMS over vertices) since their last linearisation
   (FactorGraph, as iSAM2's relinearisation threshold): the quadratic model error that
   allows is second order, ~threshold^2 / edge length, far below the measurement noise; the
   newest state is re-linearised at every LM iteration. relinearize_threshold=0 is exact LM
   on the window (what the scipy / GTSAM cross-checks use).
-- LM stops when an iteration lowers the cost by less than 1e-3 (relative): the cost of a
-  window is a chi-square-like sum whose own statistical spread is ~1/sqrt(cost) (1% for a
-  cost of 1e4), so smaller decreases do not change the estimate meaningfully. Steps are
-  inexact Newton steps: PCG to a relative residual of linear_tolerance (1e-3); the gain
-  ratio judges each step on its true cost, so inexactness only costs iterations.
+- Weights (weights.py): with estimate_weights (default) the measurement sigma is estimated
+  after every update from the residual distances (robust: 1.4826 median) and the physics
+  prior is weighted as a simulation sigma of a tenth of it; the first update, which starts
+  from the sensor's nominal sigma, is solved again while that estimate moves by more than 25 %.
+  Leaks: points inside the tool sphere (plus three sigmas) are dropped before anything else
+  (the tool pose and radius are inputs), points farther from the predicted surface than five
+  robust spreads are gated, and the rest go through a Cauchy kernel of scale 2.4 sigma.
 - The physics prior's scale makes mean(diag(scale K_rest)) = 1 / simulation_sigma^2 on the
   free dofs (factors.prior_scale); a ridge prior_ridge / simulation_sigma^2 (default 1e-6
-  of the mean information) gives a free body's 6 rigid modes a tiny information. Note that
-  K's smooth modes carry far less information than its diagonal, increasingly so on finer
-  meshes (by ~(edge / size)^2): at a fixed simulation_sigma a 10k-vertex mesh gets a much
-  weaker prior on smooth deformation than a 500-vertex one.
+  of the mean information) gives a free body's 6 rigid modes a tiny information. The prior
+  carries a volume barrier (factors.VolumeBarrierFactor) that keeps every element above half
+  its volume in the prediction, and LM cuts any step that would shrink an element below a
+  quarter of its volume: no estimate contains a flat or inverted element.
+- LM stops when the remaining decrease it can predict is below 0.25 cost units (the cost is
+  chi^2 / 2 under the estimated weights: the remaining step is within ~0.7 posterior standard
+  deviations), never on a relative decrease: the window's cost grows with W and the clouds,
+  and a relative test stopped the newest state short of small, statistically clear
+  corrections. Steps are inexact Newton steps: PCG to a relative residual of
+  linear_tolerance (1e-3); the gain ratio judges each step on its true cost.
 - Posterior std (position_std, (N,), sqrt(trace(Sigma_ii)/3), 0 on fixed vertices): with
   covariance "exact" (default up to `exact_covariance_max_dofs` window unknowns) the exact
   marginal of the newest state, diag blocks of H^-1 of the undamped Gauss-Newton matrix of
@@ -62,13 +70,21 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg
 
-from .factors import FactorGraph, PhysicsPriorFactor, PointToSurfaceFactor, TemporalFactor, prior_scale
+from .factors import (
+    FactorGraph,
+    PhysicsPriorFactor,
+    PointToSurfaceFactor,
+    TemporalFactor,
+    VolumeBarrierFactor,
+    prior_scale,
+)
 from .fem import STIFFNESS_KINDS, ElasticModel
 from .levenberg_marquardt import LevenbergMarquardtConfig, levenberg_marquardt
 from .linear_solvers import LINEAR_SOLVERS, LinearSolveError, NotPositiveDefiniteError, make_linear_solver
-from .mesh import TetMesh
+from .mesh import TetMesh, signed_volumes
 from .noise import IsotropicNoise
 from .robust import ROBUST_KERNELS, make_robust_kernel
+from .weights import PRIOR_NOISE_RATIO, MeasurementNoise
 
 __all__ = [
     "FACTOR_CONFIGURATIONS",
@@ -91,6 +107,20 @@ FACTOR_CONFIGURATIONS = {
     "simulation": frozenset({"simulation"}),
 }
 COVARIANCE_METHODS = ("auto", "exact", "vertex-conditional", "none")
+# LM stops when the cost could fall by less than this (chi^2 / 2 units, see the module doc).
+ABSOLUTE_COST_TOLERANCE = 0.25
+# Data-driven defaults (robust_scale = 0, gating_distance = 0), in estimated sigmas: the Cauchy
+# kernel's scale (2.3849 sigma gives 95 % efficiency on Gaussian noise), the gate on the
+# distance of a point to the predicted surface (robust spread of those distances, at least the
+# measurement sigma), and the margin around the tool sphere inside which points are leaks.
+ROBUST_SCALE_SIGMAS = 2.3849
+GATE_SIGMAS = 5.0
+TOOL_MARGIN_SIGMAS = 3.0
+_MEDIAN_ABSOLUTE_TO_SIGMA = 1.4826
+# An update whose estimated measurement sigma moved by more than REWEIGHT_CHANGE (relative) is
+# solved again with it, at most MAX_REWEIGHT_ROUNDS times (the first update, from the nominal).
+REWEIGHT_CHANGE = 0.25
+MAX_REWEIGHT_ROUNDS = 4
 STIFFNESS_UPDATES = ("update", "iteration")
 
 
@@ -112,7 +142,7 @@ class EstimatorConfig:
     """Estimator settings (SI units). See the module doc for the modelling choices."""
 
     factors: str = "full"
-    window_size: int = 10
+    window_size: int = 5
     measurement_sigma: float = 1e-3
     simulation_sigma: float = 1e-3
     temporal_sigma: float = 1e-2  # a weak random walk: up to ~1 cm per 1 Hz step (Table I: see README)
@@ -120,9 +150,11 @@ class EstimatorConfig:
     spd_projection: bool = False
     youngs_modulus: float = 3e3
     poisson_ratio: float = 0.45
-    robust_kernel: str | None = None
-    robust_scale: float = 2e-3
-    gating_distance: float = 1e-2
+    robust_kernel: str | None = "cauchy"
+    robust_scale: float = 0.0      # m; 0: ROBUST_SCALE_SIGMAS estimated measurement sigmas
+    gating_distance: float = 0.0   # m; 0: GATE_SIGMAS robust innovation sigmas (see module doc)
+    estimate_weights: bool = True
+    tool_radius: float = 5e-3      # m; > 0: points inside the tool sphere (plus a margin) are leaks
     max_iterations: int = 10
     linear_solver: str = "pcg"
     growing: bool = False
@@ -132,16 +164,20 @@ class EstimatorConfig:
     relinearize_threshold: float | None = None
     stiffness_update: str = "update"
     linear_tolerance: float = 1e-3
-    lm: LevenbergMarquardtConfig = field(default_factory=lambda: LevenbergMarquardtConfig(cost_tolerance=1e-3))
+    lm: LevenbergMarquardtConfig = field(default_factory=lambda: LevenbergMarquardtConfig(
+        cost_tolerance=1e-9, absolute_cost_tolerance=ABSOLUTE_COST_TOLERANCE))
 
     def __post_init__(self):
         if self.factors not in FACTOR_CONFIGURATIONS:
             raise EstimatorConfigError(f"factors must be one of {tuple(FACTOR_CONFIGURATIONS)}, got {self.factors!r}")
         if not (isinstance(self.window_size, (int, np.integer)) and self.window_size >= 1):
             raise EstimatorConfigError(f"window_size must be an integer >= 1, got {self.window_size!r}")
-        for name in ("measurement_sigma", "simulation_sigma", "temporal_sigma", "youngs_modulus", "robust_scale",
-                     "gating_distance"):
+        for name in ("measurement_sigma", "simulation_sigma", "temporal_sigma", "youngs_modulus"):
             _positive(name, getattr(self, name))
+        for name in ("robust_scale", "gating_distance", "tool_radius"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0.0):
+                raise EstimatorConfigError(f"{name} must be finite and >= 0, got {value}")
         if self.stiffness_kind not in STIFFNESS_KINDS:
             raise EstimatorConfigError(f"stiffness_kind must be one of {STIFFNESS_KINDS}, got {self.stiffness_kind!r}")
         if not -1.0 < self.poisson_ratio < 0.5:
@@ -184,6 +220,9 @@ class StepResult:
     window_size: int
     message: str = ""
     cost_history: list = field(default_factory=list)
+    accepted_steps: int = 0
+    measurement_sigma: float = 0.0   # m, the measurement noise the update was weighted with (estimated)
+    simulation_sigma: float = 0.0    # m, the simulation sigma the prior's weight corresponds to (estimated)
 
 
 @dataclass
@@ -194,9 +233,12 @@ class PendingStep:
     stamp_ns: int
     start: float                   # perf_counter() at prepare, for solve_time_ms
     num_points: int = 0
-    num_points_rejected: int = 0
+    num_points_rejected: int = 0   # non-finite or on the tool
+    num_points_gated: int = 0      # farther from the predicted surface than the gate
     degraded: bool = False
     messages: list = field(default_factory=list)
+    points: np.ndarray | None = None      # the cloud after the tool gate
+    prediction: np.ndarray | None = None  # (N, 3) the prior's mean, fixed vertices reset
 
 
 class SlidingWindowEstimator:
@@ -219,8 +261,9 @@ class SlidingWindowEstimator:
             rest_stiffness = self.model.stiffness(None, kind=cfg.stiffness_kind, spd_projection=cfg.spd_projection)
             self.prior_scale = prior_scale(rest_stiffness, cfg.simulation_sigma, self.graph.free_dofs)
             self.prior_ridge = cfg.prior_ridge / cfg.simulation_sigma**2
-        self.noise = IsotropicNoise(self.config.measurement_sigma)
-        self.robust = make_robust_kernel(self.config.robust_kernel, self.config.robust_scale)
+            # kappa V_e per element: the prior's volume barrier in the prior's own units
+            self.bulk_energy_scale = (self.model.lam + 2.0 * self.model.mu / 3.0) * self.model.volumes
+        self.noise = MeasurementNoise(self.config.measurement_sigma)
         # A sliding window's W block factors are made (their memory first touched) at the first
         # solve, not by the window-filling update.
         reserved = 0 if self.config.growing else self.config.window_size
@@ -250,12 +293,13 @@ class SlidingWindowEstimator:
         return points, predicted, dropped
 
     # ----------------------------------------------------------------------------- update
-    def update(self, stamp_ns: int, points=None, predicted=None) -> StepResult:
+    def update(self, stamp_ns: int, points=None, predicted=None, tool_pose=None) -> StepResult:
         """Add a state for `stamp_ns` with cloud `points` (K, 3) and simulator prediction
-        `predicted` (N, 3) (either may be None), optimise the window, return the newest state."""
-        return self.solve(self.prepare(stamp_ns, points, predicted))
+        `predicted` (N, 3) (either may be None), optimise the window, return the newest state.
+        tool_pose (7,) (optional): where the tool is, to drop the cloud's points on it."""
+        return self.solve(self.prepare(stamp_ns, points, predicted, tool_pose))
 
-    def prepare(self, stamp_ns: int, points=None, predicted=None) -> PendingStep:
+    def prepare(self, stamp_ns: int, points=None, predicted=None, tool_pose=None) -> PendingStep:
         """First half of `update`: validate the input, append the new state and its factors and
         slide the window, without optimising (benchmarks hand the same problem to other solvers)."""
         start = time.perf_counter()
@@ -265,6 +309,7 @@ class SlidingWindowEstimator:
         pending = PendingStep(self.step, int(stamp_ns), start, num_points_rejected=dropped)
         if dropped:
             pending.messages.append(f"{dropped} non-finite point(s) dropped")
+        points = self._outside_tool(points, tool_pose, pending)
         prediction = predicted
         if prediction is None:
             prediction = self.last_estimate
@@ -275,20 +320,9 @@ class SlidingWindowEstimator:
         key = pending.key
         previous_key = graph.keys[-1] if graph.keys else None
         graph.add_state(key, prediction)
-        initial = graph.states[key]
-        if "simulation" in self.enabled:
-            graph.add_factor(PhysicsPriorFactor(
-                key, initial, self.model, cfg.stiffness_kind, cfg.spd_projection, self.prior_scale, self.prior_ridge,
-                relinearize=cfg.stiffness_update == "iteration",
-            ))
-        if "measurement" in self.enabled and points is not None and len(points):
-            factor = PointToSurfaceFactor(
-                key, points, graph.surface_triangles, initial, self.noise, self.robust, cfg.gating_distance,
-            )
-            pending.num_points = factor.num_points
-            pending.num_points_rejected += factor.num_points_rejected
-            if factor.num_points:
-                graph.add_factor(factor)
+        pending.points, pending.prediction = points, graph.states[key].copy()
+        for factor in self._state_factors(pending):
+            graph.add_factor(factor)
         if "temporal" in self.enabled:
             if previous_key is None:
                 graph.add_factor(TemporalFactor(key, cfg.temporal_sigma, anchor=self.anchor))
@@ -301,22 +335,102 @@ class SlidingWindowEstimator:
                 factor.invalidate_information()
         return pending
 
+    def _outside_tool(self, points, tool_pose, pending: PendingStep):
+        """Points inside the tool sphere, grown by TOOL_MARGIN_SIGMAS measurement sigmas, are
+        leaks of the segmentation onto the tool (the commonest leak): dropped and counted."""
+        if points is None or tool_pose is None or not self.config.tool_radius > 0.0:
+            return points
+        centre = np.asarray(tool_pose, dtype=np.float64).reshape(-1)[:3]
+        reach = self.config.tool_radius + TOOL_MARGIN_SIGMAS * self.noise.sigma
+        inside = np.einsum("ij,ij->i", points - centre, points - centre) <= reach**2
+        count = int(np.count_nonzero(inside))
+        if count:
+            pending.num_points_rejected += count
+            pending.messages.append(f"{count} point(s) on the tool dropped")
+        return points[~inside]
+
+    def _state_factors(self, pending: PendingStep) -> list:
+        """The physics prior and measurement factors of the pending state at the current weights."""
+        cfg, graph, key = self.config, self.graph, pending.key
+        factors = []
+        if "simulation" in self.enabled:
+            scale = self.prior_scale * (cfg.simulation_sigma / self.simulation_sigma) ** 2
+            factors.append(PhysicsPriorFactor(
+                key, pending.prediction, self.model, cfg.stiffness_kind, cfg.spd_projection, scale,
+                self.prior_ridge, relinearize=cfg.stiffness_update == "iteration",
+            ))
+            factors.append(VolumeBarrierFactor(key, self.model.tetrahedra,
+                                               signed_volumes(pending.prediction, self.model.tetrahedra),
+                                               scale * self.bulk_energy_scale))
+        pending.num_points, pending.num_points_gated = 0, 0
+        points = pending.points
+        if "measurement" in self.enabled and points is not None and len(points):
+            sigma = self.noise.sigma
+            robust = make_robust_kernel(cfg.robust_kernel, cfg.robust_scale or ROBUST_SCALE_SIGMAS * sigma)
+            gate = cfg.gating_distance or (lambda distances: GATE_SIGMAS * max(
+                sigma, _MEDIAN_ABSOLUTE_TO_SIGMA * float(np.median(distances))))
+            factor = PointToSurfaceFactor(key, points, graph.surface_triangles, pending.prediction,
+                                          IsotropicNoise(sigma), robust, gate)
+            pending.num_points, pending.num_points_gated = factor.num_points, factor.num_points_rejected
+            if factor.num_points:
+                factors.append(factor)
+        return factors
+
     def solve(self, pending: PendingStep) -> StepResult:
-        """Second half of `update`: optimise the window, return the newest state's estimate."""
+        """Second half of `update`: optimise the window, return the newest state's estimate.
+
+        With estimate_weights, the optimum's residual distances update the measurement sigma
+        (weights.py) for the next update; when it moves by more than REWEIGHT_CHANGE, the newest
+        state's factors are rebuilt with it and the window is solved again from where it is (at
+        most MAX_REWEIGHT_ROUNDS times: typically the first update, from the nominal sigma)."""
         graph = self.graph
         messages = pending.messages
-        result = self._optimise(messages)
+        lm_messages = []
+        result = self._optimise(lm_messages)
+        iterations, rounds = result["iterations"], 0
+        while self.config.estimate_weights:
+            distances = self._residual_distances(pending.key)
+            if distances is None or self.noise.observe(distances) <= REWEIGHT_CHANGE or rounds == MAX_REWEIGHT_ROUNDS:
+                break
+            rounds += 1
+            graph.replace_state_factors(pending.key, self._state_factors(pending))
+            lm_messages = []
+            result = self._optimise(lm_messages)
+            iterations += result["iterations"]
+        messages.extend(lm_messages)
+        if rounds:
+            messages.append(f"solved again with the re-estimated measurement sigma {rounds} time(s)")
+        if self.config.estimate_weights:
+            messages.append(f"weights: measurement sigma {1e3 * self.noise.sigma:.3g} mm, "
+                            f"simulation sigma {1e3 * self.simulation_sigma:.3g} mm")
         positions = graph.states[pending.key].copy()
         self.last_estimate = positions
         std = self._position_std(messages) if self.config.covariance != "none" else np.zeros(self.mesh.vertex_count)
         return StepResult(
             step=pending.key, stamp_ns=pending.stamp_ns, positions=positions, position_std=std,
-            iterations=result["iterations"], initial_cost=result["initial_cost"], final_cost=result["final_cost"],
+            iterations=iterations, initial_cost=result["initial_cost"], final_cost=result["final_cost"],
             converged=result["converged"], degraded=pending.degraded,
             solve_time_ms=1e3 * (time.perf_counter() - pending.start), num_points=pending.num_points,
-            num_points_rejected=pending.num_points_rejected, window_size=len(graph.keys),
+            num_points_rejected=pending.num_points_rejected + pending.num_points_gated, window_size=len(graph.keys),
             message="; ".join(messages), cost_history=result["cost_history"],
+            accepted_steps=result["accepted_steps"], measurement_sigma=self.noise.sigma,
+            simulation_sigma=self.simulation_sigma,
         )
+
+    @property
+    def simulation_sigma(self) -> float:
+        """The simulation sigma [m] the physics prior is weighted with: PRIOR_NOISE_RATIO times the
+        estimated measurement sigma with estimate_weights, else the configured one."""
+        if self.config.estimate_weights:
+            return PRIOR_NOISE_RATIO * self.noise.sigma
+        return self.config.simulation_sigma
+
+    def _residual_distances(self, key) -> np.ndarray | None:
+        """Distances of the state's measured points to its surface (None without points)."""
+        measurement = next((f for f in self.graph.state_factors(key) if isinstance(f, PointToSurfaceFactor)), None)
+        if measurement is None:
+            return None
+        return measurement.associate(self.graph.states).distance
 
     def _slide(self) -> None:
         """Drop the oldest state beyond window_size; its estimate anchors the next one's temporal factor."""
@@ -338,16 +452,16 @@ class SlidingWindowEstimator:
         except (LinearSolveError, NotPositiveDefiniteError, np.linalg.LinAlgError, FloatingPointError) as error:
             messages.append(f"optimisation failed ({error}); kept the initial guess")
             cost = float(graph.cost(x0))
-            return dict(iterations=0, initial_cost=cost, final_cost=cost, converged=False, cost_history=[cost])
+            return dict(iterations=0, initial_cost=cost, final_cost=cost, converged=False, cost_history=[cost],
+                        accepted_steps=0)
         if not np.all(np.isfinite(lm.x)):
             messages.append("optimisation produced non-finite values; kept the initial guess")
             lm.x = x0
         graph.set_x(lm.x)
         messages.extend(lm.messages)
-        if not lm.converged:
-            messages.append(f"not converged ({lm.reason})")
+        messages.append(lm.summary())
         return dict(iterations=lm.iterations, initial_cost=lm.initial_cost, final_cost=lm.final_cost,
-                    converged=lm.converged, cost_history=list(lm.cost_history))
+                    converged=lm.converged, cost_history=list(lm.cost_history), accepted_steps=lm.accepted_steps)
 
     # ------------------------------------------------------------------------- covariance
     def _position_std(self, messages) -> np.ndarray:

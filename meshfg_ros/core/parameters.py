@@ -162,10 +162,18 @@ PARAMETERS: tuple[Parameter, ...] = (
     Parameter("factors", _ESTIMATOR.factors,
               "Factor configuration of the estimator, by name.", "string", choices=tuple(FACTOR_CONFIGURATIONS)),
     Parameter("measurement_sigma", _ESTIMATOR.measurement_sigma,
-              "Standard deviation of a depth point along the surface normal, metres.", "double", _POSITIVE_LENGTH),
+              "Nominal standard deviation of a depth point along the surface normal, metres (the sensor's "
+              "datasheet value; with estimate_weights the estimator starts from it and estimates the real spread "
+              "from the residuals).",
+              "double", _POSITIVE_LENGTH),
     Parameter("simulation_sigma", _ESTIMATOR.simulation_sigma,
               "Expected simulator error per vertex in metres; scales the FEM-stiffness information of the "
-              "physics prior.", "double", _POSITIVE_LENGTH),
+              "physics prior. Used with estimate_weights false; with estimate_weights the prior follows the "
+              "estimated measurement sigma (a tenth of it, core/weights.py).", "double", _POSITIVE_LENGTH),
+    Parameter("estimate_weights", _ESTIMATOR.estimate_weights,
+              "Estimate the measurement noise online from the residuals and weight the physics prior with a "
+              "tenth of it (core/weights.py); false: use measurement_sigma and simulation_sigma as given.",
+              "bool"),
     Parameter("temporal_sigma", _ESTIMATOR.temporal_sigma,
               "Standard deviation of a vertex's motion between two steps beyond the simulator's prediction, "
               "metres.", "double", _POSITIVE_LENGTH),
@@ -178,10 +186,12 @@ PARAMETERS: tuple[Parameter, ...] = (
     Parameter("robust_kernel", _ESTIMATOR.robust_kernel or "none",
               "Robust kernel on the point-to-surface residuals.", "string", choices=tuple(ROBUST_KERNELS)),
     Parameter("robust_scale", _ESTIMATOR.robust_scale,
-              "Scale of the robust kernel in metres.", "double", _POSITIVE_LENGTH),
+              "Scale of the robust kernel in metres; 0: 2.4 times the (estimated) measurement sigma.", "double",
+              (0.0, 10.0)),
     Parameter("gating_distance", _ESTIMATOR.gating_distance,
-              "Points farther than this from the predicted surface are rejected (metres).", "double",
-              _POSITIVE_LENGTH),
+              "Points farther than this from the predicted surface are rejected (metres); 0: five times the "
+              "cloud's robust spread about the predicted surface (at least the measurement sigma).", "double",
+              (0.0, 10.0)),
     Parameter("max_iterations", _ESTIMATOR.max_iterations,
               "Levenberg-Marquardt iterations per step (at most).", "integer", (1, 1000)),
     Parameter("linear_solver", _ESTIMATOR.linear_solver,
@@ -307,6 +317,8 @@ def estimator_config(params: Mapping[str, Any]) -> EstimatorConfig:
         robust_kernel=None if params["robust_kernel"] == "none" else params["robust_kernel"],
         robust_scale=params["robust_scale"],
         gating_distance=params["gating_distance"],
+        estimate_weights=params["estimate_weights"],
+        tool_radius=params["tool_radius"] if params["tool_mode"] == "sphere" else 0.0,
         max_iterations=params["max_iterations"],
         linear_solver=params["linear_solver"],
         youngs_modulus=params["youngs_modulus"],

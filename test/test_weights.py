@@ -1,0 +1,36 @@
+"""The measurement noise estimate: robust to leaks, moving by bounded steps within bounds."""
+
+import numpy as np
+import pytest
+
+from meshfg_ros.core.weights import MIN_POINTS, MeasurementNoise, WeightError
+
+
+def half_normal(sigma, count, seed=0):
+    return np.abs(np.random.default_rng(seed).normal(scale=sigma, size=count))
+
+
+def test_estimate_reaches_the_real_spread_through_leaks():
+    noise = MeasurementNoise(0.5e-3)
+    distances = half_normal(1.2e-3, 2000)
+    distances[:400] = 0.02  # a fifth of the cloud on the tool and the table
+    for _ in range(3):
+        noise.observe(distances)
+    assert noise.sigma == pytest.approx(1.2e-3 * 1.2, rel=0.15)  # leaks lift the median by about a fifth
+    clean = MeasurementNoise(0.5e-3)
+    clean.observe(half_normal(1.2e-3, 2000, seed=1))
+    assert clean.sigma == pytest.approx(1.2e-3, rel=0.05)
+
+
+def test_steps_and_bounds_and_too_few_points():
+    noise = MeasurementNoise(1e-3, max_step=4.0, bounds=10.0)
+    change = noise.observe(half_normal(50e-3, 1000))
+    assert noise.sigma == pytest.approx(4e-3) and change == pytest.approx(3.0)
+    for _ in range(5):
+        noise.observe(half_normal(50e-3, 1000))
+    assert noise.sigma == pytest.approx(10e-3)  # the upper bound
+    assert noise.observe(half_normal(1e-3, MIN_POINTS - 1)) == 0.0 and noise.sigma == pytest.approx(10e-3)
+    with pytest.raises(WeightError):
+        MeasurementNoise(0.0)
+    with pytest.raises(WeightError):
+        MeasurementNoise(1e-3, max_step=1.0)
