@@ -6,6 +6,7 @@ well under a second, unlike the full scenarios of core.scenarios.
 """
 from __future__ import annotations
 
+import importlib.metadata
 import sys
 from pathlib import Path
 
@@ -24,6 +25,15 @@ POINTS_PER_STEP = 300
 MESHFG = str(Path(sys.executable).with_name("meshfg"))
 REPOSITORY = Path(__file__).resolve().parents[1]
 BAGS = REPOSITORY / "bags"
+
+
+def mkl_installed() -> bool:
+    """Whether Intel's `mkl` wheel is installed (requirements-core.txt: x86-64 Linux only)."""
+    try:
+        importlib.metadata.distribution("mkl")
+    except importlib.metadata.PackageNotFoundError:
+        return False
+    return True
 
 
 def tiny_scenario(steps: int = 3, seed: int = 0, camera: bool = False) -> Scenario:

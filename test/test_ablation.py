@@ -43,6 +43,7 @@ def test_table_and_json_layout(shear_table, tmp_path):
     assert (tmp_path / "table.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+@pytest.mark.slow  # the meshfg command as a process
 def test_ablation_command_refuses_to_overwrite(tmp_path):
     existing = tmp_path / "table.json"
     existing.write_text("{}")

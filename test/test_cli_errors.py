@@ -12,6 +12,8 @@ from meshfg_ros.io.recording import RecordingWriter
 from meshfg_ros.synth import write_scenario
 from meshfg_ros.topics import POINTS_TOPIC, TOOL_POSE_TOPIC
 
+pytestmark = pytest.mark.slow  # each case runs the meshfg command as a process
+
 
 def meshfg(*args, timeout=120):
     return subprocess.run([MESHFG, *map(str, args)], capture_output=True, text=True, timeout=timeout)

@@ -3,11 +3,16 @@
 colcon comes from PyPI here, and the ROS prefix is the project venv instead of /opt/ros/jazzy.
 """
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
+import rclpy
+
+pytestmark = pytest.mark.slow  # a colcon build, then each executable as its own process over DDS
 
 REPO = Path(__file__).resolve().parents[1]
 VENV_PREFIX = Path(sys.prefix)
@@ -55,21 +60,47 @@ def test_built_messages_import_from_install_space(install_space):
     assert values == "3 [1.0, 2.0, 3.0] 4 True"
 
 
-@pytest.mark.parametrize("executable", ["simulation_node", "estimator_node", "meshfg_stack", "bag_player"])
-def test_installed_executables_start_and_stop_cleanly(install_space, executable, tmp_path):
-    """Each executable of the install space runs (sourcing install/setup.bash, as `ros2 run`
-    would) and exits 0 on SIGINT without a traceback."""
-    import signal
-    import time
+@pytest.fixture(scope="module")
+def graph():
+    """A node of the test process that watches the ROS graph."""
+    rclpy.init()
+    node = rclpy.create_node("colcon_check_probe")
+    yield node
+    node.destroy_node()
+    rclpy.shutdown()
 
+
+def wait_for_node_or_exit(graph, process, namespace: str, timeout_s=120.0) -> bool:
+    """Spin until a node in `namespace` is in the graph (True), or the process ended or the
+    timeout passed (False)."""
+    deadline = time.monotonic() + timeout_s
+    while process.poll() is None and time.monotonic() < deadline:
+        if any(name_space == namespace for _, name_space in graph.get_node_names_and_namespaces()):
+            return True
+        rclpy.spin_once(graph, timeout_sec=0.05)
+    return False
+
+
+@pytest.mark.parametrize("executable", ["simulation_node", "estimator_node", "meshfg_stack", "bag_player"])
+def test_installed_executables_start_and_stop_cleanly(install_space, graph, executable, tmp_path):
+    """Each executable of the install space runs (sourcing install/setup.bash, as `ros2 run`
+    would), joins the ROS graph, and exits 0 on SIGINT without a traceback. Each gets its own
+    namespace, so a node of an earlier case still listed in the graph does not count."""
+    namespace = f"/colcon_check_{executable}"
     lib = install_space / "meshfg_ros" / "lib" / "meshfg_ros"
     arguments = [str(REPO / "bags" / "cao-push"), "--wait-for-subscribers", "60"] if executable == "bag_player" else []
-    command = " ".join([f'"{lib / executable}"', *arguments, "--ros-args", "-r", "__ns:=/colcon_check"])
+    command = " ".join([f'"{lib / executable}"', *arguments, "--ros-args", "-r", f"__ns:={namespace}"])
     process = subprocess.Popen(["bash", "-c", f'source "{install_space}/setup.bash" && exec {command}'],
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
-    time.sleep(6.0)
-    assert process.poll() is None, process.communicate()[1]
-    process.send_signal(signal.SIGINT)
-    _, stderr = process.communicate(timeout=60)
+    try:
+        if not wait_for_node_or_exit(graph, process, namespace):
+            process.kill()
+            pytest.fail(f"{executable} never joined the ROS graph:\n{process.communicate(timeout=60)[1][-3000:]}")
+        process.send_signal(signal.SIGINT)
+        _, stderr = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
     assert process.returncode == 0, stderr
     assert "Traceback" not in stderr

@@ -2,6 +2,8 @@
 import subprocess
 import sys
 
+import pytest
+
 ROS_FREE_MODULES = (
     "meshfg_ros.core.mesh", "meshfg_ros.core.meshing", "meshfg_ros.core.fem", "meshfg_ros.core.simulator",
     "meshfg_ros.core.camera", "meshfg_ros.core.scenarios", "meshfg_ros.core.metrics", "meshfg_ros.core.factors",
@@ -11,6 +13,7 @@ ROS_FREE_MODULES = (
 )
 
 
+@pytest.mark.slow  # a fresh interpreter
 def test_core_modules_import_without_ros():
     script = (
         "import sys\n"

@@ -5,6 +5,9 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
+
+pytestmark = pytest.mark.slow  # a publisher and a receiver process over DDS
 
 HERE = Path(__file__).parent
 

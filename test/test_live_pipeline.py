@@ -19,6 +19,8 @@ from meshfg_ros.replay import replay_recording
 from meshfg_ros.synth import write_scenario
 from meshfg_ros.topics import POINTS_TOPIC
 
+pytestmark = pytest.mark.slow  # node processes over DDS
+
 BUNDLED = Path(__file__).resolve().parents[1] / "bags" / "cube-shear-spd"
 RATE = 4.0
 

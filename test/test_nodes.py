@@ -24,6 +24,7 @@ from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import MarkerArray
 
 from meshfg_msgs.msg import EstimatorStatus, PredictionFailure, TetraMesh
+from meshfg_ros.core import blas
 from meshfg_ros.core.meshing import cube_mesh
 from meshfg_ros.core.parameters import load_parameters, simulator_config
 from meshfg_ros.core.simulator import XpbdSimulator
@@ -161,6 +162,7 @@ def get_parameters(probe, node_name: str, names: list[str]) -> dict:
 
 
 # ---------------------------------------------------------------------------- start, parameters, stop
+@pytest.mark.slow
 def test_executables_read_parameters_and_stop_cleanly_on_sigint(probe, processes, tmp_path):
     separate = [Process(tmp_path, "simulation_node", *ros_args("/p_sep", "youngs_modulus:=4500.0", params_file=CONFIG)),
                 Process(tmp_path, "estimator_node", *ros_args("/p_sep", "window_size:=7", params_file=CONFIG))]
@@ -182,6 +184,7 @@ def test_executables_read_parameters_and_stop_cleanly_on_sigint(probe, processes
         assert_clean_exit(process, process.interrupt())
 
 
+@pytest.mark.slow
 def test_invalid_parameters_stop_the_node_with_a_message(processes, tmp_path):
     window = Process(tmp_path, "estimator_node", *ros_args("/bad", "window_size:=0"))
     grasp = Process(tmp_path, "simulation_node", *ros_args("/bad", "tool_mode:=grasp"))
@@ -193,6 +196,7 @@ def test_invalid_parameters_stop_the_node_with_a_message(processes, tmp_path):
 
 
 # ---------------------------------------------------------------------------- simulation node
+@pytest.mark.slow
 def test_simulation_node_predicts_from_the_latest_estimate(probe, processes, tmp_path):
     mesh = pushed_cube()
     params = load_parameters({"tool_radius": 0.01, "estimate_timeout": 1.0})
@@ -302,6 +306,7 @@ class EstimatorProbe:
         return self.wait_for(**expected)
 
 
+@pytest.mark.slow
 def test_estimator_node_survives_bad_input_and_recovers_from_a_missing_simulator(probe, processes, tmp_path):
     mesh = pushed_cube()
     node = Process(tmp_path, "estimator_node", *ros_args(
@@ -374,6 +379,7 @@ def test_estimator_node_survives_bad_input_and_recovers_from_a_missing_simulator
     assert_clean_exit(node, node.interrupt())
 
 
+@pytest.mark.slow
 def test_estimator_node_runs_a_step_at_once_when_the_simulator_reports_a_failure(probe, processes, tmp_path):
     """A PredictionFailure for a cloud's stamp releases that cloud degraded without waiting for
     prediction_timeout (60 s here, twice as long as any wait below)."""
@@ -405,6 +411,7 @@ def test_estimator_node_runs_a_step_at_once_when_the_simulator_reports_a_failure
     assert_clean_exit(node, node.interrupt())
 
 
+@pytest.mark.slow
 def test_estimated_mesh_reaches_a_late_subscriber(probe, processes, tmp_path):
     mesh = pushed_cube()
     node = Process(tmp_path, "estimator_node", *ros_args("/late", "prediction_timeout:=0.0"))
@@ -427,6 +434,9 @@ def test_estimated_mesh_reaches_a_late_subscriber(probe, processes, tmp_path):
     assert spin_until(probe, lambda: len(late) == 1)
     assert stamp_ns_from_msg(late[0].header.stamp) == 7 * S
     assert_clean_exit(node, node.interrupt())
+    # The executable chose CHOLMOD's BLAS at start-up as every entry point does (this session's
+    # conftest too: same CPU, same environment).
+    assert f"sparse Cholesky BLAS: {blas.backend().name}, {blas.backend().threads} thread(s)" in node.output()
 
 
 # ---------------------------------------------------------------------------- bag player
@@ -446,34 +456,34 @@ def small_recording(tmp_path_factory):
     return path, mesh, poses, clouds
 
 
-def test_bag_player_plays_at_the_recorded_rate_with_clock(probe, processes, tmp_path, small_recording):
+@pytest.mark.slow
+def test_bag_player_plays_the_recording_with_clock(probe, processes, tmp_path, small_recording):
     path, mesh, poses, clouds = small_recording
     received = {"mesh": [], "poses": [], "clouds": [], "clock": []}
     probe.create_subscription(TetraMesh, "/rec/initial_mesh", received["mesh"].append, LATCHED)
-    probe.create_subscription(PoseStamped, "/rec/tool_pose",
-                              lambda m: received["poses"].append((time.monotonic(), m)), KEEP)
+    probe.create_subscription(PoseStamped, "/rec/tool_pose", received["poses"].append, KEEP)
     probe.create_subscription(PointCloud2, "/rec/points", received["clouds"].append, KEEP)
     probe.create_subscription(Clock, "/clock", received["clock"].append, KEEP)
     player = Process(tmp_path, "bag_player", str(path), "--rate", "2", "--wait-for-subscribers", "30")
     processes.append(player)
-    assert spin_until(probe, lambda: player.popen.poll() is not None and len(received["clouds"]) == 4)
-    spin_until(probe, lambda: False, timeout_s=0.3)  # the last clock messages
+    last_stamp_ns = poses[-1].stamp_ns
+    assert spin_until(probe, lambda: player.popen.poll() is not None and len(received["clouds"]) == 4
+                      and received["clock"] and stamp_ns_from_msg(received["clock"][-1].clock) == last_stamp_ns)
     assert_clean_exit(player, player.popen.returncode)
     assert len(received["mesh"]) == 1 and np.array_equal(np.asarray(received["mesh"][0].positions),
                                                          mesh.vertices.reshape(-1))
-    assert [stamp_ns_from_msg(m.header.stamp) for _, m in received["poses"]] == [p.stamp_ns for p in poses]
-    assert received["poses"][-1][1].pose.position.x == pytest.approx(0.03)
+    assert [stamp_ns_from_msg(m.header.stamp) for m in received["poses"]] == [p.stamp_ns for p in poses]
+    assert received["poses"][-1].pose.position.x == pytest.approx(0.03)
     for message, cloud in zip(received["clouds"], clouds, strict=True):
         recorded = cloud.points.astype(np.float32)  # clouds are recorded as FLOAT32 x, y, z
         np.testing.assert_array_equal(decode_pointcloud2(message).points, recorded)
-    # 0.6 s of recording at rate 2: 0.3 s between the first and the last pose.
-    elapsed = received["poses"][-1][0] - received["poses"][0][0]
-    assert 0.25 < elapsed < 0.6
+    # Sim time over DDS from the first stamp to the last; the pacing itself (rate, /clock between
+    # the messages) is checked against a virtual clock in test_bag_player.py.
     clock = [stamp_ns_from_msg(m.clock) for m in received["clock"]]
-    assert clock == sorted(clock) and clock[0] == S and clock[-1] == poses[-1].stamp_ns
-    assert len(clock) > 10  # also between the messages
+    assert clock == sorted(clock) and clock[0] == S and clock[-1] == last_stamp_ns
 
 
+@pytest.mark.slow
 def test_bag_player_errors_and_interrupt(probe, processes, tmp_path, small_recording):
     missing = Process(tmp_path, "bag_player", str(tmp_path / "nothing"))
     unknown_topic = Process(tmp_path, "bag_player", str(small_recording[0]), "--topics", "/rec/nothing")

@@ -424,13 +424,14 @@ def benchmark_update(mesh: TetMesh, sequence, config, warmup: int | None = None)
     (default: the window filling, window_size - 1 updates).
 
     Returns latencies_ms, median_ms, p95_ms, mean_iterations, linear_solve_ms (median time of
-    one linear solve), final_costs, rmse_m (vertex RMSE of each update against the truth).
+    one linear solve), final_costs, rmse_m (vertex RMSE of each update against the truth),
+    converged_share (of the timed updates) and the last measurement sigma estimate.
     """
     from .estimator import SlidingWindowEstimator  # avoids an import cycle (estimator uses factors)
 
     estimator = SlidingWindowEstimator(mesh, config)
     warmup = config.window_size - 1 if warmup is None else warmup
-    latencies, iterations, solves, costs, rmse = [], [], [], [], []
+    latencies, iterations, solves, costs, rmse, converged = [], [], [], [], [], []
     original_solve = estimator.solver.solve
 
     def timed_solve(system, rhs):
@@ -447,6 +448,7 @@ def benchmark_update(mesh: TetMesh, sequence, config, warmup: int | None = None)
             latencies.append(elapsed)
             iterations.append(result.iterations)
             costs.append(result.final_cost)
+            converged.append(result.converged)
         rmse.append(float(np.sqrt(np.mean(np.sum((result.positions - step.truth) ** 2, axis=1)))))
     latencies = np.asarray(latencies)
     return dict(
@@ -457,6 +459,8 @@ def benchmark_update(mesh: TetMesh, sequence, config, warmup: int | None = None)
         linear_solve_ms=float(np.median(solves)) if solves else 0.0,
         final_costs=costs,
         rmse_m=rmse,
+        converged_share=float(np.mean(converged)),
+        measurement_sigma_m=float(result.measurement_sigma),
     )
 
 

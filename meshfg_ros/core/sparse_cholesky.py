@@ -3,11 +3,11 @@
 The estimator factors matrices whose sparsity pattern never changes (every state block of a
 window shares the mesh's pattern), so the fill-reducing ordering and symbolic analysis are done
 once per `SparseCholesky` and every later `refactor` is numeric only. cvxopt's wheels ship
-CHOLMOD (supernodal) with an optimised BLAS, bound to threaded MKL where installed (blas.py):
-measured on a 1,344-dof block of the paper-scale window, with cvxopt's BLAS, numeric
-factorisation 1.7 ms against 10.4 ms for cholespy's CHOLMOD (which analyses again at every
-factorisation, with a reference BLAS) and 12 ms for SuperLU; on a 30k-dof organ-scale block
-0.74 s against ~12 s.
+CHOLMOD (supernodal) with an optimised BLAS, the one the entry point chose (blas.py): measured
+on a 1,344-dof block of the paper-scale window, with cvxopt's BLAS, numeric factorisation
+1.7 ms against 10.4 ms for cholespy's CHOLMOD (which analyses again at every factorisation,
+with a reference BLAS) and 12 ms for SuperLU; on a 30k-dof organ-scale block 0.74 s against
+~12 s.
 
 The fill-reducing ordering is METIS nested dissection (pymetis) of the node graph: cvxopt's
 CHOLMOD is built without its METIS module (libcholmod has no cholmod_metis symbol) and orders by AMD, whose fill on 3D tetrahedral meshes is
@@ -24,14 +24,9 @@ import numpy as np
 import scipy.sparse
 import pymetis
 
-from .blas import bind_threaded_blas
 from .noise import NotPositiveDefiniteError
 
-BLAS_BACKEND = bind_threaded_blas()  # before cvxopt is loaded: its CHOLMOD binds to this BLAS
-
-from cvxopt import cholmod, matrix, spmatrix  # noqa: E402
-
-__all__ = ["BLAS_BACKEND", "SparseCholesky", "nested_dissection"]
+__all__ = ["SparseCholesky", "nested_dissection"]
 
 # Below this many nodes AMD (CHOLMOD's own choice) is nearly as good and METIS's call costs
 # more than it saves: on the 512-vertex paper-scale block METIS takes 2.3 ms and saves 0.4 ms
@@ -59,6 +54,14 @@ def nested_dissection(matrix_: scipy.sparse.csr_matrix, node_size: int = 1) -> n
     return (node_size * node_order[:, None] + np.arange(node_size)).reshape(-1)
 
 
+def _cvxopt():
+    """cvxopt with its CHOLMOD, imported on first use: the loader binds CHOLMOD's BLAS then, to
+    the library the entry point loaded (blas.configure), so importing this module binds nothing."""
+    import cvxopt.cholmod
+
+    return cvxopt
+
+
 class SparseCholesky:
     """CHOLMOD factor of a symmetric positive definite matrix with a fixed sparsity pattern.
 
@@ -79,15 +82,16 @@ class SparseCholesky:
         # cvxopt stores column-major; the lower entries in that order, so a refactor only
         # assigns values to one kept spmatrix (2 ms against 24 ms to build one, organ scale).
         self._lower = lower[np.lexsort((rows[lower], csr.indices[lower]))]
-        self._matrix = spmatrix(self._values(csr.data), matrix(rows[self._lower]),
-                                matrix(csr.indices[self._lower].astype(np.int64)), (self.size, self.size))
+        cvxopt = _cvxopt()
+        self._matrix = cvxopt.spmatrix(self._values(csr.data), cvxopt.matrix(rows[self._lower]),
+                                       cvxopt.matrix(csr.indices[self._lower].astype(np.int64)), (self.size, self.size))
         order = nested_dissection(csr, node_size)
-        self._ordering = {} if order is None else {"p": matrix(order.tolist(), tc="i")}
+        self._ordering = {} if order is None else {"p": cvxopt.matrix(order.tolist(), tc="i")}
         self._analyse(csr.data)
 
     def _analyse(self, data: np.ndarray) -> None:
         """Symbolic analysis of the kept matrix with the kept ordering, then the numeric one."""
-        self._factor = cholmod.symbolic(self._matrix, uplo="L", **self._ordering)
+        self._factor = _cvxopt().cholmod.symbolic(self._matrix, uplo="L", **self._ordering)
         self.refactor(data)
 
     def sibling(self, data: np.ndarray) -> SparseCholesky:
@@ -99,8 +103,8 @@ class SparseCholesky:
         twin._analyse(data)
         return twin
 
-    def _values(self, data: np.ndarray) -> matrix:
-        return matrix(np.ascontiguousarray(data[self._lower], dtype=np.float64))
+    def _values(self, data: np.ndarray):
+        return _cvxopt().matrix(np.ascontiguousarray(data[self._lower], dtype=np.float64))
 
     def same_pattern(self, matrix_: scipy.sparse.csr_matrix) -> bool:
         """True when `matrix_` (csr, sorted indices) has the pattern this factor was analysed for."""
@@ -113,7 +117,7 @@ class SparseCholesky:
             raise NotPositiveDefiniteError("Cholesky of a matrix with non-finite entries")
         try:
             self._matrix.V = self._values(data)
-            cholmod.numeric(self._matrix, self._factor)
+            _cvxopt().cholmod.numeric(self._matrix, self._factor)
         except ArithmeticError as error:
             raise NotPositiveDefiniteError(f"Cholesky failed: pivot {error} not positive") from None
 
@@ -124,6 +128,7 @@ class SparseCholesky:
             raise ValueError(f"right-hand side has {rhs.shape[0]} rows, the matrix {self.size}")
         if rhs.size == 0:
             return rhs.copy()
-        solution = matrix(rhs.reshape(self.size, -1))
-        cholmod.solve(self._factor, solution)
+        cvxopt = _cvxopt()
+        solution = cvxopt.matrix(rhs.reshape(self.size, -1))
+        cvxopt.cholmod.solve(self._factor, solution)
         return np.array(solution).reshape(rhs.shape)

@@ -1,4 +1,4 @@
-"""The shared `main` of the node executables: init, spin, clean shutdown on Ctrl-C / SIGINT / SIGTERM."""
+"""The shared `main` of the node executables: the BLAS, init, spin, clean shutdown on Ctrl-C / SIGINT / SIGTERM."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
+from meshfg_ros.core import blas
 from meshfg_ros.core.parameters import ParameterError
 
 
@@ -33,9 +34,14 @@ def run_nodes(program: str, node_factories: Sequence[Callable[[], Node]], args=N
     Single-threaded: rclpy's MultiThreadedExecutor costs ~3x the CPU per message, and the long
     work (the estimator's solves) has its own thread (estimator_node).
 
-    args: command line with --ros-args (None: sys.argv). Invalid parameters end the program
-    with exit code 1 and a one-line message; Ctrl-C / SIGINT / SIGTERM end it with 0.
+    args: command line with --ros-args (None: sys.argv). Invalid parameters (or MESHFG_BLAS) end
+    the program with exit code 1 and a one-line message; Ctrl-C / SIGINT / SIGTERM end it with 0.
     """
+    try:
+        blas.configure()  # before a node loads cvxopt: CHOLMOD binds to the BLAS chosen for this CPU
+    except blas.BlasSettingError as error:
+        print(f"{program}: {error}", file=sys.stderr)
+        return 1
     init_without_signal_handlers(args)
     nodes: list[Node] = []
     executor = None

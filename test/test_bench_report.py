@@ -1,0 +1,42 @@
+"""`meshfg bench`'s report: the CPU and the BLAS beside every figure, in the text and the JSON."""
+from meshfg_ros.bench import format_report, machine
+from meshfg_ros.core import blas
+
+ON = {"cpu": "Some CPU 9000, 2 cores", "blas": "bundled", "blas_threads": 1, "blas_detail": "chosen for SomeVendor"}
+TAG = "[Some CPU 9000, 2 cores; BLAS bundled x1]"
+
+
+def estimator_row(vertices: int) -> dict:
+    return {"machine": ON, "vertices": vertices, "points": 2000, "window_size": 10, "median_ms": 20.0, "p95_ms": 25.0,
+            "latencies_ms": [20.0, 25.0], "iterations": 1.0, "linear_solve_ms": 7.0, "rmse_mm": 0.25,
+            "prediction_rmse_mm": 0.49, "measurement_sigma_m": 1e-3, "converged_share": 1.0}
+
+
+def comparison() -> dict:
+    return {"problem": "one window update", "meshfg": {"median_ms": 20.0, "final_cost": 1.0},
+            "scipy": {"median_ms": 300.0, "final_cost": 1.0, "meshfg_speedup": 15.0, "relative_cost_difference": 0.0}}
+
+
+def test_every_figure_line_names_the_cpu_and_the_blas():
+    result = {
+        "machine": ON,
+        "core": {"machine": ON, "liver": {"vertices": 181, "assemble_linear_ms": 1.0, "assemble_corotational_ms": 1.5,
+                                          "simulator_step_ms": 12.0}},
+        "paper_scale": estimator_row(512),
+        "organ_scale": estimator_row(10648),
+        "baselines": {"machine": ON, **comparison(), "paper_scale": comparison()},
+        "live": {"machine": ON, "rate": 1.0, "latency_ms_median": 170.0, "latency_ms_p95": 250.0, "steps": 10,
+                 "solve_time_ms_median": 130.0, "overhead_ms_median": 50.0, "degraded_steps": 1},
+    }
+    lines = format_report(result).splitlines()
+    assert lines[0] == ("CPU: Some CPU 9000, 2 cores; sparse Cholesky BLAS: bundled, 1 thread(s) "
+                        "(chosen for SomeVendor)")
+    figures = [line for line in lines[1:] if not line.startswith(("Core (ms):", "Baselines ("))]  # not headings
+    assert len(figures) == 8  # liver, two estimator scales, meshfg and scipy twice, live
+    assert all(line.endswith(TAG) for line in figures), [line for line in figures if not line.endswith(TAG)]
+
+
+def test_machine_is_what_the_blas_configuration_reports():
+    backend = blas.configure()  # this session's choice (conftest)
+    assert machine() == {"cpu": blas.cpu_model(), "blas": backend.name, "blas_threads": backend.threads,
+                         "blas_detail": backend.detail}
