@@ -3,10 +3,14 @@
 Semantics shared with meshfg_ros.nodes (the loop below is the reference the nodes' end-to-end
 test compares against):
 - the initial mesh is the first /meshfg/initial_mesh (or a mesh file);
-- tool poses in stamp order: the first resets the simulator (no prediction); each later pose
-  gives predicted = simulator.predict(latest estimate, pose, dt = stamp difference in s);
-- a cloud at stamp t pairs with the prediction stamped t (at equal stamps the pose comes
-  first); estimate = estimator.update(t, points in world_frame, predicted or None);
+- tool poses and clouds are taken in the order they were logged (the order the nodes receive
+  them; at equal log times the pose first), each stream under the stamp rule of
+  core/input_checks.py: a stale stamp is dropped, a jump back restarts (the simulator's
+  timeline, or the estimator, from the initial mesh);
+- the first tool pose of a timeline resets the simulator (no prediction); each later one gives
+  predicted = simulator.predict(latest estimate, pose, dt = stamp difference in s);
+- a cloud at stamp t pairs with the prediction and the tool pose stamped t;
+  estimate = estimator.update(t, points in world_frame, predicted or None, tool pose or None);
   the estimate is the state the next prediction starts from.
 Besides the live outputs, the replay runs the simulator open loop from the initial mesh
 through the same tool poses (/meshfg/simulation_only_mesh): the "simulation alone" baseline of
@@ -27,9 +31,11 @@ import numpy as np
 import yaml
 from rosbags.highlevel import AnyReader
 
-from meshfg_ros.core.estimator import SlidingWindowEstimator, StepResult
+from meshfg_ros.core.estimator import EstimatorInputError, EstimatorStepError, SlidingWindowEstimator, StepResult
+from meshfg_ros.core.input_checks import INVALID, JUMP_BACK, STALE, Scene, SceneError, check_initial_mesh, stamp_order
 from meshfg_ros.core.mesh import TetMesh, load_mesh
 from meshfg_ros.core.parameters import (
+    FrameError,
     cloud_to_world,
     estimator_config,
     load_parameters,
@@ -83,6 +89,7 @@ SIMULATOR_PARAMETERS = {
 # initial mesh is written as used: the recording's or the --mesh file's).
 COPIED_TOPICS = (SCENARIO_TOPIC, CAMERA_POSE_TOPIC, TOOL_POSE_TOPIC, POINTS_TOPIC)
 _NS_PER_S = 1e9
+_POSE, _CLOUD = 0, 1  # event kinds: a pose sorts before a cloud logged at the same time
 
 
 class ReplayError(ValueError):
@@ -91,7 +98,8 @@ class ReplayError(ValueError):
 
 @dataclass(frozen=True)
 class ReplayInputs:
-    """What the nodes would receive from a recording: initial mesh, tool poses, clouds."""
+    """What the nodes would receive from a recording: initial mesh, tool poses, clouds (each in
+    log-time order, with their log times; empty log times: the stamps)."""
 
     initial_mesh: TetMesh
     initial_state: MeshState
@@ -99,6 +107,17 @@ class ReplayInputs:
     clouds: tuple[PointCloudRecord, ...]
     metadata: ScenarioMetadata | None
     camera_pose: PoseRecord | None
+    pose_log_ns: tuple[int, ...] = ()
+    cloud_log_ns: tuple[int, ...] = ()
+
+    def events(self) -> list[tuple[int, int, PoseRecord | PointCloudRecord]]:
+        """(log time, kind, record) of every pose and cloud in arrival order: by log time, a pose
+        before a cloud logged at the same time, each topic in its logged order."""
+        poses = self.pose_log_ns or [pose.stamp_ns for pose in self.poses]
+        clouds = self.cloud_log_ns or [cloud.stamp_ns for cloud in self.clouds]
+        events = [(log_ns, _POSE, index) for index, log_ns in enumerate(poses)]
+        events += [(log_ns, _CLOUD, index) for index, log_ns in enumerate(clouds)]
+        return [(log_ns, kind, (self.poses, self.clouds)[kind][index]) for log_ns, kind, index in sorted(events)]
 
 
 @dataclass(frozen=True)
@@ -137,8 +156,10 @@ def load_inputs(path: str | Path, mesh_path: str | Path | None = None) -> Replay
             camera_pose = next(iter(reader.records(CAMERA_POSE_TOPIC, PoseRecord)))
         if mesh_path is None:
             initial_state = next(iter(reader.records(INITIAL_MESH_TOPIC, MeshState)))
-        poses = tuple(sorted(reader.records(TOOL_POSE_TOPIC, PoseRecord), key=lambda p: p.stamp_ns))
-        clouds = tuple(sorted(reader.records(POINTS_TOPIC, PointCloudRecord), key=lambda c: c.stamp_ns))
+        logged_poses = [(m.log_time_ns, m.data) for m in reader.messages([TOOL_POSE_TOPIC])]
+        logged_clouds = [(m.log_time_ns, m.data) for m in reader.messages([POINTS_TOPIC])]
+    poses = tuple(pose for _, pose in logged_poses)
+    clouds = tuple(cloud for _, cloud in logged_clouds)
     if mesh_path is None:
         mesh = TetMesh(initial_state.positions, initial_state.tetrahedra, initial_state.fixed_vertices)
         if mesh.flipped_count:
@@ -147,11 +168,12 @@ def load_inputs(path: str | Path, mesh_path: str | Path | None = None) -> Replay
         mesh = load_mesh(mesh_path)
         initial_state = MeshState(poses[0].stamp_ns if poses else 0, clouds[0].frame_id if clouds else "world", 0,
                                   mesh.vertices, mesh.tetrahedra, mesh.surface_triangles, mesh.fixed_vertices)
-    stamps = [pose.stamp_ns for pose in poses]
-    repeated = [a for a, b in zip(stamps, stamps[1:]) if a == b]
-    if repeated:
-        raise ReplayError(f"{TOOL_POSE_TOPIC} has two poses at stamp {repeated[0]} ns")
-    return ReplayInputs(mesh, initial_state, poses, clouds, metadata, camera_pose)
+    try:
+        check_initial_mesh(mesh.vertices)
+    except SceneError as error:
+        raise ReplayError(str(error)) from None
+    return ReplayInputs(mesh, initial_state, poses, clouds, metadata, camera_pose,
+                        tuple(log_ns for log_ns, _ in logged_poses), tuple(log_ns for log_ns, _ in logged_clouds))
 
 
 def scenario_parameters(metadata: ScenarioMetadata | None, camera_pose: PoseRecord | None = None) -> dict[str, Any]:
@@ -195,31 +217,54 @@ def replay_parameters(inputs: ReplayInputs, overrides: Mapping[str, Any] | None 
     return load_parameters({**scenario_parameters(inputs.metadata, inputs.camera_pose), **(overrides or {})})
 
 
-def iterate_replay(inputs: ReplayInputs, params: Mapping[str, Any]) -> Iterator[ReplayStep]:
+def iterate_replay(inputs: ReplayInputs, params: Mapping[str, Any],
+                   alter_prediction: Callable[[int, np.ndarray], np.ndarray] | None = None) -> Iterator[ReplayStep]:
     """Run the nodes' loop over the recorded poses and clouds; yields one step per used cloud.
+    alter_prediction(stamp, predicted) (fault injection, `meshfg fuzz`) replaces each prediction
+    the estimator gets, as a faulty simulation node's message would.
 
-    As the nodes do: a failed or non-finite prediction resets the simulator to its pose and
-    the cloud's step runs degraded without one; clouds without points, and clouds whose stamp
-    is not newer than the previous cloud's, are skipped.
+    As the nodes do (inputs in arrival order, stamp rule of core/input_checks.py):
+    - a tool pose in another frame than world_frame is dropped; one far outside the scene, or
+      with a stale or invalid stamp, is dropped by the simulator (the estimator still gets the
+      far one, and ignores it); a jump back restarts the simulator's timeline from the initial
+      mesh;
+    - a failed or non-finite prediction resets the simulator to its pose and the cloud's step
+      runs degraded without one;
+    - clouds without points, in an unknown frame, or with a stale or invalid stamp are skipped;
+      a jump back restarts the estimator from the initial mesh;
+    - an update that fails (its documented errors) yields no step and leaves the window as it was.
     """
     mesh = inputs.initial_mesh
     grasped = np.asarray(params["grasped_vertices"], dtype=np.int64) if params["grasped_vertices"] else None
     model = simulator_config(params)
     simulator = XpbdSimulator(mesh, model, grasped_vertices=grasped)
     open_loop = XpbdSimulator(mesh, model, grasped_vertices=grasped)
-    estimator = SlidingWindowEstimator(mesh, estimator_config(params))
+    config = estimator_config(params)
+    estimator = SlidingWindowEstimator(mesh, config)
+    scene = Scene.of(mesh.vertices)
+    jump_ns = int(params["clock_jump_threshold"] * _NS_PER_S)
     estimate = mesh.vertices
     simulation_only = mesh.vertices
     predictions: dict[int, np.ndarray] = {}
     tool_poses: dict[int, np.ndarray] = {}
     open_loop_states: dict[int, np.ndarray] = {}
     previous_pose_stamp: int | None = None
-    previous_cloud_stamp: int | None = None
-    # Pose events (kind 0) sort before cloud events (kind 1) of the same stamp.
-    events = sorted([(pose.stamp_ns, 0, pose) for pose in inputs.poses]
-                    + [(cloud.stamp_ns, 1, cloud) for cloud in inputs.clouds], key=lambda e: e[:2])
-    for stamp, kind, record in events:
-        if kind == 0:
+    newest_pose_stamp: int | None = None
+    newest_cloud_stamp: int | None = None
+    for _, kind, record in inputs.events():
+        stamp = record.stamp_ns
+        if kind == _POSE:
+            if record.frame_id != params["world_frame"]:
+                continue
+            tool_poses[stamp] = record.pose
+            order = stamp_order(newest_pose_stamp, stamp, jump_ns)
+            if order in (INVALID, STALE) or scene.far(record.pose[None, :3])[0]:
+                continue
+            if order == JUMP_BACK:
+                previous_pose_stamp = None
+                estimate = simulation_only = mesh.vertices
+                predictions.clear()
+            newest_pose_stamp = stamp
             if previous_pose_stamp is None:
                 simulator.reset(record.pose)
                 open_loop.reset(record.pose)
@@ -233,18 +278,31 @@ def iterate_replay(inputs: ReplayInputs, params: Mapping[str, Any]) -> Iterator[
                     simulation_only = advanced
                 open_loop_states[stamp] = simulation_only
             previous_pose_stamp = stamp
-            tool_poses[stamp] = record.pose
             continue
-        if len(record.points) == 0 or (previous_cloud_stamp is not None and stamp <= previous_cloud_stamp):
+        if len(record.points) == 0:
             continue
-        previous_cloud_stamp = stamp
-        points = cloud_to_world(record.points, record.frame_id, params)
+        try:
+            points = cloud_to_world(record.points, record.frame_id, params)
+        except FrameError:
+            continue
+        order = stamp_order(newest_cloud_stamp, stamp, jump_ns)
+        if order in (INVALID, STALE):
+            continue
+        if order == JUMP_BACK:
+            estimator = SlidingWindowEstimator(mesh, config)
+        newest_cloud_stamp = stamp
         predicted = predictions.pop(stamp, None)
         for older in [s for s in predictions if s < stamp]:
             del predictions[older]
-        result = estimator.update(stamp, points, predicted, tool_poses.pop(stamp, None))
+        if predicted is not None and alter_prediction is not None:
+            predicted = alter_prediction(stamp, predicted)
+        tool_pose = tool_poses.pop(stamp, None)
         for older in [s for s in tool_poses if s < stamp]:
             del tool_poses[older]
+        try:
+            result = estimator.update(stamp, points, predicted, tool_pose)
+        except (EstimatorInputError, EstimatorStepError):
+            continue  # as the node: no estimate for this cloud, the window as before it
         estimate = result.positions
         yield ReplayStep(stamp, points, predicted, open_loop_states.get(stamp), result)
 

@@ -46,6 +46,7 @@ __all__ = [
     "Association",
     "ClosestPointIndex",
     "InvalidGeometryError",
+    "MAX_COORDINATE",
     "TriangleProjection",
     "brute_force_closest",
     "project_onto_triangles",
@@ -57,6 +58,11 @@ REGION_EDGE_AB, REGION_EDGE_AC, REGION_EDGE_BC = 4, 5, 6
 
 # Guards divisions for (numerically) degenerate triangles; valid meshes never reach it.
 _TINY = 1e-300
+# Largest |coordinate| of a point or vertex that can be projected: the closed form multiplies four
+# coordinate differences (vc = d1 d4 - d3 d2, each d a dot product of two differences), at most
+# 144 (1e75)^4 = 1.4e302 < 1.8e308, and libigl's squared distances stay far from overflow, where
+# its tree returns triangle indices out of range.
+MAX_COORDINATE = 1e75
 
 
 class InvalidGeometryError(ValueError):
@@ -206,6 +212,8 @@ def _check_points(points) -> np.ndarray:
         raise InvalidGeometryError(f"points must have shape (K, 3), got {points.shape}")
     if not np.all(np.isfinite(points)):
         raise InvalidGeometryError("points contain NaN or infinite coordinates")
+    if points.size and np.abs(points).max() > MAX_COORDINATE:
+        raise InvalidGeometryError(f"points have coordinates beyond {MAX_COORDINATE:g} m, which cannot be projected")
     return points
 
 
@@ -233,6 +241,9 @@ class ClosestPointIndex:
         triangles = np.asarray(triangles)
         if vertices.ndim != 2 or vertices.shape[1] != 3 or not np.all(np.isfinite(vertices)):
             raise InvalidGeometryError(f"vertices must be finite with shape (N, 3), got {vertices.shape}")
+        if vertices.size and np.abs(vertices).max() > MAX_COORDINATE:
+            raise InvalidGeometryError(f"vertices have coordinates beyond {MAX_COORDINATE:g} m, "
+                                       "which cannot be projected")
         if triangles.ndim != 2 or triangles.shape[1] != 3 or triangles.shape[0] == 0:
             raise InvalidGeometryError(f"triangles must have shape (F>0, 3), got {triangles.shape}")
         if not np.issubdtype(triangles.dtype, np.integer) or triangles.min() < 0 or triangles.max() >= len(vertices):

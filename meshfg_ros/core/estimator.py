@@ -40,7 +40,8 @@ Design decisions (see also factors.py, levenberg_marquardt.py, linear_solvers.py
   from the sensor's nominal sigma, is solved again while that estimate moves by more than 25 %.
   Leaks: points inside the tool sphere (plus three sigmas) are dropped before anything else
   (the tool pose and radius are inputs), points farther from the predicted surface than five
-  robust spreads are gated, and the rest go through a Cauchy kernel of scale 2.4 sigma.
+  robust spreads (the spread clipped to [1, 10] sigmas) are gated, and the rest go through a
+  Cauchy kernel of scale 2.4 sigma.
 - The physics prior's scale makes mean(diag(scale K_rest)) = 1 / simulation_sigma^2 on the
   free dofs (factors.prior_scale); a ridge prior_ridge / simulation_sigma^2 (default 1e-6
   of the mean information) gives a free body's 6 rigid modes a tiny information. The prior
@@ -70,6 +71,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg
 
+from .closest_point import ClosestPointIndex
 from .factors import (
     FactorGraph,
     PhysicsPriorFactor,
@@ -79,12 +81,21 @@ from .factors import (
     prior_scale,
 )
 from .fem import STIFFNESS_KINDS, ElasticModel
+from .input_checks import (
+    REJECTIONS,
+    Scene,
+    StampError,
+    check_stamp,
+    flat_elements,
+    innovation_sample,
+    innovation_spread,
+)
 from .levenberg_marquardt import LevenbergMarquardtConfig, levenberg_marquardt
 from .linear_solvers import LINEAR_SOLVERS, LinearSolveError, NotPositiveDefiniteError, make_linear_solver
 from .mesh import TetMesh, signed_volumes
 from .noise import IsotropicNoise
 from .robust import ROBUST_KERNELS, make_robust_kernel
-from .weights import PRIOR_NOISE_RATIO, MeasurementNoise
+from .weights import MIN_POINTS, PRIOR_NOISE_RATIO, MeasurementNoise
 
 __all__ = [
     "FACTOR_CONFIGURATIONS",
@@ -93,6 +104,8 @@ __all__ = [
     "EstimatorConfig",
     "EstimatorConfigError",
     "EstimatorInputError",
+    "EstimatorStampError",
+    "EstimatorStepError",
     "PendingStep",
     "SlidingWindowEstimator",
     "StepResult",
@@ -115,6 +128,9 @@ ABSOLUTE_COST_TOLERANCE = 0.25
 # measurement sigma), and the margin around the tool sphere inside which points are leaks.
 ROBUST_SCALE_SIGMAS = 2.3849
 GATE_SIGMAS = 5.0
+# ... of a spread taken between 1 and GATE_SPREAD_CAP measurement sigmas: a cloud that is mostly
+# leaks or garbage must not widen the gate to its own scale.
+GATE_SPREAD_CAP = 10.0
 TOOL_MARGIN_SIGMAS = 3.0
 _MEDIAN_ABSOLUTE_TO_SIGMA = 1.4826
 # An update whose estimated measurement sigma moved by more than REWEIGHT_CHANGE (relative) is
@@ -122,6 +138,17 @@ _MEDIAN_ABSOLUTE_TO_SIGMA = 1.4826
 REWEIGHT_CHANGE = 0.25
 MAX_REWEIGHT_ROUNDS = 4
 STIFFNESS_UPDATES = ("update", "iteration")
+# Innovation test (SlidingWindowEstimator._innovation_test): a prediction is rejected when the
+# robust spread of the cloud's distances to its surface exceeds INNOVATION_SIGMAS nominal
+# measurement sigmas, INNOVATION_DIAGONALS of the scene's diagonal (against a sigma set far too
+# small), and INNOVATION_RATIO times the spread about the copy-forward state that replaces it (a
+# prediction that explains the cloud about as well as the copy-forward is never worse to keep).
+# On the bundled scenes (cao-push, liver-push, cube-shear-spd) the spread about the prediction is
+# 1.0-2.9 nominal sigmas and at most 1.2 times the one about the copy-forward; a prediction shifted
+# by 1 m gives hundreds of sigmas.
+INNOVATION_SIGMAS = 20.0
+INNOVATION_DIAGONALS = 0.05
+INNOVATION_RATIO = 4.0
 
 
 class EstimatorConfigError(ValueError):
@@ -129,7 +156,44 @@ class EstimatorConfigError(ValueError):
 
 
 class EstimatorInputError(ValueError):
-    """update() input of the wrong shape or with non-finite predicted positions."""
+    """update() input it cannot use: not an array of real numbers, a wrong shape, non-finite
+    predicted positions or tool pose, or a bad stamp (EstimatorStampError)."""
+
+
+class EstimatorStampError(EstimatorInputError):
+    """A stamp that is not an integer number of nanoseconds in [0, 2**63), or not newer than the
+    last update's (the callers' rule for repeated and backward stamps: core/input_checks.py)."""
+
+
+class EstimatorStepError(RuntimeError):
+    """An update that failed in the solver or its factors, or produced non-finite values; the
+    message names the cause. The window is left as it was before the call."""
+
+
+def _real_array(name: str, value) -> np.ndarray:
+    """`value` as a float64 array, or EstimatorInputError when it is not an array of real numbers."""
+    try:
+        array = np.asarray(value)
+    except (TypeError, ValueError, OverflowError) as error:  # ragged nesting, odd objects
+        raise EstimatorInputError(f"{name} is not an array of numbers ({type(error).__name__})") from None
+    if array.dtype.kind not in "iuf":
+        raise EstimatorInputError(f"{name} must hold real numbers, got dtype {array.dtype}")
+    return array.astype(np.float64, copy=False)
+
+
+def _finite_result(result: StepResult) -> bool:
+    values = (result.positions, result.position_std, result.initial_cost, result.final_cost)
+    return all(np.isfinite(np.asarray(value, dtype=np.float64)).all() for value in values)
+
+
+def _saved(obj) -> dict:
+    """obj's attributes with its lists, dicts and sets copied: what an update appends to or replaces."""
+    return {name: value.copy() if isinstance(value, (list, dict, set)) else value for name, value in vars(obj).items()}
+
+
+def _restore(obj, saved: dict) -> None:
+    vars(obj).clear()
+    vars(obj).update(saved)
 
 
 def _positive(name, value):
@@ -164,6 +228,9 @@ class EstimatorConfig:
     relinearize_threshold: float | None = None
     stiffness_update: str = "update"
     linear_tolerance: float = 1e-3
+    # s of wall time LM may take per update, then it returns its best state; None: no limit. Five
+    # camera periods at 1 Hz: an organ-scale update takes 0.9 s (its first, 2.2 s; README).
+    update_time_budget: float | None = 5.0
     lm: LevenbergMarquardtConfig = field(default_factory=lambda: LevenbergMarquardtConfig(
         cost_tolerance=1e-9, absolute_cost_tolerance=ABSOLUTE_COST_TOLERANCE))
 
@@ -199,6 +266,8 @@ class EstimatorConfig:
         ):
             raise EstimatorConfigError(f"relinearize_threshold must be finite and >= 0, got {self.relinearize_threshold}")
         _positive("linear_tolerance", self.linear_tolerance)
+        if self.update_time_budget is not None:
+            _positive("update_time_budget", self.update_time_budget)
 
 
 @dataclass
@@ -272,44 +341,118 @@ class SlidingWindowEstimator:
         self.anchor = initial_mesh.vertices.copy()
         self.step = 0
         self.last_estimate = initial_mesh.vertices.copy()
+        self.scene = Scene.of(initial_mesh.vertices)  # what is far (core/input_checks.py)
+        self.last_stamp_ns: int | None = None
+        self.deadline: float | None = None  # perf_counter() at which the update's time budget ends
 
     # ----------------------------------------------------------------------------- input
-    def _check_inputs(self, points, predicted):
+    def _check_inputs(self, stamp_ns, points, predicted, tool_pose):
+        """(stamp, finite points, predicted, tool pose, count of non-finite points dropped), or
+        EstimatorInputError / EstimatorStampError; nothing is changed."""
+        try:
+            stamp_ns = check_stamp(stamp_ns)
+        except StampError as error:
+            raise EstimatorStampError(str(error)) from None
+        if self.last_stamp_ns is not None and stamp_ns <= self.last_stamp_ns:
+            raise EstimatorStampError(f"stamp {stamp_ns} ns is not newer than the last update's "
+                                      f"{self.last_stamp_ns} ns")
         count = self.mesh.vertex_count
         if predicted is not None:
-            predicted = np.asarray(predicted, dtype=np.float64)
+            predicted = _real_array("predicted", predicted)
             if predicted.shape != (count, 3):
                 raise EstimatorInputError(f"predicted must have shape ({count}, 3), got {predicted.shape}")
             if not np.all(np.isfinite(predicted)):
                 raise EstimatorInputError("predicted contains NaN or infinite positions")
+        if tool_pose is not None:
+            tool_pose = _real_array("tool_pose", tool_pose)
+            if tool_pose.shape != (7,) or not np.all(np.isfinite(tool_pose)):
+                raise EstimatorInputError(f"tool_pose must be 7 finite values [x y z qx qy qz qw], "
+                                          f"got shape {tool_pose.shape}")
         dropped = 0
         if points is not None:
-            points = np.asarray(points, dtype=np.float64)
+            points = _real_array("points", points)
             if points.ndim != 2 or points.shape[1] != 3:
                 raise EstimatorInputError(f"points must have shape (K, 3), got {points.shape}")
             finite = np.all(np.isfinite(points), axis=1)
             dropped = int(np.count_nonzero(~finite))
             points = points[finite]
-        return points, predicted, dropped
+        return stamp_ns, points, predicted, tool_pose, dropped
+
+    def _far_input(self, points, predicted, tool_pose, messages):
+        """Far cloud points dropped, a far or inverted prediction and a far tool pose set aside
+        (core/input_checks.py), each reported in `messages`: (points, predicted, tool pose, count
+        of points dropped)."""
+        scene, dropped = self.scene, 0
+        if points is not None:
+            far = scene.far(points)
+            dropped = int(np.count_nonzero(far))
+            if dropped:
+                messages.append(f"{dropped} {REJECTIONS['clouds_with_far_points']} ({scene.describe(points)})")
+                points = points[~far]
+        if tool_pose is not None and scene.far(tool_pose[None, :3])[0]:
+            messages.append(f"{REJECTIONS['tool_poses_ignored_far']} ({scene.describe(tool_pose[None, :3])})")
+            tool_pose = None
+        if predicted is not None and scene.far(predicted).any():
+            messages.append(f"{REJECTIONS['predictions_rejected_far']} (a vertex {scene.describe(predicted)})")
+            predicted = None
+        if predicted is not None:
+            # The simulator never returns an inverted element (it reports a failure instead), and
+            # the prior's volume barrier is relative to the prediction's volumes, fixed vertices
+            # held where they are (as the new state gets it).
+            held = predicted.copy()
+            held[self.mesh.fixed_vertices] = self.mesh.vertices[self.mesh.fixed_vertices]
+            flat = flat_elements(held, self.mesh.tetrahedra)
+            if flat:
+                messages.append(f"{REJECTIONS['predictions_rejected_inverted']} "
+                                f"({flat} of {self.mesh.tetrahedron_count})")
+                predicted = None
+        return points, predicted, tool_pose, dropped
 
     # ----------------------------------------------------------------------------- update
     def update(self, stamp_ns: int, points=None, predicted=None, tool_pose=None) -> StepResult:
         """Add a state for `stamp_ns` with cloud `points` (K, 3) and simulator prediction
         `predicted` (N, 3) (either may be None), optimise the window, return the newest state.
-        tool_pose (7,) (optional): where the tool is, to drop the cloud's points on it."""
-        return self.solve(self.prepare(stamp_ns, points, predicted, tool_pose))
+        tool_pose (7,) (optional): where the tool is, to drop the cloud's points on it.
+
+        Raises only EstimatorInputError (EstimatorStampError: stamps must be integer nanoseconds
+        in [0, 2**63), each newer than the last update's) and EstimatorStepError; after either,
+        the window, the step count and the last estimate are as they were before the call, so a
+        bad input never poisons the next updates. Input that is well formed but implausible is
+        not an error: far points are dropped, a far, inverted or contradicted prediction is set
+        aside (the step runs degraded on the copy-forward), each said in the result's message."""
+        saved = (_saved(self), _saved(self.graph), _saved(self.noise))
+        try:
+            result = self.solve(self.prepare(stamp_ns, points, predicted, tool_pose))
+            if not _finite_result(result):
+                raise EstimatorStepError("the update produced non-finite values")
+            return result
+        except BaseException as error:
+            # The solver's revision counter only grows: a block factor it made for a
+            # linearisation of the failed update must never pass for a later one's.
+            relinearizations = self.graph.relinearizations
+            for obj, kept in zip((self, self.graph, self.noise), saved):
+                _restore(obj, kept)
+            self.graph.relinearizations = relinearizations
+            if isinstance(error, (EstimatorInputError, EstimatorStepError)) or not isinstance(error, Exception):
+                raise
+            raise EstimatorStepError(f"update at {stamp_ns} ns failed: {type(error).__name__}: "
+                                     f"{' '.join(str(error).split())[:300]}") from error
 
     def prepare(self, stamp_ns: int, points=None, predicted=None, tool_pose=None) -> PendingStep:
         """First half of `update`: validate the input, append the new state and its factors and
-        slide the window, without optimising (benchmarks hand the same problem to other solvers)."""
+        slide the window, without optimising (benchmarks hand the same problem to other solvers).
+        Input errors are raised before anything changes; `update` undoes a later failure."""
         start = time.perf_counter()
         cfg = self.config
-        points, predicted, dropped = self._check_inputs(points, predicted)
+        stamp_ns, points, predicted, tool_pose, dropped = self._check_inputs(stamp_ns, points, predicted, tool_pose)
+        messages = [f"{dropped} non-finite point(s) dropped"] if dropped else []
+        points, predicted, tool_pose, far = self._far_input(points, predicted, tool_pose, messages)
         self.step += 1
-        pending = PendingStep(self.step, int(stamp_ns), start, num_points_rejected=dropped)
-        if dropped:
-            pending.messages.append(f"{dropped} non-finite point(s) dropped")
+        self.last_stamp_ns = stamp_ns
+        self.deadline = None if cfg.update_time_budget is None else start + cfg.update_time_budget
+        pending = PendingStep(self.step, stamp_ns, start, num_points_rejected=dropped + far, messages=messages)
         points = self._outside_tool(points, tool_pose, pending)
+        predicted = self._innovation_test(points, predicted, pending)
         prediction = predicted
         if prediction is None:
             prediction = self.last_estimate
@@ -349,6 +492,28 @@ class SlidingWindowEstimator:
             pending.messages.append(f"{count} point(s) on the tool dropped")
         return points[~inside]
 
+    def _innovation_test(self, points, predicted, pending: PendingStep):
+        """The prediction, or None (the step then runs degraded on the copy-forward) when the
+        cloud contradicts it far beyond the measurement noise: the robust spread of the cloud's
+        distances to the predicted surface is above max(INNOVATION_SIGMAS nominal sigmas,
+        INNOVATION_DIAGONALS scene diagonals) and INNOVATION_RATIO times its spread about the
+        copy-forward. Clouds of fewer than MIN_POINTS points (weights.py) do not judge."""
+        if predicted is None or points is None or len(points) < MIN_POINTS:
+            return predicted
+        sample = innovation_sample(points)
+        triangles = self.mesh.surface_triangles
+        spread = innovation_spread(ClosestPointIndex(predicted, triangles).associate(sample).distance)
+        limit = max(INNOVATION_SIGMAS * self.config.measurement_sigma, INNOVATION_DIAGONALS * self.scene.diagonal)
+        if spread <= limit:
+            return predicted
+        copy_forward = innovation_spread(ClosestPointIndex(self.last_estimate, triangles).associate(sample).distance)
+        if spread <= INNOVATION_RATIO * copy_forward:
+            return predicted
+        pending.messages.append(f"{REJECTIONS['predictions_rejected_innovation']} (spread {1e3 * spread:.3g} mm "
+                                f"about it, {1e3 * copy_forward:.3g} mm about the copy-forward, "
+                                f"limit {1e3 * limit:.3g} mm)")
+        return None
+
     def _state_factors(self, pending: PendingStep) -> list:
         """The physics prior and measurement factors of the pending state at the current weights."""
         cfg, graph, key = self.config, self.graph, pending.key
@@ -367,8 +532,8 @@ class SlidingWindowEstimator:
         if "measurement" in self.enabled and points is not None and len(points):
             sigma = self.noise.sigma
             robust = make_robust_kernel(cfg.robust_kernel, cfg.robust_scale or ROBUST_SCALE_SIGMAS * sigma)
-            gate = cfg.gating_distance or (lambda distances: GATE_SIGMAS * max(
-                sigma, _MEDIAN_ABSOLUTE_TO_SIGMA * float(np.median(distances))))
+            gate = cfg.gating_distance or (lambda distances: GATE_SIGMAS * float(np.clip(
+                _MEDIAN_ABSOLUTE_TO_SIGMA * np.median(distances), sigma, GATE_SPREAD_CAP * sigma)))
             factor = PointToSurfaceFactor(key, points, graph.surface_triangles, pending.prediction,
                                           IsotropicNoise(sigma), robust, gate)
             pending.num_points, pending.num_points_gated = factor.num_points, factor.num_points_rejected
@@ -445,8 +610,11 @@ class SlidingWindowEstimator:
         graph = self.graph
         x0 = graph.get_x()
         config = self.config.lm
-        if config.max_iterations != self.config.max_iterations:
-            config = LevenbergMarquardtConfig(**{**config.__dict__, "max_iterations": self.config.max_iterations})
+        remaining = None if self.deadline is None else max(self.deadline - time.perf_counter(), 1e-9)
+        if config.max_iterations != self.config.max_iterations or remaining is not None:
+            budget = config.time_budget_s if remaining is None else min(config.time_budget_s or np.inf, remaining)
+            config = LevenbergMarquardtConfig(**{**config.__dict__, "max_iterations": self.config.max_iterations,
+                                                 "time_budget_s": budget})
         try:
             lm = levenberg_marquardt(graph, x0, config, self.solver)
         except (LinearSolveError, NotPositiveDefiniteError, np.linalg.LinAlgError, FloatingPointError) as error:

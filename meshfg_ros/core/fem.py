@@ -135,8 +135,15 @@ def _determinant_em(f: np.ndarray, cofactor: np.ndarray) -> np.ndarray:
 
 
 def _svd_rotations(matrices: np.ndarray) -> np.ndarray:
-    """Rotation of F = R S via SVD, (M, 3, 3); a reflection is moved onto the smallest singular value."""
-    u, _, vt = np.linalg.svd(matrices)
+    """Rotation of F = R S via SVD, (M, 3, 3); a reflection is moved onto the smallest singular value.
+
+    R does not change when F is scaled, so each F is divided by its largest |entry| first: LAPACK's
+    SVD overflows on entries near the largest float and never returns on infinite ones (a state
+    with a vertex at 1e308 makes F infinite), so those raise InvalidStateError instead."""
+    largest = np.abs(matrices).max(axis=(1, 2))
+    if not np.all(np.isfinite(largest)):
+        raise InvalidStateError(f"{np.count_nonzero(~np.isfinite(largest))} deformation gradient(s) are not finite")
+    u, _, vt = np.linalg.svd(matrices / np.where(largest > 0.0, largest, 1.0)[:, None, None])
     reflected = np.linalg.det(u) * np.linalg.det(vt) < 0.0
     u[reflected, :, 2] *= -1.0  # numpy sorts singular values descending: column 2 is the smallest
     return u @ vt

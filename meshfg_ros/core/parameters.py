@@ -194,6 +194,9 @@ PARAMETERS: tuple[Parameter, ...] = (
               (0.0, 10.0)),
     Parameter("max_iterations", _ESTIMATOR.max_iterations,
               "Levenberg-Marquardt iterations per step (at most).", "integer", (1, 1000)),
+    Parameter("update_time_budget", _ESTIMATOR.update_time_budget,
+              "Seconds (wall time) Levenberg-Marquardt may take per update: it then stops between iterations "
+              "and returns its best state, 'time budget' in the status message.", "double", (1e-3, 3600.0)),
     Parameter("linear_solver", _ESTIMATOR.linear_solver,
               "Sparse solver of the normal equations.", "string", choices=tuple(LINEAR_SOLVERS)),
     # Frames and the live pipeline.
@@ -320,6 +323,7 @@ def estimator_config(params: Mapping[str, Any]) -> EstimatorConfig:
         estimate_weights=params["estimate_weights"],
         tool_radius=params["tool_radius"] if params["tool_mode"] == "sphere" else 0.0,
         max_iterations=params["max_iterations"],
+        update_time_budget=params["update_time_budget"],
         linear_solver=params["linear_solver"],
         youngs_modulus=params["youngs_modulus"],
         poisson_ratio=params["poisson_ratio"],

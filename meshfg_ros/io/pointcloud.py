@@ -78,7 +78,10 @@ def _field_layout(fields: Sequence[Any], names: Sequence[str], point_step: int, 
             )
         formats.append(kind)
         offsets.append(offset)
-    return np.dtype({"names": list(names), "formats": formats, "offsets": offsets, "itemsize": point_step})
+    try:
+        return np.dtype({"names": list(names), "formats": formats, "offsets": offsets, "itemsize": point_step})
+    except ValueError as error:  # numpy lays out at most 2**31 - 1 bytes per point
+        raise PointCloudError(f"point_step {point_step} cannot be laid out: {error}") from None
 
 
 def decode_xyz(

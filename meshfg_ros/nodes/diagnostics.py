@@ -1,8 +1,9 @@
-"""Counters of the estimator node and their diagnostic_msgs/DiagnosticArray.
+"""Counters of the estimator and simulation nodes and their diagnostic_msgs/DiagnosticArray.
 
 The counters say what happened to the input (clouds received and rejected, and why; stamps
-out of order; clock jumps) and to the steps (degraded, failed, non-finite, solve time and
-latency), so that a robot's diagnostic aggregator shows why estimates are missing or poor.
+out of order or invalid; clock jumps; input far outside the scene or contradicted by the cloud,
+core/input_checks.py) and to the steps (degraded, failed, non-finite, solve time and latency),
+so that a robot's diagnostic aggregator shows why estimates are missing or poor.
 """
 
 from __future__ import annotations
@@ -25,13 +26,19 @@ class EstimatorCounters:
     clouds_rejected_malformed: int = 0
     clouds_rejected_empty: int = 0
     clouds_rejected_frame: int = 0
-    clouds_rejected_stamp: int = 0  # out of order or repeated stamps
+    clouds_rejected_stamp: int = 0  # out of order, repeated or invalid (negative) stamps
     clouds_dropped_backlog: int = 0
     nan_points_dropped: int = 0
     clock_jumps_back: int = 0
     predictions_received: int = 0
     predictions_rejected: int = 0
     predictions_failed: int = 0  # the simulator reported it could not predict a stamp
+    # Steps whose input the estimator set aside (the keys of core.input_checks.REJECTIONS).
+    clouds_with_far_points: int = 0
+    predictions_rejected_far: int = 0
+    predictions_rejected_inverted: int = 0
+    predictions_rejected_innovation: int = 0
+    tool_poses_ignored_far: int = 0
     steps: int = 0
     degraded_steps: int = 0
     failed_steps: int = 0
@@ -53,6 +60,33 @@ class EstimatorCounters:
         return values
 
 
+@dataclass
+class SimulatorCounters:
+    """What the simulation node has seen since it started (the values of its diagnostics)."""
+
+    tool_poses_received: int = 0
+    tool_poses_rejected_malformed: int = 0
+    tool_poses_rejected_frame: int = 0
+    tool_poses_rejected_stamp: int = 0  # out of order, repeated or invalid (negative) stamps
+    tool_poses_rejected_far: int = 0    # far outside the scene (core/input_checks.py)
+    clock_jumps_back: int = 0
+    predictions: int = 0
+    predictions_failed: int = 0
+    estimates_ignored: int = 0          # wrong vertex count, not finite, or far outside the scene
+
+    @property
+    def tool_poses_rejected(self) -> int:
+        """Tool poses that were not predicted, whatever the reason."""
+        return (self.tool_poses_rejected_malformed + self.tool_poses_rejected_frame + self.tool_poses_rejected_stamp
+                + self.tool_poses_rejected_far)
+
+    def values(self) -> dict[str, str]:
+        """Counter name -> text value (the rejected total included)."""
+        values = {name: _text(value) for name, value in asdict(self).items()}
+        values["tool_poses_rejected"] = str(self.tool_poses_rejected)
+        return values
+
+
 def _text(value) -> str:
     if isinstance(value, float):
         return "n/a" if not np.isfinite(value) else f"{value:.3f}"
@@ -60,7 +94,7 @@ def _text(value) -> str:
 
 
 def diagnostic_array(
-    name: str, level: bytes, message: str, counters: EstimatorCounters, stamp_ns: int
+    name: str, level: bytes, message: str, counters: EstimatorCounters | SimulatorCounters, stamp_ns: int
 ) -> DiagnosticArray:
     """DiagnosticArray with one status `name` (level: DiagnosticStatus.OK / WARN / ERROR)."""
     status = DiagnosticStatus(

@@ -13,7 +13,11 @@ estimate_timeout seconds of wall time, then it predicts from the newest state it
 suits tool poses stamped like the clouds (the recordings); with tool poses faster than the
 camera, set estimate_timeout to 0: each pose is then predicted from the newest estimate.
 A tool-pose stamp that jumps back by more than clock_jump_threshold (a looped recording)
-restarts from the initial mesh; smaller steps back and repeated stamps are dropped.
+restarts from the initial mesh; smaller steps back, repeated and negative stamps are dropped, and
+so are tool poses far outside the scene and estimates far outside it (the rules of
+core/input_checks.py, which the offline replay follows too). Counters of all of it go to
+/diagnostics every second (nodes/diagnostics.py). Predictions run in the executor's callbacks,
+so Ctrl-C / SIGINT stops the node between two Python steps of a prediction.
 """
 
 from __future__ import annotations
@@ -24,12 +28,14 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from meshfg_msgs.msg import PredictionFailure, TetraMesh
+from meshfg_ros.core.input_checks import INVALID, JUMP_BACK, STALE, Scene, check_initial_mesh, stamp_order
 from meshfg_ros.core.mesh import load_mesh
 from meshfg_ros.core.parameters import simulator_config
 from meshfg_ros.core.simulator import XpbdSimulator
@@ -41,6 +47,7 @@ from meshfg_ros.io.messages import (
     pose_from_msg,
     stamp_ns_from_msg,
 )
+from meshfg_ros.nodes.diagnostics import SimulatorCounters, diagnostic_array
 from meshfg_ros.nodes.ros_conversions import (
     RCLPY_FACTORY,
     MeshMessages,
@@ -59,6 +66,7 @@ PARAMETER_NAMES = (
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 STREAM_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 _TIMEOUT_CHECK_PERIOD_S = 0.02
+_DIAGNOSTICS_PERIOD_S = 1.0
 _NS_PER_S = 1e9
 
 
@@ -81,16 +89,23 @@ class SimulationNode(Node):
         self._simulator: XpbdSimulator | None = None
         self._messages: MeshMessages | None = None
         self._initial: MeshState | None = None
+        self._scene: Scene | None = None
+        self.counters = SimulatorCounters()
+        self._rejected_at_last_report = 0
+        self._last_failure: str | None = None  # reason of the last prediction, if it failed
         self._pending: deque[_PendingPose] = deque()
         self._reset_timeline()
 
         self._publisher = self.create_publisher(TetraMesh, "predicted_mesh", STREAM_QOS)
         self._failure_publisher = self.create_publisher(PredictionFailure, "prediction_failed", STREAM_QOS)
+        self._diagnostics_publisher = self.create_publisher(DiagnosticArray, "/diagnostics", STREAM_QOS)
         self.create_subscription(TetraMesh, "initial_mesh", self._on_initial_mesh, LATCHED_QOS)
         self.create_subscription(TetraMesh, "estimated_mesh", self._on_estimate, LATCHED_QOS)
         self.create_subscription(PoseStamped, "tool_pose", self._on_tool_pose, STREAM_QOS)
         # Wall-clock timer: the estimate timeout must not depend on /clock (use_sim_time).
         self.create_timer(_TIMEOUT_CHECK_PERIOD_S, self._process_poses, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self.create_timer(_DIAGNOSTICS_PERIOD_S, self._publish_diagnostics,
+                          clock=Clock(clock_type=ClockType.STEADY_TIME))
         if self.params["mesh_file"]:
             self._load_mesh_file(self.params["mesh_file"])
 
@@ -130,12 +145,13 @@ class SimulationNode(Node):
     def _set_initial(self, state: MeshState) -> None:
         grasped = np.asarray(self.params["grasped_vertices"], dtype=np.int64)
         try:
+            scene = check_initial_mesh(state.positions)
             simulator = XpbdSimulator(tet_mesh_from_state(state), self._config, grasped if grasped.size else None)
         except ValueError as error:
             self.get_logger().error(f"cannot simulate the initial mesh: {error}")
             return
         restart = self._initial is not None
-        self._initial, self._simulator = state, simulator
+        self._initial, self._simulator, self._scene = state, simulator, scene
         self._messages = MeshMessages(state)
         if restart:
             self.get_logger().warning("new initial mesh: the simulation restarts from it")
@@ -154,26 +170,39 @@ class SimulationNode(Node):
         if not max(self._timeline_start_ns, self._state_stamp_ns) <= stamp_ns <= self._newest_pose_ns:
             return
         positions = positions_from_msg(msg, self._initial.positions.shape[0])
-        if positions is None:
-            self.get_logger().warning("estimated_mesh ignored: wrong vertex count or non-finite positions")
+        if positions is None or self._scene.far(positions).any():
+            self.counters.estimates_ignored += 1
+            self.get_logger().warning("estimated_mesh ignored: wrong vertex count, non-finite positions or positions "
+                                      "far outside the scene", throttle_duration_sec=1.0)
             return
         self._state, self._state_stamp_ns = positions, stamp_ns
         self._process_poses()
 
     def _on_tool_pose(self, msg: PoseStamped) -> None:
+        self.counters.tool_poses_received += 1
         try:
             record = pose_from_msg(msg)
         except MessageValidationError as error:
+            self.counters.tool_poses_rejected_malformed += 1
             self.get_logger().warning(f"tool_pose rejected: {error}")
             return
         if record.frame_id != self._frame:
+            self.counters.tool_poses_rejected_frame += 1
             self.get_logger().warning(f"tool_pose in frame {record.frame_id!r}, expected {self._frame!r}: rejected")
             return
-        if self._newest_pose_ns is not None and record.stamp_ns <= self._newest_pose_ns:
-            if self._newest_pose_ns - record.stamp_ns <= self._jump_ns:
-                self.get_logger().warning(
-                    f"tool_pose stamp {record.stamp_ns} ns is not newer than {self._newest_pose_ns} ns: dropped")
-                return
+        order = stamp_order(self._newest_pose_ns, record.stamp_ns, self._jump_ns)
+        if order in (STALE, INVALID):
+            self.counters.tool_poses_rejected_stamp += 1
+            reason = "is negative" if order == INVALID else f"is not newer than {self._newest_pose_ns} ns"
+            self.get_logger().warning(f"tool_pose stamp {record.stamp_ns} ns {reason}: dropped")
+            return
+        if self._scene is not None and self._scene.far(record.pose[None, :3])[0]:
+            self.counters.tool_poses_rejected_far += 1
+            where = self._scene.describe(record.pose[None, :3])
+            self.get_logger().warning(f"tool_pose at {record.stamp_ns} ns is {where}: dropped")
+            return
+        if order == JUMP_BACK:
+            self.counters.clock_jumps_back += 1
             self.get_logger().warning("tool_pose stamp jumped back: restarting from the initial mesh")
             self._reset_timeline()
         if self._timeline_start_ns is None:
@@ -213,14 +242,34 @@ class SimulationNode(Node):
         if not np.isfinite(predicted).all():
             self._fail(pose, "the predicted positions are not finite")
             return
+        self.counters.predictions += 1
+        self._last_failure = None
         self._publisher.publish(self._messages.message(pose.stamp_ns, self._frame, self._step, predicted))
 
     def _fail(self, pose: _PendingPose, reason: str) -> None:
         """Restart the simulator at this pose and say so on prediction_failed."""
         self._simulator.reset(pose.pose)
+        self.counters.predictions_failed += 1
+        self._last_failure = reason
         self.get_logger().error(f"prediction for {pose.stamp_ns} ns failed: {reason}")
         self._failure_publisher.publish(
             PredictionFailure(header=header_msg(pose.stamp_ns, self._frame, RCLPY_FACTORY), reason=reason))
+
+    def _publish_diagnostics(self) -> None:
+        """The counters, with OK / WARN: waiting for the mesh, rejected tool poses, a failed prediction."""
+        counters = self.counters
+        new_rejections = counters.tool_poses_rejected - self._rejected_at_last_report
+        self._rejected_at_last_report = counters.tool_poses_rejected
+        level, message = DiagnosticStatus.OK, "predicting"
+        if self._simulator is None:
+            level, message = DiagnosticStatus.WARN, "waiting for initial_mesh"
+        elif new_rejections:
+            level, message = DiagnosticStatus.WARN, f"{new_rejections} tool poses rejected since the last report"
+        elif self._last_failure is not None:
+            level, message = DiagnosticStatus.WARN, f"the last prediction failed: {self._last_failure}"
+        self._diagnostics_publisher.publish(diagnostic_array(
+            f"{self.get_fully_qualified_name()}: simulation", level, message, counters,
+            self.get_clock().now().nanoseconds))
 
     def _finish(self, pose: _PendingPose) -> None:
         self._pending.popleft()
