@@ -44,6 +44,7 @@ _USER_ERRORS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("meshfg_ros.core.scenarios", ("ScenarioError",)),
     ("meshfg_ros.core.simulator", ("SimulatorConfigError", "SimulatorInputError")),
     ("meshfg_ros.core.estimator", ("EstimatorConfigError",)),
+    ("meshfg_ros.core.blas", ("BlasSettingError",)),
     ("meshfg_ros.replay", ("ReplayError",)),
     ("meshfg_ros.evaluation", ("EvaluationError",)),
     ("meshfg_ros.render", ("OutputDirectoryError",)),
@@ -100,7 +101,8 @@ def bundled_recording(name: str) -> Path | None:
 
 # --------------------------------------------------------------------------- synth
 def _synth_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("scenario", help="cube-translate, cube-shear-spd, cube-shear-nonspd, cao-push or liver-push")
+    parser.add_argument("scenario", help="cube-translate, cube-shear-spd, cube-shear-nonspd, cao-push, liver-push, "
+                                         "slab-inclusion, dome-tilted, liver-gravity or kidney-drag")
     parser.add_argument("--out", required=True, type=Path, help="new recording directory to write")
     parser.add_argument("--seed", type=int, default=0, help="random seed of the scenario (default 0)")
     parser.add_argument("--max-points", type=_positive_integer, default=None,
@@ -244,6 +246,46 @@ def run_ablation(args: argparse.Namespace) -> int:
     return 0
 
 
+# --------------------------------------------------------------------------- accuracy
+ACCURACY_SCENES = ("cube-shear-spd", "cao-push", "liver-push", "slab-inclusion", "dome-tilted", "liver-gravity",
+                   "kidney-drag")
+
+
+def _accuracy_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--out", type=Path, default=Path("out") / "accuracy",
+                        help="output directory (default out/accuracy): replays, synthesised scenes (reused), "
+                             "accuracy.json and accuracy.png")
+    parser.add_argument("--scenes", nargs="+", choices=ACCURACY_SCENES, default=list(ACCURACY_SCENES),
+                        help="scenes (default: all)")
+    parser.add_argument("--seed", type=int, default=0, help="scene seed (default 0: the bundled recordings)")
+    parser.add_argument("--json", type=Path, help="also write the result here (never overwritten)")
+    parser.add_argument("--plot", type=Path, help="also write the PNG summary here (never overwritten)")
+
+
+def run_accuracy(args: argparse.Namespace) -> int:
+    from meshfg_ros.accuracy import format_table, run_accuracy, save, write_plot
+
+    _refuse_existing(args.json)
+    _refuse_existing(args.plot)
+
+    def progress(name):
+        return _progress(f"accuracy {name}")
+
+    result = run_accuracy(args.out, tuple(args.scenes), args.seed, bundled_recording, progress)
+    print(format_table(result))
+    outputs = [args.out / "accuracy.json", args.out / "accuracy.png"]
+    save(result, outputs[0])
+    write_plot(result, outputs[1])
+    if args.json is not None:
+        save(result, args.json)
+        outputs.append(args.json)
+    if args.plot is not None:
+        write_plot(result, args.plot)
+        outputs.append(args.plot)
+    print("\nwrote " + ", ".join(str(path) for path in outputs))
+    return 0
+
+
 # --------------------------------------------------------------------------- bench
 def _bench_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", type=Path, help="write the figures as JSON (never overwritten)")
@@ -268,6 +310,50 @@ def run_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+# --------------------------------------------------------------------------- fuzz
+def _fuzz_arguments(parser: argparse.ArgumentParser) -> None:
+    def seconds(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+        if not value > 0.0:
+            raise argparse.ArgumentTypeError(f"{value} is not a positive number of seconds")
+        return value
+
+    parser.add_argument("--decoder-cases", type=_positive_integer, default=10_000,
+                        help="PointCloud2 messages to decode (default 10000)")
+    parser.add_argument("--update-calls", type=_positive_integer, default=2_000,
+                        help="estimator updates, bad and good input mixed (default 2000)")
+    parser.add_argument("--replays", type=_positive_integer, default=20,
+                        help="hostile copies of the recording to replay (default 20)")
+    parser.add_argument("--no-recovery", action="store_true", help="skip the recovery measurement")
+    parser.add_argument("--seed", type=int, default=0, help="seed of every campaign (default 0)")
+    parser.add_argument("--timeout", type=seconds, default=60.0,
+                        help="seconds a case may run before it counts as a hang (default 60)")
+    parser.add_argument("--bag", type=Path, help="recording of the update, replay and recovery campaigns "
+                                                 "(default: the bundled cao-push)")
+    parser.add_argument("--json", type=Path,
+                        help="also write the counts and recovery figures as JSON (never overwritten)")
+
+
+def run_fuzz(args: argparse.Namespace) -> int:
+    """Exit code 0 when no case crashed, hung, returned NaN or a wrong answer, else 1."""
+    from meshfg_ros.fuzz import format_report, run_fuzz, save
+
+    _refuse_existing(args.json)
+    bag = args.bag if args.bag is not None else bundled_recording(DEMO_SCENARIO)
+    if bag is None:
+        raise FileNotFoundError(2, "No bundled recording (pass --bag)", DEMO_SCENARIO)
+    results = run_fuzz(bag, args.decoder_cases, args.update_calls, args.replays, not args.no_recovery, args.seed,
+                       args.timeout, show_progress=True)
+    print(format_report(results))
+    if args.json is not None:
+        save(results, args.json)
+        print(f"\nwrote {args.json}")
+    return 1 if any(counts.failures for counts in results) else 0
+
+
 def _refuse_existing(path: Path | None) -> None:
     if path is not None and (path.exists() or path.is_symlink()):
         raise FileExistsError(17, "File exists (never overwritten)", str(path))
@@ -282,7 +368,11 @@ COMMANDS: tuple[Command, ...] = (
     Command("demo", "replay, evaluate and render the bundled airway-push recording", _demo_arguments, run_demo),
     Command("ablation", "the paper's Table I: factor configurations on a deforming cube", _ablation_arguments,
             run_ablation),
+    Command("accuracy", "factor graph against the simulation alone on seven scenes, default settings",
+            _accuracy_arguments, run_accuracy),
     Command("bench", "latency and speed figures against targets and baselines", _bench_arguments, run_bench),
+    Command("fuzz", "hostile input against the decoder, the estimator and the replay; recovery from faults",
+            _fuzz_arguments, run_fuzz),
 )
 
 
@@ -300,6 +390,9 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of the `meshfg` console script; returns the exit code."""
     args = build_parser().parse_args(argv)
     try:
+        from meshfg_ros.core import blas
+
+        blas.configure()  # before any command loads cvxopt: CHOLMOD binds to the BLAS chosen for this CPU
         return args.run(args)
     except KeyboardInterrupt:
         print(f"meshfg {args.command}: interrupted", file=sys.stderr)

@@ -289,6 +289,11 @@ def solve_gtsam(graph: FactorGraph, x0=None, tolerance: float = 1e-12, max_itera
             for point, triangle_index, weight in zip(factor.points, factor.frozen_triangles, factor.weights):
                 factors.add(_point_factor(gtsam, factor.triangles[triangle_index], point, np.sqrt(weight),
                                           t, slot, fixed_state, symbol))
+        elif isinstance(factor, VolumeBarrierFactor):
+            # Zero wherever every element keeps half its volume in the prediction (any plausible
+            # window): nothing to add; an active barrier has no CustomFactor form here.
+            if factor.cost(graph.states) > 0.0:
+                raise BaselineError("the volume barrier is active: GTSAM has no form of it here")
         else:
             t = problem.position[factor.key]
             noise = gtsam.noiseModel.Isotropic.Sigma(3, factor.sigma)

@@ -1,8 +1,10 @@
 """estimator_node: the sliding-window factor-graph estimator, as a ROS 2 node.
 
 Subscribes `points` (sensor_msgs/PointCloud2, sensor-data QoS), `predicted_mesh` and
-`initial_mesh` (meshfg_msgs/TetraMesh; or parameter mesh_file) and `prediction_failed`
-(meshfg_msgs/PredictionFailure). Each cloud at stamp t is paired with the prediction stamped t;
+`initial_mesh` (meshfg_msgs/TetraMesh; or parameter mesh_file), `prediction_failed`
+(meshfg_msgs/PredictionFailure) and `tool_pose` (geometry_msgs/PoseStamped: points on the tool
+sphere are segmentation leaks). Each cloud at stamp t is paired with the prediction and the tool
+pose stamped t;
 without one after prediction_timeout seconds of wall time (counted from when the solver is
 free for that cloud), once a prediction for a later cloud has arrived, or at once when the
 simulator reports that it failed for t, the step runs degraded without it. Publishes
@@ -11,10 +13,16 @@ late-joining planner gets the latest state), `status` (meshfg_msgs/EstimatorStat
 built only while someone subscribes) and `/diagnostics` (counters, see diagnostics.py).
 
 Robustness: malformed, empty and wrong-frame clouds are rejected and counted, NaN points are
-dropped and counted, repeated or out-of-order stamps are dropped and counted, a stamp that
-jumps back by more than clock_jump_threshold (a looped recording) restarts the estimator from
-the initial mesh, and nothing non-finite is ever published. Clouds and predictions are taken
-in by one thread and solved in another, so a long solve does not make DDS drop input.
+dropped and counted, repeated, out-of-order and negative stamps are dropped and counted, a stamp
+that jumps back by more than clock_jump_threshold (a looped recording) restarts the estimator
+from the initial mesh (the stamp rule of core/input_checks.py, which the offline replay follows
+too), and nothing non-finite is ever published. Points, predictions and tool poses far outside
+the scene, and predictions the cloud contradicts, are set aside by the estimator and counted
+from its status message. Clouds and predictions are taken in by one thread and solved in
+another, so a long solve does not make DDS drop input; an update stops after
+update_time_budget, and on shutdown the node waits at most _STOP_WAIT_S for a running one.
+Diagnostics are an ERROR when clouds keep arriving and none has been answered with an estimate
+for _stalled_after_s (the prediction timeout and two time budgets, plus a margin).
 """
 
 from __future__ import annotations
@@ -27,6 +35,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import PoseStamped
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
@@ -34,14 +43,16 @@ from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import MarkerArray
 
 from meshfg_msgs.msg import EstimatorStatus, PredictionFailure, TetraMesh
+from meshfg_ros.core import blas
 from meshfg_ros.core.estimator import SlidingWindowEstimator, StepResult
+from meshfg_ros.core.input_checks import INVALID, JUMP_BACK, STALE, check_initial_mesh, rejections_in, stamp_order
 from meshfg_ros.core.mesh import TetMesh, load_mesh
 from meshfg_ros.core.parameters import PARAMETERS, FrameError, cloud_to_world, estimator_config
-from meshfg_ros.core.sparse_cholesky import BLAS_BACKEND
 from meshfg_ros.io.messages import (
     MeshState,
     MessageValidationError,
     mesh_state_from_msg,
+    pose_from_msg,
     stamp_ns_from_msg,
     status_to_msg,
 )
@@ -59,8 +70,8 @@ from meshfg_ros.nodes.runtime import run_nodes
 from meshfg_ros.replay import status_record
 
 # The simulator's own settings are the simulation node's; the estimator reads the rest.
-_SIMULATOR_ONLY = {"tool_mode", "tool_contact", "tool_radius", "grasped_vertices", "density", "simulator",
-                   "simulator_substeps", "simulator_iterations", "estimate_timeout"}
+_SIMULATOR_ONLY = {"tool_contact", "density", "simulator", "simulator_substeps",
+                   "simulator_iterations", "estimate_timeout"}
 PARAMETER_NAMES = tuple(p.name for p in PARAMETERS if p.name not in _SIMULATOR_ONLY)
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 STREAM_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -72,6 +83,11 @@ _DIAGNOSTICS_PERIOD_S = 1.0
 _LATENCY_HISTORY = 100
 _WARN_THROTTLE_S = 1.0
 _NS_PER_S = 1e9
+# Shutdown waits this long for a running update, then leaves the (daemon) solver thread behind.
+_STOP_WAIT_S = 2.0
+# Beyond a cloud's wait for its prediction and two time budgets (an update, and the iteration and
+# covariance it may be in when the budget runs out): no estimate by then means a stuck solver.
+_STALL_MARGIN_S = 1.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -98,6 +114,7 @@ class EstimatorNode(Node):
         self._lock = threading.Lock()
         self._queue: deque[_Cloud | str] = deque()
         self._predictions: dict[int, np.ndarray] = {}
+        self._tool_poses: dict[int, np.ndarray] = {}
         self._failed_predictions: set[int] = set()  # stamps the simulator reported it cannot predict
         self._newest_cloud_ns: int | None = None
         self._newest_prediction_ns: int | None = None
@@ -108,6 +125,11 @@ class EstimatorNode(Node):
         self._markers_job: tuple | None = None
         self._last_result: StepResult | None = None
         self._rejected_at_last_report = 0
+        self._failed_at_last_report = 0
+        self._unanswered_since_s: float | None = None  # arrival of the first cloud after the last estimate
+        budget = self._config.update_time_budget
+        self._stalled_after_s = (self.params["prediction_timeout"] + 2.0 * (budget if budget is not None else 0.0)
+                                 + _STALL_MARGIN_S)
         # Solver thread only.
         self._initial: MeshState | None = None
         self._initial_mesh: TetMesh | None = None
@@ -123,6 +145,7 @@ class EstimatorNode(Node):
         self.create_subscription(TetraMesh, "initial_mesh", self._on_initial_mesh, LATCHED_QOS)
         self.create_subscription(TetraMesh, "predicted_mesh", self._on_prediction, STREAM_QOS)
         self.create_subscription(PredictionFailure, "prediction_failed", self._on_prediction_failure, STREAM_QOS)
+        self.create_subscription(PoseStamped, "tool_pose", self._on_tool_pose, STREAM_QOS)
         points_qos = RELIABLE_POINTS_QOS if self.params["points_reliable"] else qos_profile_sensor_data
         self.create_subscription(PointCloud2, "points", self._on_cloud, points_qos)
         # The solver runs in its own thread and the executor is single-threaded (main below):
@@ -140,10 +163,13 @@ class EstimatorNode(Node):
         self._solver_thread.start()
 
     def destroy_node(self) -> None:
-        """Let a running solve finish and stop the solver thread, then destroy the node."""
+        """Stop the solver thread (a running update has _STOP_WAIT_S to finish; it is left behind,
+        and publishes nothing, if it takes longer), then destroy the node."""
         self._stopping = True
         self._solver_wakeup.set()
-        self._solver_thread.join()
+        self._solver_thread.join(_STOP_WAIT_S)
+        if self._solver_thread.is_alive():
+            self.get_logger().warning(f"an update still runs after {_STOP_WAIT_S:g} s: left behind at shutdown")
         super().destroy_node()
 
     # ------------------------------------------------------------------ input thread
@@ -199,6 +225,20 @@ class EstimatorNode(Node):
                                   "a prediction", throttle_duration_sec=_WARN_THROTTLE_S)
         self._solver_wakeup.set()
 
+    def _on_tool_pose(self, msg: PoseStamped) -> None:
+        try:
+            record = pose_from_msg(msg)
+        except (MessageValidationError, ValueError) as error:
+            self.get_logger().warning(f"tool_pose rejected: {error}", throttle_duration_sec=_WARN_THROTTLE_S)
+            return
+        if record.frame_id != self._frame or not np.isfinite(record.pose).all():
+            return  # the simulation node reports tool poses it cannot use
+        with self._lock:
+            self._tool_poses[record.stamp_ns] = record.pose
+            while len(self._tool_poses) > MAX_STORED_PREDICTIONS:
+                del self._tool_poses[min(self._tool_poses)]
+        self._solver_wakeup.set()
+
     def _wanted_simulator_stamp(self, stamp_ns: int) -> bool:
         """Under the lock: whether the simulator's outcome (a prediction or a failure) for stamp_ns
         can still serve a cloud. A stamp far older than the newest one means the simulator
@@ -246,14 +286,17 @@ class EstimatorNode(Node):
         by more than clock_jump_threshold first queues a restart from the initial mesh."""
         with self._lock:
             newest = self._newest_cloud_ns
-            repeated = newest is not None and 0 <= newest - stamp_ns <= self._jump_ns
-        if repeated:
+        order = stamp_order(newest, stamp_ns, self._jump_ns)
+        if order in (STALE, INVALID):
             self._count_rejection("clouds_rejected_stamp")
-            self.get_logger().warning(f"cloud stamp {stamp_ns} ns is not newer than {newest} ns: dropped",
+            reason = "is negative" if order == INVALID else f"is not newer than {newest} ns"
+            self.get_logger().warning(f"cloud stamp {stamp_ns} ns {reason}: dropped",
                                       throttle_duration_sec=_WARN_THROTTLE_S)
             return
         with self._lock:
-            if newest is not None and stamp_ns < newest:
+            if self._unanswered_since_s is None:
+                self._unanswered_since_s = arrival_s
+            if order == JUMP_BACK:
                 self.counters.clock_jumps_back += 1
                 self.get_logger().warning(f"cloud stamp jumped back by {(newest - stamp_ns) / _NS_PER_S:.3f} s: "
                                           "restarting from the initial mesh")
@@ -303,6 +346,7 @@ class EstimatorNode(Node):
         if state is None or (self._initial is not None and same_mesh(self._initial, state)):
             return
         try:
+            check_initial_mesh(state.positions)
             mesh = tet_mesh_from_state(state)
             estimator = SlidingWindowEstimator(mesh, self._config)
         except (ValueError, RuntimeError) as error:
@@ -316,10 +360,11 @@ class EstimatorNode(Node):
         with self._lock:
             self._solver_free_s = time.monotonic()
         self.get_logger().info(f"initial mesh: {mesh.vertex_count} vertices, {mesh.tetrahedron_count} tetrahedra; "
-                               f"sparse Cholesky BLAS: {BLAS_BACKEND.name}, {BLAS_BACKEND.threads} thread(s)")
+                               f"sparse Cholesky BLAS: {blas.backend().name}, {blas.backend().threads} thread(s)")
 
     def _next_job(self):
-        """The next ready queue entry: _RESTART, or (cloud, its prediction or None); None to wait."""
+        """The next ready queue entry: _RESTART, or (cloud, its prediction or None, its tool pose
+        or None); None to wait."""
         with self._lock:
             if self._estimator is None or not self._queue:
                 return None
@@ -327,14 +372,20 @@ class EstimatorNode(Node):
             if head is _RESTART:
                 return self._queue.popleft()
             predicted = self._predictions.get(head.stamp_ns)
+            tool_pose = self._tool_poses.get(head.stamp_ns)
+            waited = time.monotonic() - max(head.arrival_s, self._solver_free_s)
             if predicted is None and head.stamp_ns not in self._failed_predictions:
                 newer = any(head.stamp_ns < stamp <= self._newest_cloud_ns for stamp in self._predictions)
-                waited = time.monotonic() - max(head.arrival_s, self._solver_free_s)
                 if not newer and waited < self.params["prediction_timeout"]:
                     return None
+            released = predicted is not None or head.stamp_ns in self._failed_predictions
+            if tool_pose is None and not released and waited < self.params["prediction_timeout"]:
+                return None
             self._queue.popleft()
             for stamp in [stamp for stamp in self._predictions if stamp <= head.stamp_ns]:
                 del self._predictions[stamp]
+            for stamp in [stamp for stamp in self._tool_poses if stamp <= head.stamp_ns]:
+                del self._tool_poses[stamp]
             self._failed_predictions = {stamp for stamp in self._failed_predictions if stamp > head.stamp_ns}
             self._last_step_ns = head.stamp_ns
         if predicted is not None and predicted.shape != self._initial.positions.shape:
@@ -343,20 +394,24 @@ class EstimatorNode(Node):
             with self._lock:
                 self.counters.predictions_rejected += 1
             predicted = None
-        return head, predicted
+        return head, predicted, tool_pose
 
     def _restart(self) -> None:
         self._estimator = SlidingWindowEstimator(self._initial_mesh, self._config)
 
-    def _step(self, cloud: _Cloud, predicted: np.ndarray | None) -> None:
+    def _step(self, cloud: _Cloud, predicted: np.ndarray | None, tool_pose: np.ndarray | None) -> None:
         try:
-            result = self._estimator.update(cloud.stamp_ns, cloud.points, predicted)
+            result = self._estimator.update(cloud.stamp_ns, cloud.points, predicted, tool_pose)
         except Exception as error:  # noqa: BLE001 - one failed step must not stop the node
+            if self._stopping:
+                return  # shut down while it ran: the node may be gone already
             self.get_logger().error(f"estimator update at {cloud.stamp_ns} ns failed: {error!r}")
             with self._lock:
                 self.counters.failed_steps += 1
                 self._solver_free_s = time.monotonic()
             self._wake_outputs.trigger()
+            return
+        if self._stopping:
             return
         if not _finite(result):
             self.get_logger().error(f"estimate at {cloud.stamp_ns} ns is not finite: not published; "
@@ -374,6 +429,9 @@ class EstimatorNode(Node):
         with self._lock:
             self.counters.steps += 1
             self.counters.degraded_steps += int(result.degraded)
+            for counter in rejections_in(result.message):
+                setattr(self.counters, counter, getattr(self.counters, counter) + 1)
+            self._unanswered_since_s = None
             self.counters.last_solve_time_ms = float(result.solve_time_ms)
             self.counters.last_latency_ms = latency_ms
             self._latencies.append(latency_ms)
@@ -391,11 +449,20 @@ class EstimatorNode(Node):
             job, self._markers_job = self._markers_job, None
             last = self._last_result
             waiting = self._estimator is None
+            unanswered_since_s = self._unanswered_since_s
         level, message = DiagnosticStatus.OK, "estimating"
         new_rejections = counters.clouds_rejected - self._rejected_at_last_report
         self._rejected_at_last_report = counters.clouds_rejected
+        new_failures = counters.failed_steps - self._failed_at_last_report
+        self._failed_at_last_report = counters.failed_steps
+        unanswered_s = 0.0 if unanswered_since_s is None else time.monotonic() - unanswered_since_s
         if waiting:
             level, message = DiagnosticStatus.WARN, "waiting for initial_mesh"
+        elif unanswered_s > self._stalled_after_s:
+            level, message = DiagnosticStatus.ERROR, (f"no estimate for the clouds of the last {unanswered_s:.0f} s: "
+                                                      "the solver is stuck or every update fails")
+        elif new_failures:
+            level, message = DiagnosticStatus.WARN, f"{new_failures} updates failed since the last report"
         elif last is not None and last.degraded:
             level, message = DiagnosticStatus.WARN, "degraded: the last step had no simulator prediction"
         elif new_rejections:
