@@ -348,6 +348,17 @@ class BenchmarkStep:
     truth: np.ndarray
 
 
+def _viewed_box(target_vertices: int, size: float):
+    """A box with its bottom face fixed, each vertex's relative height (N,), and the surface
+    triangles seen from +x+y+z (the benchmark sequences' partial view)."""
+    mesh = box_mesh(target_vertices, (size, size, size))
+    rest = mesh.vertices
+    mesh = mesh.with_fixed(np.flatnonzero(np.isclose(rest[:, 2], rest[:, 2].min())))
+    height = (rest[:, 2] - rest[:, 2].min()) / size
+    seen = mesh.surface_triangles[mesh.triangle_normals() @ np.array([1.0, 1.0, 1.0]) / np.sqrt(3) > 0.3]
+    return mesh, height, seen
+
+
 def synthetic_sequence(target_vertices: int = 500, points_per_step: int = 2000, steps: int = 20,
                        size: float = 0.1, noise_sigma: float = 1e-3, prediction_error: float = 1e-3,
                        seed: int = 0) -> tuple[TetMesh, list[BenchmarkStep]]:
@@ -356,12 +367,8 @@ def synthetic_sequence(target_vertices: int = 500, points_per_step: int = 2000, 
     bend (`prediction_error` [m] at the top, in a random direction each step), the kind of
     error a simulator with a wrong load or stiffness makes."""
     rng = np.random.default_rng(seed)
-    mesh = box_mesh(target_vertices, (size, size, size))
+    mesh, height, seen = _viewed_box(target_vertices, size)
     rest = mesh.vertices
-    mesh = mesh.with_fixed(np.flatnonzero(np.isclose(rest[:, 2], rest[:, 2].min())))
-    height = (rest[:, 2] - rest[:, 2].min()) / size
-    normals = mesh.triangle_normals()
-    seen = mesh.surface_triangles[normals @ np.array([1.0, 1.0, 1.0]) / np.sqrt(3) > 0.3]
     sequence = []
     for step in range(1, steps + 1):
         phase = step / steps
@@ -389,12 +396,8 @@ def mismatch_sequence(target_vertices: int = 500, points_per_step: int = 2000, s
     predictions come from the nominal model, not from the estimates (a benchmark of the
     estimator alone, without a simulator)."""
     rng = np.random.default_rng(seed)
-    mesh = box_mesh(target_vertices, (size, size, size))
+    mesh, height, seen = _viewed_box(target_vertices, size)
     rest = mesh.vertices
-    mesh = mesh.with_fixed(np.flatnonzero(np.isclose(rest[:, 2], rest[:, 2].min())))
-    height = (rest[:, 2] - rest[:, 2].min()) / size
-    normals = mesh.triangle_normals()
-    seen = mesh.surface_triangles[normals @ np.array([1.0, 1.0, 1.0]) / np.sqrt(3) > 0.3]
     top_centre = np.array([rest[:, 0].mean(), rest[:, 1].mean(), rest[:, 2].max()])
     tool_radius = 0.15 * size
     lateral = np.linalg.norm((rest - top_centre)[:, :2], axis=1) / size
