@@ -41,6 +41,7 @@ from meshfg_ros.io.messages import (
 )
 from meshfg_ros.io.pointcloud import decode_pointcloud2, encode_xyz
 from meshfg_ros.io.recording import RecordingWriter
+from meshfg_ros.nodes.estimator_node import PREDICTION_QOS
 from meshfg_ros.nodes.ros_conversions import rclpy_message
 
 REPOSITORY = Path(__file__).resolve().parents[1]
@@ -283,7 +284,7 @@ class EstimatorProbe:
             EstimatorStatus, f"{namespace}/status", self.statuses.append, KEEP)
         probe.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, KEEP)
         self.mesh = probe.create_publisher(TetraMesh, f"{namespace}/initial_mesh", LATCHED)
-        self.prediction = probe.create_publisher(TetraMesh, f"{namespace}/predicted_mesh", KEEP)
+        self.prediction = probe.create_publisher(TetraMesh, f"{namespace}/predicted_mesh", PREDICTION_QOS)
         self.cloud = probe.create_publisher(PointCloud2, f"{namespace}/points", KEEP)
         self.status_name = f"{namespace}/estimator_node: estimation"
 
@@ -387,7 +388,7 @@ def test_estimator_node_runs_a_step_at_once_when_the_simulator_reports_a_failure
     node = Process(tmp_path, "estimator_node", *ros_args("/fail", "prediction_timeout:=60.0", "window_size:=3"))
     processes.append(node)
     io = EstimatorProbe(probe, "/fail")
-    failure = probe.create_publisher(PredictionFailure, "/fail/prediction_failed", KEEP)
+    failure = probe.create_publisher(PredictionFailure, "/fail/prediction_failed", PREDICTION_QOS)
     assert spin_until(probe, lambda: io.cloud.get_subscription_count() == 1
                       and io.prediction.get_subscription_count() == 1 and failure.get_subscription_count() == 1)
     io.wait_for(clouds_received=0)  # the node is up and its diagnostics reach the probe

@@ -75,6 +75,11 @@ _SIMULATOR_ONLY = {"tool_contact", "density", "simulator", "simulator_substeps",
 PARAMETER_NAMES = tuple(p.name for p in PARAMETERS if p.name not in _SIMULATOR_ONLY)
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 STREAM_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+# Predictions and failure reports keep their last ten for a reader that matches late (DDS
+# discovery can finish after the first tool pose is predicted): that step would otherwise wait
+# out prediction_timeout and run degraded.
+PREDICTION_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                            durability=DurabilityPolicy.TRANSIENT_LOCAL)
 RELIABLE_POINTS_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 MAX_QUEUED_CLOUDS = 100
 MAX_STORED_PREDICTIONS = 100
@@ -143,8 +148,9 @@ class EstimatorNode(Node):
         self._markers_publisher = self.create_publisher(MarkerArray, "markers", STREAM_QOS)
         self._diagnostics_publisher = self.create_publisher(DiagnosticArray, "/diagnostics", STREAM_QOS)
         self.create_subscription(TetraMesh, "initial_mesh", self._on_initial_mesh, LATCHED_QOS)
-        self.create_subscription(TetraMesh, "predicted_mesh", self._on_prediction, STREAM_QOS)
-        self.create_subscription(PredictionFailure, "prediction_failed", self._on_prediction_failure, STREAM_QOS)
+        self.create_subscription(TetraMesh, "predicted_mesh", self._on_prediction, PREDICTION_QOS)
+        self.create_subscription(PredictionFailure, "prediction_failed", self._on_prediction_failure,
+                                 PREDICTION_QOS)
         self.create_subscription(PoseStamped, "tool_pose", self._on_tool_pose, STREAM_QOS)
         points_qos = RELIABLE_POINTS_QOS if self.params["points_reliable"] else qos_profile_sensor_data
         self.create_subscription(PointCloud2, "points", self._on_cloud, points_qos)

@@ -279,7 +279,7 @@ def _connected(node) -> bool:
     """Whether the simulator and the estimator are up and connected to each other and to us."""
     return (node.count_publishers("predicted_mesh") >= 1 and node.count_subscribers("predicted_mesh") >= 1
             and node.count_publishers("estimated_mesh") >= 1 and node.count_subscribers("estimated_mesh") >= 2
-            and node.count_subscribers("tool_pose") >= 1 and node.count_subscribers("points") >= 2
+            and node.count_subscribers("tool_pose") >= 2 and node.count_subscribers("points") >= 2
             and node.count_subscribers("initial_mesh") >= 2 and node.count_publishers("status") >= 1)
 
 

@@ -65,6 +65,11 @@ PARAMETER_NAMES = (
 )
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 STREAM_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+# Predictions and failure reports keep their last ten for a reader that matches late (DDS
+# discovery can finish after the first tool pose is predicted): that step would otherwise wait
+# out prediction_timeout and run degraded.
+PREDICTION_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                            durability=DurabilityPolicy.TRANSIENT_LOCAL)
 _TIMEOUT_CHECK_PERIOD_S = 0.02
 _DIAGNOSTICS_PERIOD_S = 1.0
 _NS_PER_S = 1e9
@@ -96,8 +101,8 @@ class SimulationNode(Node):
         self._pending: deque[_PendingPose] = deque()
         self._reset_timeline()
 
-        self._publisher = self.create_publisher(TetraMesh, "predicted_mesh", STREAM_QOS)
-        self._failure_publisher = self.create_publisher(PredictionFailure, "prediction_failed", STREAM_QOS)
+        self._publisher = self.create_publisher(TetraMesh, "predicted_mesh", PREDICTION_QOS)
+        self._failure_publisher = self.create_publisher(PredictionFailure, "prediction_failed", PREDICTION_QOS)
         self._diagnostics_publisher = self.create_publisher(DiagnosticArray, "/diagnostics", STREAM_QOS)
         self.create_subscription(TetraMesh, "initial_mesh", self._on_initial_mesh, LATCHED_QOS)
         self.create_subscription(TetraMesh, "estimated_mesh", self._on_estimate, LATCHED_QOS)
