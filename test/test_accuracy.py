@@ -89,3 +89,16 @@ def test_accuracy_command_reports_table_json_and_picture(tmp_path):
     assert 0.0 < row["solve_ms_p50"] <= row["solve_ms_p95"]
     assert (out / "accuracy.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert (out / "liver-push" / "replay" / "metadata.yaml").is_file()
+
+
+def test_the_command_line_names_the_suite_and_the_scenarios_it_can_synthesise():
+    """cli.py lists scene names without importing the heavy modules (fast --help): they must
+    stay those of the accuracy suite and of core.scenarios."""
+    from meshfg_ros import cli
+    from meshfg_ros.accuracy import SCENES
+    from meshfg_ros.core.scenarios import SCENARIOS
+
+    assert cli.ACCURACY_SCENES == SCENES
+    synth = next(action for action in cli.build_parser()._subparsers._group_actions[0].choices["synth"]._actions
+                 if action.dest == "scenario")
+    assert all(name in synth.help for name in SCENARIOS)

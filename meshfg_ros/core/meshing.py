@@ -7,6 +7,7 @@ with user configuration files ignored so that the same arguments give the same m
 from __future__ import annotations
 
 import itertools
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,6 +19,8 @@ __all__ = [
     "MeshingError",
     "MeshingParameterError",
     "airway_phantom",
+    "compact_tetrahedra",
+    "gmsh_model",
     "box_mesh",
     "cross_section_area",
     "cube_mesh",
@@ -175,26 +178,54 @@ def _cylinder_wall(radius: float, length: float, angular_segments: int, axial_se
     return vertices, triangles.astype(np.int64)
 
 
-def _gmsh_tumour(inner_radius, length, centre, semi_axes, mesh_size) -> tuple[np.ndarray, np.ndarray]:
-    """Tetrahedralise (ellipsoid at `centre` with `semi_axes`) intersected with the lumen cylinder."""
+@contextmanager
+def gmsh_model(name: str, options: dict[str, float]):
+    """gmsh with a new model `name` and `options` set: in a new single-threaded session without
+    configuration files (the same arguments give the same mesh), or in the caller's session,
+    whose options and current model are restored afterwards. Errors become MeshingError."""
     import gmsh
 
-    options = {
-        "General.Terminal": 0,
-        "General.NumThreads": 1,
-        "Mesh.MeshSizeMin": mesh_size,
-        "Mesh.MeshSizeMax": mesh_size,
-    }
+    options = {"General.Terminal": 0, "General.NumThreads": 1, **options}
     owns_session = not gmsh.isInitialized()
     if owns_session:
         gmsh.initialize(["", "-nt", "1"], readConfigFiles=False, interruptible=False)
-    else:  # a caller's gmsh session: restore its options and current model afterwards
+    else:
         previous_options = {key: gmsh.option.getNumber(key) for key in options}
         previous_model = gmsh.model.getCurrent()
     try:
         for key, value in options.items():
             gmsh.option.setNumber(key, value)
-        gmsh.model.add("meshfg_airway_tumour")
+        gmsh.model.add(name)
+        yield gmsh
+    except MeshingError:
+        raise
+    except Exception as error:
+        raise MeshingError(f"gmsh failed to mesh {name}: {error}") from None
+    finally:
+        if owns_session:
+            gmsh.finalize()
+        else:
+            gmsh.model.remove()
+            gmsh.model.setCurrent(previous_model)
+            for key, value in previous_options.items():
+                gmsh.option.setNumber(key, value)
+
+
+def compact_tetrahedra(node_tags, coordinates, tet_node_tags) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (N, 3) and tetrahedra (M, 4) from gmsh's node tags, coordinates and the
+    tetrahedra's node tags: only nodes used by tetrahedra are kept, in gmsh's node order."""
+    node_tags = np.asarray(node_tags, dtype=np.int64)
+    coordinates = np.asarray(coordinates, dtype=np.float64).reshape(-1, 3)
+    tet_node_tags = np.asarray(tet_node_tags, dtype=np.int64).reshape(-1, 4)
+    used_tags = np.unique(tet_node_tags)
+    order = np.argsort(node_tags)
+    vertices = coordinates[order[np.searchsorted(node_tags, used_tags, sorter=order)]]
+    return vertices, np.searchsorted(used_tags, tet_node_tags)
+
+
+def _gmsh_tumour(inner_radius, length, centre, semi_axes, mesh_size) -> tuple[np.ndarray, np.ndarray]:
+    """Tetrahedralise (ellipsoid at `centre` with `semi_axes`) intersected with the lumen cylinder."""
+    with gmsh_model("meshfg_airway_tumour", {"Mesh.MeshSizeMin": mesh_size, "Mesh.MeshSizeMax": mesh_size}) as gmsh:
         occ = gmsh.model.occ
         lumen = occ.addCylinder(0.0, 0.0, 0.0, 0.0, 0.0, length, inner_radius)
         ellipsoid = occ.addSphere(*centre, 1.0)
@@ -206,30 +237,9 @@ def _gmsh_tumour(inner_radius, length, centre, semi_axes, mesh_size) -> tuple[np
         gmsh.model.mesh.generate(3)
         node_tags, coordinates, _ = gmsh.model.mesh.getNodes()
         element_types, _, element_nodes = gmsh.model.mesh.getElements(dim=3)
-    except Exception as error:
-        if isinstance(error, MeshingError):
-            raise
-        raise MeshingError(f"gmsh failed to mesh the tumour: {error}") from None
-    finally:
-        if owns_session:
-            gmsh.finalize()
-        else:
-            gmsh.model.remove()
-            gmsh.model.setCurrent(previous_model)
-            for key, value in previous_options.items():
-                gmsh.option.setNumber(key, value)
     if _GMSH_TETRAHEDRON not in list(element_types):
         raise MeshingError("gmsh produced no tetrahedra for the tumour")
-    tet_node_tags = np.asarray(element_nodes[list(element_types).index(_GMSH_TETRAHEDRON)], dtype=np.int64)
-    tet_node_tags = tet_node_tags.reshape(-1, 4)
-    node_tags = np.asarray(node_tags, dtype=np.int64)
-    coordinates = np.asarray(coordinates, dtype=np.float64).reshape(-1, 3)
-    # Keep only nodes used by tetrahedra, numbered in gmsh's node order.
-    used_tags = np.unique(tet_node_tags)
-    order = np.argsort(node_tags)
-    vertices = coordinates[order[np.searchsorted(node_tags, used_tags, sorter=order)]]
-    tetrahedra = np.searchsorted(used_tags, tet_node_tags)
-    return vertices, tetrahedra
+    return compact_tetrahedra(node_tags, coordinates, element_nodes[list(element_types).index(_GMSH_TETRAHEDRON)])
 
 
 def airway_phantom(

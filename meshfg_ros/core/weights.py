@@ -16,8 +16,8 @@ real error is a few smooth, systematic fields (a missed load, a stiffer inclusio
 offset). Unbounded, the estimate ran to its upper bound (a simulation sigma of 0.01 mm) on the
 three bundled scenes and for most updates of the others, so the estimate followed the
 simulation (liver-gravity: 1.08x the simulation's error); bounded to [0.1, 1] measurement
-sigmas it weakened the prior on dome-tilted and kidney-drag, where LM then fitted noise and
-slid the surface along itself (1.21x and 1.64x). The prior instead follows the estimated
+sigmas it weakened the prior on dome-tilted and kidney-drag, which then ended at 1.21x and
+1.64x with LM unconverged in most of their updates. The prior instead follows the estimated
 noise: simulation sigma = PRIOR_NOISE_RATIO * measurement sigma, so the simulation outweighs
 any one point by 1 / ratio^2 = 100 per coordinate, wherever the noise level sits. Of the ratios
 0.05, 0.1 and 0.2, 0.1 gave the lowest median error over the suite (docs/design-notes.md).

@@ -38,7 +38,7 @@ from scipy.spatial.transform import Rotation
 
 from meshfg_ros.core.camera import CaptureOptions, PinholeCamera, capture
 from meshfg_ros.core.mesh import TetMesh, signed_volumes
-from meshfg_ros.core.meshing import MeshingError
+from meshfg_ros.core.meshing import MeshingError, compact_tetrahedra, gmsh_model
 from meshfg_ros.core.scenarios import Scenario, ScenarioError, ScenarioStep, _stamp, liver_mesh, pose
 from meshfg_ros.core.simulator import SimulatorConfig
 
@@ -66,22 +66,9 @@ def _gmsh_mesh(model_name: str, build, options: dict[str, float]) -> tuple[np.nd
     """Vertices (N, 3), tetrahedra (M, 4) and a marked-region flag (M,) of a gmsh model.
 
     build(gmsh) creates and synchronises the geometry (and any size field) and returns the tags
-    of the volumes to mark. gmsh runs single-threaded without configuration files; a caller's
-    session keeps its options and current model.
+    of the volumes to mark (the session: core.meshing.gmsh_model).
     """
-    import gmsh
-
-    options = {"General.Terminal": 0, "General.NumThreads": 1, **options}
-    owns_session = not gmsh.isInitialized()
-    if owns_session:
-        gmsh.initialize(["", "-nt", "1"], readConfigFiles=False, interruptible=False)
-    else:
-        previous_options = {key: gmsh.option.getNumber(key) for key in options}
-        previous_model = gmsh.model.getCurrent()
-    try:
-        for key, value in options.items():
-            gmsh.option.setNumber(key, value)
-        gmsh.model.add(model_name)
+    with gmsh_model(model_name, options) as gmsh:
         marked_volumes = set(build(gmsh))
         gmsh.model.mesh.generate(3)
         node_tags, coordinates, _ = gmsh.model.mesh.getNodes()
@@ -92,25 +79,10 @@ def _gmsh_mesh(model_name: str, build, options: dict[str, float]) -> tuple[np.nd
                 block = np.asarray(nodes[list(types).index(_GMSH_TETRAHEDRON)], dtype=np.int64).reshape(-1, 4)
                 blocks.append(block)
                 marked_blocks.append(np.full(len(block), volume in marked_volumes))
-    except Exception as error:
-        raise MeshingError(f"gmsh failed to mesh {model_name}: {error}") from None
-    finally:
-        if owns_session:
-            gmsh.finalize()
-        else:
-            gmsh.model.remove()
-            gmsh.model.setCurrent(previous_model)
-            for key, value in previous_options.items():
-                gmsh.option.setNumber(key, value)
     if not blocks:
         raise MeshingError(f"gmsh produced no tetrahedra for {model_name}")
-    tet_node_tags = np.concatenate(blocks)
-    node_tags = np.asarray(node_tags, dtype=np.int64)
-    coordinates = np.asarray(coordinates, dtype=np.float64).reshape(-1, 3)
-    used_tags = np.unique(tet_node_tags)
-    order = np.argsort(node_tags)
-    vertices = coordinates[order[np.searchsorted(node_tags, used_tags, sorter=order)]]
-    return vertices, np.searchsorted(used_tags, tet_node_tags), np.concatenate(marked_blocks)
+    vertices, tetrahedra = compact_tetrahedra(node_tags, coordinates, np.concatenate(blocks))
+    return vertices, tetrahedra, np.concatenate(marked_blocks)
 
 
 def radius_ratios(vertices, tetrahedra) -> np.ndarray:
