@@ -40,14 +40,14 @@ class Command:
 _USER_ERRORS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("meshfg_ros.io.recording", ("RecordingError",)),
     ("meshfg_ros.core.mesh", ("MeshFileError", "InvalidMeshError", "DegenerateMeshError")),
-    ("meshfg_ros.core.parameters", ("ParameterError", "FrameError")),
-    ("meshfg_ros.core.scenarios", ("ScenarioError",)),
+    ("meshfg_ros.parameters", ("ParameterError", "FrameError")),
+    ("meshfg_ros.synthetic.scenarios", ("ScenarioError",)),
     ("meshfg_ros.core.simulator", ("SimulatorConfigError", "SimulatorInputError")),
     ("meshfg_ros.core.estimator", ("EstimatorConfigError",)),
-    ("meshfg_ros.core.blas", ("BlasSettingError",)),
+    ("meshfg_ros.blas", ("BlasSettingError",)),
     ("meshfg_ros.replay", ("ReplayError",)),
-    ("meshfg_ros.evaluation", ("EvaluationError",)),
-    ("meshfg_ros.render", ("OutputDirectoryError",)),
+    ("meshfg_ros.evaluation.evaluate", ("EvaluationError",)),
+    ("meshfg_ros.evaluation.render", ("OutputDirectoryError",)),
 )
 
 
@@ -110,7 +110,7 @@ def _synth_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_synth(args: argparse.Namespace) -> int:
-    from meshfg_ros.synth import synthesize
+    from meshfg_ros.synthetic.recordings import synthesize
 
     counts = synthesize(args.scenario, args.out, seed=args.seed, max_points=args.max_points)
     print(f"wrote {args.out}: " + ", ".join(f"{topic} x{count}" for topic, count in sorted(counts.items())))
@@ -154,7 +154,7 @@ def _eval_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_eval(args: argparse.Namespace) -> int:
-    from meshfg_ros.evaluation import DEFAULT_SAMPLES, evaluate_recordings, format_tables, write_json
+    from meshfg_ros.evaluation.evaluate import DEFAULT_SAMPLES, evaluate_recordings, format_tables, write_json
 
     _refuse_existing(args.json)
     samples = DEFAULT_SAMPLES if args.samples is None else args.samples
@@ -174,7 +174,7 @@ def _render_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_render(args: argparse.Namespace) -> int:
-    from meshfg_ros.render import render
+    from meshfg_ros.evaluation.render import render
 
     for path in render(args.outbag, args.out, args.truth):
         print(f"wrote {path}")
@@ -197,10 +197,10 @@ def _free_directory(base: Path) -> Path:
 
 def run_demo(args: argparse.Namespace) -> int:
     """The main job on bundled data: replay the airway push, evaluate, render, print the tables."""
-    from meshfg_ros.evaluation import evaluate_recordings, format_tables, write_json
-    from meshfg_ros.render import prepare_output_directory, render
+    from meshfg_ros.evaluation.evaluate import evaluate_recordings, format_tables, write_json
+    from meshfg_ros.evaluation.render import prepare_output_directory, render
     from meshfg_ros.replay import write_replay
-    from meshfg_ros.synth import synthesize
+    from meshfg_ros.synthetic.recordings import synthesize
 
     started = time.perf_counter()
     out = prepare_output_directory(args.out if args.out is not None else _free_directory(Path("out") / "demo"))
@@ -231,7 +231,7 @@ def _ablation_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_ablation(args: argparse.Namespace) -> int:
-    from meshfg_ros.ablation import format_table, run_ablation, write_plot
+    from meshfg_ros.evaluation.ablation import format_table, run_ablation, write_plot
 
     _refuse_existing(args.json)
     _refuse_existing(args.plot)
@@ -263,7 +263,7 @@ def _accuracy_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_accuracy(args: argparse.Namespace) -> int:
-    from meshfg_ros.accuracy import format_table, run_accuracy, save, write_plot
+    from meshfg_ros.evaluation.accuracy import format_table, run_accuracy, save, write_plot
 
     _refuse_existing(args.json)
     _refuse_existing(args.plot)
@@ -296,7 +296,7 @@ def _bench_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_bench(args: argparse.Namespace) -> int:
-    from meshfg_ros.bench import format_report, run_bench, save, write_plot
+    from meshfg_ros.benchmarks.bench import format_report, run_bench, save, write_plot
 
     _refuse_existing(args.json)
     _refuse_existing(args.plot)
@@ -390,7 +390,7 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of the `meshfg` console script; returns the exit code."""
     args = build_parser().parse_args(argv)
     try:
-        from meshfg_ros.core import blas
+        from meshfg_ros import blas
 
         blas.configure()  # before any command loads cvxopt: CHOLMOD binds to the BLAS chosen for this CPU
         return args.run(args)

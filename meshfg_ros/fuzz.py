@@ -299,7 +299,7 @@ class UpdateCampaign:
 
     def __init__(self, seed: int, options: dict):
         from meshfg_ros.core import estimator
-        from meshfg_ros.core.parameters import estimator_config
+        from meshfg_ros.parameters import estimator_config
 
         self.seed, self.module = seed, estimator
         self.fixture = _fixture(options["bag"])
@@ -699,7 +699,7 @@ CAMPAIGNS: dict[str, type] = {"decoder": DecoderCampaign, "update": UpdateCampai
 # ------------------------------------------------------------------------------------- runner
 def _worker(connection, factory, seed: int, options: dict, start: int, stop: int) -> None:
     """Worker process: set the campaign up, then run cases start..stop-1, reporting each."""
-    from meshfg_ros.core import blas
+    from meshfg_ros import blas
 
     blas.configure()
     warnings.simplefilter("ignore")  # overflow warnings are the input's, not news

@@ -34,7 +34,7 @@ from rosbags.highlevel import AnyReader
 from meshfg_ros.core.estimator import EstimatorInputError, EstimatorStepError, SlidingWindowEstimator, StepResult
 from meshfg_ros.core.input_checks import INVALID, JUMP_BACK, STALE, Scene, SceneError, check_initial_mesh, stamp_order
 from meshfg_ros.core.mesh import TetMesh, load_mesh
-from meshfg_ros.core.parameters import (
+from meshfg_ros.parameters import (
     FrameError,
     cloud_to_world,
     estimator_config,
@@ -58,7 +58,7 @@ from meshfg_ros.io.recording import (
     RecordingWriter,
 )
 from meshfg_ros.markers import mesh_markers, surface_edges
-from meshfg_ros.synth import ScenarioMetadata, read_metadata
+from meshfg_ros.io.scenario_metadata import ScenarioMetadata, read_metadata
 from meshfg_ros.topics import (
     CAMERA_POSE_TOPIC,
     COST_HISTORY_TOPIC,

@@ -9,7 +9,7 @@ so the offline results computed here and those of the node processes they are co
 import os
 import random
 
-from meshfg_ros.core import blas
+from meshfg_ros import blas
 
 blas.configure()
 

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from meshfg_ros.core.meshing import cube_mesh
-from meshfg_ros.core.metrics import sample_surface
-from meshfg_ros.core.scenarios import FIRST_STAMP_NS, STEP_PERIOD_NS, Scenario, ScenarioStep, pose
+from meshfg_ros.synthetic.meshing import cube_mesh
+from meshfg_ros.evaluation.metrics import sample_surface
+from meshfg_ros.synthetic.scenarios import FIRST_STAMP_NS, STEP_PERIOD_NS, Scenario, ScenarioStep, pose
 from meshfg_ros.core.simulator import SimulatorConfig, XpbdSimulator
 
 SIDE = 0.02

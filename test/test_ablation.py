@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from meshfg_ros.ablation import ABLATION_CONFIGURATIONS, VERTEX_SETS, format_table, run_ablation, write_plot
+from meshfg_ros.evaluation.ablation import ABLATION_CONFIGURATIONS, VERTEX_SETS, format_table, run_ablation, write_plot
 
 MESHFG = Path(sys.executable).with_name("meshfg")
 

@@ -10,11 +10,11 @@ import pytest
 from offline_helpers import BAGS, MESHFG
 
 from meshfg_ros.core.estimator import EstimatorConfig, SlidingWindowEstimator
-from meshfg_ros.core.parameters import estimator_config, load_parameters, simulator_config
-from meshfg_ros.core.scenarios import generate
+from meshfg_ros.parameters import estimator_config, load_parameters, simulator_config
+from meshfg_ros.synthetic.scenarios import generate
 from meshfg_ros.core.simulator import XpbdSimulator
 from meshfg_ros.replay import scenario_parameters
-from meshfg_ros.synth import scenario_metadata
+from meshfg_ros.synthetic.recordings import scenario_metadata
 
 
 def rmse(a, b, vertices=slice(None)):
@@ -95,8 +95,8 @@ def test_the_command_line_names_the_suite_and_the_scenarios_it_can_synthesise():
     """cli.py lists scene names without importing the heavy modules (fast --help): they must
     stay those of the accuracy suite and of core.scenarios."""
     from meshfg_ros import cli
-    from meshfg_ros.accuracy import SCENES
-    from meshfg_ros.core.scenarios import SCENARIOS
+    from meshfg_ros.evaluation.accuracy import SCENES
+    from meshfg_ros.synthetic.scenarios import SCENARIOS
 
     assert cli.ACCURACY_SCENES == SCENES
     synth = next(action for action in cli.build_parser()._subparsers._group_actions[0].choices["synth"]._actions

@@ -1,6 +1,6 @@
 """`meshfg bench`'s report: the CPU and the BLAS beside every figure, in the text and the JSON."""
-from meshfg_ros.bench import format_report, machine
-from meshfg_ros.core import blas
+from meshfg_ros.benchmarks.bench import format_report, machine
+from meshfg_ros import blas
 
 ON = {"cpu": "Some CPU 9000, 2 cores", "blas": "bundled", "blas_threads": 1, "blas_detail": "chosen for SomeVendor"}
 TAG = "[Some CPU 9000, 2 cores; BLAS bundled x1]"

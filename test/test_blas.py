@@ -13,16 +13,16 @@ import numpy as np
 import pytest
 from offline_helpers import mkl_installed
 
-from meshfg_ros.core import blas
+from meshfg_ros import blas
 
 PROBE = """
 import json, os, sys
 import numpy as np, scipy.sparse
 from threadpoolctl import threadpool_info
-from meshfg_ros.core import blas
+from meshfg_ros import blas
 backend = blas.configure()
 from meshfg_ros.core.fem import ElasticModel
-from meshfg_ros.core.meshing import box_mesh
+from meshfg_ros.synthetic.meshing import box_mesh
 from meshfg_ros.core.sparse_cholesky import SparseCholesky
 mesh = box_mesh(1331, (0.1, 0.1, 0.1))  # big enough for supernodal CHOLMOD (BLAS calls)
 matrix = ElasticModel(mesh.vertices, mesh.tetrahedra, 3e3, 0.45).stiffness(kind="linear")
@@ -51,7 +51,7 @@ import meshfg_ros.core
 before = [(pool["filepath"], pool["num_threads"]) for pool in threadpool_info()]
 for module in pkgutil.iter_modules(meshfg_ros.core.__path__):
     importlib.import_module(f"meshfg_ros.core.{module.name}")
-from meshfg_ros.core import blas
+from meshfg_ros import blas
 from meshfg_ros.core.sparse_cholesky import SparseCholesky
 matrix = scipy.sparse.diags(np.arange(1.0, 2001.0)).tocsr()
 solution = SparseCholesky(matrix).solve(np.ones(2000))
@@ -72,9 +72,9 @@ ENTRY_POINTS = {
     "nodes": "from meshfg_ros.nodes.runtime import run_nodes\n"
              "def interrupted():\n    raise KeyboardInterrupt\n"
              "assert run_nodes('probe', [interrupted], args=['probe']) == 0",
-    "bench": "from meshfg_ros.bench import machine\nmachine()",
+    "bench": "from meshfg_ros.benchmarks.bench import machine\nmachine()",
 }
-AFTER_ENTRY = ("\nimport json\nfrom meshfg_ros.core import blas\n"
+AFTER_ENTRY = ("\nimport json\nfrom meshfg_ros import blas\n"
                "print(json.dumps({'mkl_loaded': 'libmkl_rt' in open('/proc/self/maps').read(), "
                "'backend': blas.backend().name}))")
 
@@ -168,7 +168,7 @@ def test_each_entry_point_binds_the_blas(entry_point):
 @pytest.mark.slow
 @pytest.mark.skipif(not mkl_installed(), reason="the mkl package is not installed (x86-64 Linux only)")
 def test_binding_after_cvxopt_was_loaded_is_refused_and_says_so():
-    code = ("import cvxopt.cholmod\nfrom meshfg_ros.core import blas\n"
+    code = ("import cvxopt.cholmod\nfrom meshfg_ros import blas\n"
             "backend = blas.configure()\nprint(backend.name + '|' + backend.detail)")
     output = run_python(code, MESHFG_BLAS="mkl").stdout.strip()
     assert output == "bundled|MESHFG_BLAS=mkl, but cvxopt was imported before MKL could be bound"

@@ -6,7 +6,7 @@ import trimesh
 from scipy.spatial import cKDTree
 from trimesh.ray.ray_triangle import RayMeshIntersector
 
-from meshfg_ros.core.camera import CaptureOptions, PinholeCamera, capture, first_ray_hits
+from meshfg_ros.synthetic.camera import CaptureOptions, PinholeCamera, capture, first_ray_hits
 
 
 def square(center_z, half_size, center_xy=(0.0, 0.0)):

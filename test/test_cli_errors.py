@@ -9,7 +9,7 @@ from offline_helpers import BAGS, MESHFG, tiny_scenario, write_fake_replay
 
 from meshfg_ros.io.messages import PoseRecord, RosbagsMessageFactory
 from meshfg_ros.io.recording import RecordingWriter
-from meshfg_ros.synth import write_scenario
+from meshfg_ros.synthetic.recordings import write_scenario
 from meshfg_ros.topics import POINTS_TOPIC, TOOL_POSE_TOPIC
 
 pytestmark = pytest.mark.slow  # each case runs the meshfg command as a process

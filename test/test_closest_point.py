@@ -20,7 +20,7 @@ from meshfg_ros.core.closest_point import (
     project_onto_triangles,
     projection_jacobian,
 )
-from meshfg_ros.core.meshing import cube_mesh
+from meshfg_ros.synthetic.meshing import cube_mesh
 
 ALL_REGIONS = (REGION_FACE, REGION_VERTEX_A, REGION_VERTEX_B, REGION_VERTEX_C, REGION_EDGE_AB, REGION_EDGE_AC, REGION_EDGE_BC)
 
@@ -186,7 +186,7 @@ def test_bad_input_raises():
 def test_index_association_on_the_liver_equals_brute_force():
     """A real anatomical surface (SOFA's liver: curved, uneven triangles) and points on both
     sides of it, near and far: same distances and closest points as all pairs."""
-    from meshfg_ros.core.scenarios import liver_mesh
+    from meshfg_ros.synthetic.scenarios import liver_mesh
 
     mesh = liver_mesh()
     vertices, triangles = mesh.vertices, mesh.surface_triangles

@@ -4,7 +4,7 @@ conditioning choice against the growing full batch, posterior std, and bad input
 import numpy as np
 import pytest
 
-from meshfg_ros.core.baselines import WhitenedProblem, freeze_associations, synthetic_sequence
+from meshfg_ros.benchmarks.baselines import WhitenedProblem, freeze_associations, synthetic_sequence
 from meshfg_ros.core.estimator import (
     FACTOR_CONFIGURATIONS,
     EstimatorConfig,

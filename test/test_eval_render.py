@@ -6,8 +6,8 @@ import pytest
 from matplotlib.image import imread
 from offline_helpers import tiny_scenario, write_fake_replay
 
-from meshfg_ros.core.metrics import vertex_rmse
-from meshfg_ros.evaluation import (
+from meshfg_ros.evaluation.metrics import vertex_rmse
+from meshfg_ros.evaluation.evaluate import (
     EvaluationError,
     evaluate,
     evaluate_recordings,
@@ -17,8 +17,8 @@ from meshfg_ros.evaluation import (
     write_json,
 )
 from meshfg_ros.io.messages import MeshState
-from meshfg_ros.render import OutputDirectoryError, render
-from meshfg_ros.synth import write_scenario
+from meshfg_ros.evaluation.render import OutputDirectoryError, render
+from meshfg_ros.synthetic.recordings import write_scenario
 
 SAMPLES = 4000
 OFFSET = 1e-3  # the fake estimate is the truth shifted 1 mm up

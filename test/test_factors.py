@@ -7,7 +7,7 @@ import scipy.sparse
 import torch
 from torch.func import jacrev, vmap
 
-from meshfg_ros.core.baselines import WhitenedProblem, freeze_associations
+from meshfg_ros.benchmarks.baselines import WhitenedProblem, freeze_associations
 from meshfg_ros.core.factors import (
     FactorError,
     FactorGraph,
@@ -18,8 +18,8 @@ from meshfg_ros.core.factors import (
 )
 from meshfg_ros.core.closest_point import REGION_FACE
 from meshfg_ros.core.fem import ElasticModel
-from meshfg_ros.core.meshing import cube_mesh
-from meshfg_ros.core.metrics import sample_surface
+from meshfg_ros.synthetic.meshing import cube_mesh
+from meshfg_ros.evaluation.metrics import sample_surface
 from meshfg_ros.core.noise import (
     IdentityNoise,
     InformationMatrixNoise,

@@ -32,8 +32,8 @@ from meshfg_ros.core.input_checks import (
     stamp_order,
 )
 from meshfg_ros.core.levenberg_marquardt import NonFiniteCostError
-from meshfg_ros.core.parameters import estimator_config, load_parameters
-from meshfg_ros.core.scenarios import FIRST_STAMP_NS, STEP_PERIOD_NS
+from meshfg_ros.parameters import estimator_config, load_parameters
+from meshfg_ros.synthetic.scenarios import FIRST_STAMP_NS, STEP_PERIOD_NS
 from meshfg_ros.io.messages import MeshState, PointCloudRecord, PoseRecord
 from meshfg_ros.io.recording import RecordingWriter
 from meshfg_ros.replay import ReplayError, iterate_replay, load_inputs, replay_parameters, replay_recording

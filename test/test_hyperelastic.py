@@ -6,7 +6,7 @@ import pytest
 
 from meshfg_ros.core.fem import ElasticModel
 from meshfg_ros.core.mesh import signed_volumes
-from meshfg_ros.core.meshing import structured_box_mesh
+from meshfg_ros.synthetic.meshing import structured_box_mesh
 from meshfg_ros.synthetic import hyperelastic
 from meshfg_ros.synthetic.hyperelastic import (
     EquilibriumError,

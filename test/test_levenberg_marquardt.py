@@ -6,7 +6,7 @@ import pytest
 import scipy.optimize
 import scipy.sparse
 
-from meshfg_ros.core.baselines import compare_single_update
+from meshfg_ros.benchmarks.baselines import compare_single_update
 from meshfg_ros.core.factors import MIN_VOLUME_RATIO_PER_STEP, FactorGraph, PhysicsPriorFactor, prior_scale
 from meshfg_ros.core.fem import ElasticModel
 from meshfg_ros.core.levenberg_marquardt import LevenbergMarquardtConfig, levenberg_marquardt
@@ -21,7 +21,7 @@ from meshfg_ros.core.linear_solvers import (
     make_linear_solver,
 )
 from meshfg_ros.core import sparse_cholesky
-from meshfg_ros.core.meshing import cube_mesh
+from meshfg_ros.synthetic.meshing import cube_mesh
 
 from test_factors import build_window, cube, model  # noqa: F401  (fixtures)
 
@@ -332,7 +332,7 @@ def test_fallback_solver_says_what_failed(cube, model):  # noqa: F811
 
 
 def test_estimator_window_problem_matches_scipy():
-    from meshfg_ros.core.baselines import pending_window, synthetic_sequence
+    from meshfg_ros.benchmarks.baselines import pending_window, synthetic_sequence
     from meshfg_ros.core.estimator import EstimatorConfig
 
     mesh, sequence = synthetic_sequence(target_vertices=64, points_per_step=200, steps=4, noise_sigma=5e-4,

@@ -11,12 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from meshfg_ros.core.scenarios import generate
+from meshfg_ros.synthetic.scenarios import generate
 from meshfg_ros.io.messages import PointCloudRecord
 from meshfg_ros.io.recording import RecordingReader
-from meshfg_ros.nodes.latency import LIVE_OVERRIDES, run_live_pipeline
+from meshfg_ros.benchmarks.latency import LIVE_OVERRIDES, run_live_pipeline
 from meshfg_ros.replay import replay_recording
-from meshfg_ros.synth import write_scenario
+from meshfg_ros.synthetic.recordings import write_scenario
 from meshfg_ros.topics import POINTS_TOPIC
 
 pytestmark = pytest.mark.slow  # node processes over DDS

@@ -4,7 +4,7 @@ import pytest
 from rclpy.serialization import deserialize_message, serialize_message
 from visualization_msgs.msg import Marker, MarkerArray
 
-from meshfg_ros.core.meshing import cube_mesh
+from meshfg_ros.synthetic.meshing import cube_mesh
 from meshfg_ros.io.messages import RclpyMessageFactory, RosbagsMessageFactory, meshfg_typestore
 from meshfg_ros.markers import mesh_markers, std_colours, surface_edges
 

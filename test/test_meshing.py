@@ -1,9 +1,9 @@
-"""Tests for meshfg_ros.core.meshing: structured cube / box meshes and the airway phantom."""
+"""Tests for meshfg_ros.synthetic.meshing: structured cube / box meshes and the airway phantom."""
 
 import numpy as np
 import pytest
 
-from meshfg_ros.core.meshing import (
+from meshfg_ros.synthetic.meshing import (
     MeshingParameterError,
     airway_phantom,
     box_mesh,

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from meshfg_ros.core import metrics
-from meshfg_ros.core.camera import PinholeCamera, capture
+from meshfg_ros.evaluation import metrics
+from meshfg_ros.synthetic.camera import PinholeCamera, capture
 
 UNIT_SQUARE = (
     np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]]),

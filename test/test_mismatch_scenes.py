@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from meshfg_ros.core.mesh import signed_volumes
-from meshfg_ros.core.scenarios import MISMATCH_SCENARIOS, SCENARIOS, ScenarioError, generate
+from meshfg_ros.synthetic.scenarios import MISMATCH_SCENARIOS, SCENARIOS, ScenarioError, generate
 from meshfg_ros.core.simulator import SimulatorConfig, XpbdSimulator
 from meshfg_ros.replay import scenario_parameters
-from meshfg_ros.synth import scenario_metadata
+from meshfg_ros.synthetic.recordings import scenario_metadata
 from meshfg_ros.synthetic import mismatch_scenes
 from meshfg_ros.synthetic.mismatch_scenes import build_scene, radius_ratios
 

@@ -24,9 +24,9 @@ from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import MarkerArray
 
 from meshfg_msgs.msg import EstimatorStatus, PredictionFailure, TetraMesh
-from meshfg_ros.core import blas
-from meshfg_ros.core.meshing import cube_mesh
-from meshfg_ros.core.parameters import load_parameters, simulator_config
+from meshfg_ros import blas
+from meshfg_ros.synthetic.meshing import cube_mesh
+from meshfg_ros.parameters import load_parameters, simulator_config
 from meshfg_ros.core.simulator import XpbdSimulator
 from meshfg_ros.io.messages import (
     MeshState,

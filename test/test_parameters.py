@@ -7,7 +7,7 @@ import yaml
 from rcl_interfaces.msg import ParameterType
 
 from meshfg_ros.core.estimator import EstimatorConfig
-from meshfg_ros.core.parameters import (
+from meshfg_ros.parameters import (
     PARAMETERS,
     FrameError,
     ParameterError,

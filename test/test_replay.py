@@ -10,8 +10,8 @@ from offline_helpers import NOISE_SIGMA, TOOL_RADIUS, tiny_scenario
 
 from meshfg_ros.core.estimator import SlidingWindowEstimator
 from meshfg_ros.core.mesh import MeshFileError, save_mesh
-from meshfg_ros.core.parameters import ParameterError, estimator_config, simulator_config
-from meshfg_ros.core.scenarios import FIRST_STAMP_NS, STEP_PERIOD_NS
+from meshfg_ros.parameters import ParameterError, estimator_config, simulator_config
+from meshfg_ros.synthetic.scenarios import FIRST_STAMP_NS, STEP_PERIOD_NS
 from meshfg_ros.core.simulator import XpbdSimulator
 from meshfg_ros.io.messages import MeshState, PointCloudRecord, PoseRecord, StatusRecord
 from meshfg_ros.io.recording import RecordingExistsError, RecordingReader, RecordingWriter
@@ -24,7 +24,7 @@ from meshfg_ros.replay import (
     scenario_parameters,
     write_replay,
 )
-from meshfg_ros.synth import write_scenario
+from meshfg_ros.synthetic.recordings import write_scenario
 from meshfg_ros.topics import (
     CAMERA_POSE_TOPIC,
     COST_HISTORY_TOPIC,

@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from meshfg_ros.core.fem import ElasticModel, free_dofs
 from meshfg_ros.core.mesh import signed_volumes
-from meshfg_ros.core.meshing import cube_mesh, structured_box_mesh
+from meshfg_ros.synthetic.meshing import cube_mesh, structured_box_mesh
 from meshfg_ros.core.simulator import (
     ElementInversionError,
     SimulatorConfig,
@@ -307,7 +307,7 @@ def test_stuck_vertices_stay_stuck_when_the_next_start_is_a_noisy_estimate():
     0.1 mm correction moved (an estimate), the tool keeps holding the vertex it held. Without
     that memory the held vertex of the coarse SOFA liver could lift off, slide off the pole, and
     the tool pass between vertices: predictions 10 mm off (measured before the memory existed)."""
-    from meshfg_ros.core.scenarios import liver_mesh
+    from meshfg_ros.synthetic.scenarios import liver_mesh
 
     mesh = liver_mesh()
     top = mesh.surface_vertices[np.argmax(mesh.vertices[mesh.surface_vertices, 1])]

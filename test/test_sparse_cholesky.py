@@ -5,7 +5,7 @@ import pytest
 import scipy.sparse
 
 from meshfg_ros.core.fem import ElasticModel
-from meshfg_ros.core.meshing import box_mesh
+from meshfg_ros.synthetic.meshing import box_mesh
 from meshfg_ros.core.noise import NotPositiveDefiniteError
 from meshfg_ros.core import sparse_cholesky
 from meshfg_ros.core.sparse_cholesky import SparseCholesky, nested_dissection

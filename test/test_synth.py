@@ -12,11 +12,12 @@ from mcap_ros2.decoder import DecoderFactory
 from offline_helpers import BAGS, MESHFG, mkl_installed, tiny_scenario
 from rosbags.highlevel import AnyReader
 
-from meshfg_ros.core.scenarios import FIRST_STAMP_NS
+from meshfg_ros.synthetic.scenarios import FIRST_STAMP_NS
 from meshfg_ros.io.messages import MeshState, PointCloudRecord, PoseRecord, meshfg_typestore
 from meshfg_ros.io.pointcloud import decode_pointcloud2
 from meshfg_ros.io.recording import RecordingExistsError, RecordingReader
-from meshfg_ros.synth import ScenarioMetadata, read_metadata, scenario_metadata, write_scenario
+from meshfg_ros.io.scenario_metadata import ScenarioMetadata, read_metadata
+from meshfg_ros.synthetic.recordings import scenario_metadata, write_scenario
 from meshfg_ros.topics import (
     CAMERA_POSE_TOPIC,
     GROUND_TRUTH_TOPIC,

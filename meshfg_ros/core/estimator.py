@@ -71,8 +71,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg
 
-from .closest_point import ClosestPointIndex
-from .factors import (
+from meshfg_ros.core.closest_point import ClosestPointIndex
+from meshfg_ros.core.factors import (
     FactorGraph,
     PhysicsPriorFactor,
     PointToSurfaceFactor,
@@ -80,8 +80,8 @@ from .factors import (
     VolumeBarrierFactor,
     prior_scale,
 )
-from .fem import STIFFNESS_KINDS, ElasticModel
-from .input_checks import (
+from meshfg_ros.core.fem import STIFFNESS_KINDS, ElasticModel
+from meshfg_ros.core.input_checks import (
     REJECTIONS,
     Scene,
     StampError,
@@ -90,12 +90,12 @@ from .input_checks import (
     innovation_sample,
     innovation_spread,
 )
-from .levenberg_marquardt import LevenbergMarquardtConfig, levenberg_marquardt
-from .linear_solvers import LINEAR_SOLVERS, LinearSolveError, NotPositiveDefiniteError, make_linear_solver
-from .mesh import TetMesh, signed_volumes
-from .noise import IsotropicNoise
-from .robust import ROBUST_KERNELS, make_robust_kernel
-from .weights import MIN_POINTS, PRIOR_NOISE_RATIO, MeasurementNoise
+from meshfg_ros.core.levenberg_marquardt import LevenbergMarquardtConfig, levenberg_marquardt
+from meshfg_ros.core.linear_solvers import LINEAR_SOLVERS, LinearSolveError, NotPositiveDefiniteError, make_linear_solver
+from meshfg_ros.core.mesh import TetMesh, signed_volumes
+from meshfg_ros.core.noise import IsotropicNoise
+from meshfg_ros.core.robust import ROBUST_KERNELS, make_robust_kernel
+from meshfg_ros.core.weights import MIN_POINTS, PRIOR_NOISE_RATIO, MeasurementNoise
 
 __all__ = [
     "FACTOR_CONFIGURATIONS",

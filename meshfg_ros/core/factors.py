@@ -22,11 +22,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse
 
-from .closest_point import REGION_FACE, Association, ClosestPointIndex, project_onto_triangles, projection_jacobian
-from .linear_solvers import WindowSystem, diagonal_positions
-from .mesh import signed_volumes
-from .noise import IdentityNoise, InformationMatrixNoise, PointNoise
-from .robust import RobustKernel
+from meshfg_ros.core.closest_point import REGION_FACE, Association, ClosestPointIndex, project_onto_triangles, projection_jacobian
+from meshfg_ros.core.linear_solvers import WindowSystem, diagonal_positions
+from meshfg_ros.core.mesh import signed_volumes
+from meshfg_ros.core.noise import IdentityNoise, InformationMatrixNoise, PointNoise
+from meshfg_ros.core.robust import RobustKernel
 
 __all__ = [
     "MIN_VOLUME_RATIO_PER_STEP",

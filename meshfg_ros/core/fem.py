@@ -36,7 +36,7 @@ import scipy.linalg
 import scipy.sparse
 import scipy.sparse.linalg
 
-from .mesh import DegenerateMeshError as DegenerateElementError  # one error for degenerate rest elements
+from meshfg_ros.core.mesh import DegenerateMeshError as DegenerateElementError  # one error for degenerate rest elements
 
 __all__ = [
     "STIFFNESS_KINDS",

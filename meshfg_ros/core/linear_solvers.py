@@ -25,8 +25,8 @@ import numpy as np
 import scipy.sparse
 import scipy.sparse.linalg
 
-from .noise import NotPositiveDefiniteError
-from .sparse_cholesky import SparseCholesky
+from meshfg_ros.core.noise import NotPositiveDefiniteError
+from meshfg_ros.core.sparse_cholesky import SparseCholesky
 
 __all__ = [
     "LINEAR_SOLVERS",

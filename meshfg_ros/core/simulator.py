@@ -38,9 +38,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from .fem import ElasticModel
-from .sparse_cholesky import SparseCholesky
-from .mesh import TetMesh, name_elements, signed_volumes
+from meshfg_ros.core.fem import ElasticModel
+from meshfg_ros.core.sparse_cholesky import SparseCholesky
+from meshfg_ros.core.mesh import TetMesh, name_elements, signed_volumes
 
 __all__ = [
     "SOLVERS",

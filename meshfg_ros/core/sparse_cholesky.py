@@ -24,7 +24,7 @@ import numpy as np
 import scipy.sparse
 import pymetis
 
-from .noise import NotPositiveDefiniteError
+from meshfg_ros.core.noise import NotPositiveDefiniteError
 
 __all__ = ["SparseCholesky", "nested_dissection"]
 

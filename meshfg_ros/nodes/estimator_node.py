@@ -43,11 +43,11 @@ from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import MarkerArray
 
 from meshfg_msgs.msg import EstimatorStatus, PredictionFailure, TetraMesh
-from meshfg_ros.core import blas
+from meshfg_ros import blas
 from meshfg_ros.core.estimator import SlidingWindowEstimator, StepResult
 from meshfg_ros.core.input_checks import INVALID, JUMP_BACK, STALE, check_initial_mesh, rejections_in, stamp_order
 from meshfg_ros.core.mesh import TetMesh, load_mesh
-from meshfg_ros.core.parameters import PARAMETERS, FrameError, cloud_to_world, estimator_config
+from meshfg_ros.parameters import PARAMETERS, FrameError, cloud_to_world, estimator_config
 from meshfg_ros.io.messages import (
     MeshState,
     MessageValidationError,

@@ -21,7 +21,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter as RosParameter
 
 from meshfg_ros.core.mesh import TetMesh
-from meshfg_ros.core.parameters import PARAMETERS, load_parameters
+from meshfg_ros.parameters import PARAMETERS, load_parameters
 from meshfg_ros.io.messages import TETRA_MESH, MeshState, RclpyMessageFactory, header_msg
 from meshfg_ros.io.recording import RECORD_TYPES
 

@@ -12,8 +12,8 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
-from meshfg_ros.core import blas
-from meshfg_ros.core.parameters import ParameterError
+from meshfg_ros import blas
+from meshfg_ros.parameters import ParameterError
 
 
 def init_without_signal_handlers(args=None) -> None:

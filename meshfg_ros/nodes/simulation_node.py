@@ -37,7 +37,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from meshfg_msgs.msg import PredictionFailure, TetraMesh
 from meshfg_ros.core.input_checks import INVALID, JUMP_BACK, STALE, Scene, check_initial_mesh, stamp_order
 from meshfg_ros.core.mesh import load_mesh
-from meshfg_ros.core.parameters import simulator_config
+from meshfg_ros.parameters import simulator_config
 from meshfg_ros.core.simulator import XpbdSimulator
 from meshfg_ros.io.messages import (
     MeshState,

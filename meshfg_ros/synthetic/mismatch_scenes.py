@@ -36,13 +36,13 @@ from functools import lru_cache
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from meshfg_ros.core.camera import CaptureOptions, PinholeCamera, capture
+from meshfg_ros.synthetic.camera import CaptureOptions, PinholeCamera, capture
 from meshfg_ros.core.mesh import TetMesh, signed_volumes
-from meshfg_ros.core.meshing import MeshingError, compact_tetrahedra, gmsh_model
-from meshfg_ros.core.scenarios import Scenario, ScenarioError, ScenarioStep, _stamp, liver_mesh, pose
+from meshfg_ros.synthetic.meshing import MeshingError, compact_tetrahedra, gmsh_model
+from meshfg_ros.synthetic.scenarios import Scenario, ScenarioError, ScenarioStep, _stamp, liver_mesh, pose
 from meshfg_ros.core.simulator import SimulatorConfig
 
-from .hyperelastic import NeoHookeanSolid, StickySphereContact
+from meshfg_ros.synthetic.hyperelastic import NeoHookeanSolid, StickySphereContact
 
 __all__ = ["build_scene", "radius_ratios"]
 

@@ -16,11 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import CaptureOptions, PinholeCamera, capture
-from .mesh import TetMesh, load_mesh
-from .meshing import airway_phantom, cube_mesh
-from .metrics import sample_surface
-from .simulator import SimulatorConfig, XpbdSimulator
+from meshfg_ros.synthetic.camera import CaptureOptions, PinholeCamera, capture
+from meshfg_ros.core.mesh import TetMesh, load_mesh
+from meshfg_ros.synthetic.meshing import airway_phantom, cube_mesh
+from meshfg_ros.evaluation.metrics import sample_surface
+from meshfg_ros.core.simulator import SimulatorConfig, XpbdSimulator
 
 MISMATCH_SCENARIOS = ("slab-inclusion", "dome-tilted", "liver-gravity", "kidney-drag")
 SCENARIOS = ("cube-translate", "cube-shear-spd", "cube-shear-nonspd", "cao-push", "liver-push", *MISMATCH_SCENARIOS)

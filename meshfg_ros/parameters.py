@@ -22,12 +22,12 @@ import numpy as np
 import yaml
 from scipy.spatial.transform import Rotation
 
-from .estimator import FACTOR_CONFIGURATIONS, EstimatorConfig
-from .fem import STIFFNESS_KINDS
-from .linear_solvers import LINEAR_SOLVERS
-from .robust import ROBUST_KERNELS
-from .simulator import SOLVERS as SIMULATOR_SOLVERS
-from .simulator import TOOL_CONTACTS, TOOL_MODES, SimulatorConfig
+from meshfg_ros.core.estimator import FACTOR_CONFIGURATIONS, EstimatorConfig
+from meshfg_ros.core.fem import STIFFNESS_KINDS
+from meshfg_ros.core.linear_solvers import LINEAR_SOLVERS
+from meshfg_ros.core.robust import ROBUST_KERNELS
+from meshfg_ros.core.simulator import SOLVERS as SIMULATOR_SOLVERS
+from meshfg_ros.core.simulator import TOOL_CONTACTS, TOOL_MODES, SimulatorConfig
 
 __all__ = [
     "PARAMETERS",

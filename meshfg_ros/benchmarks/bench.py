@@ -50,10 +50,10 @@ def _median_time(function, repeats: int) -> tuple[float, object]:
 
 def bench_core(repeats: int = 5, progress: bool = True) -> dict:
     """K assembly and one simulator step on the liver, the airway tumour and a 10k box."""
-    from .core.fem import ElasticModel
-    from .core.meshing import airway_phantom, box_mesh
-    from .core.scenarios import liver_mesh, pose
-    from .core.simulator import SimulatorConfig, XpbdSimulator
+    from meshfg_ros.core.fem import ElasticModel
+    from meshfg_ros.synthetic.meshing import airway_phantom, box_mesh
+    from meshfg_ros.synthetic.scenarios import liver_mesh, pose
+    from meshfg_ros.core.simulator import SimulatorConfig, XpbdSimulator
 
     box = box_mesh(10_000, (0.1, 0.1, 0.1))
     box = box.with_fixed(np.flatnonzero(np.isclose(box.vertices[:, 2], 0.0)))
@@ -86,8 +86,8 @@ def bench_core(repeats: int = 5, progress: bool = True) -> dict:
 
 def bench_estimator(scale: dict, progress: bool = True) -> dict:
     """Per-update latency of the sliding-window estimator on a synthetic deforming box."""
-    from .core.baselines import benchmark_update, mismatch_sequence
-    from .core.estimator import EstimatorConfig
+    from meshfg_ros.benchmarks.baselines import benchmark_update, mismatch_sequence
+    from meshfg_ros.core.estimator import EstimatorConfig
 
     mesh, sequence = mismatch_sequence(scale["target_vertices"], scale["points_per_step"], scale["steps"])
     config = EstimatorConfig(window_size=scale["window_size"])
@@ -110,8 +110,8 @@ BASELINE_TOLERANCE = 1e-8  # relative cost decrease at which every solver stops
 
 
 def _single_update_problem(scale: dict):
-    from .core.baselines import mismatch_sequence, pending_window
-    from .core.estimator import EstimatorConfig
+    from meshfg_ros.benchmarks.baselines import mismatch_sequence, pending_window
+    from meshfg_ros.core.estimator import EstimatorConfig
 
     mesh, sequence = mismatch_sequence(scale["target_vertices"], scale["points_per_step"], scale["window_size"] + 1)
     _, graph = pending_window(mesh, sequence, EstimatorConfig(window_size=scale["window_size"], **BASELINE_ESTIMATOR))
@@ -123,8 +123,8 @@ def _single_update_problem(scale: dict):
 
 
 def _compare(graph, solvers, repeats: int, progress: bool, label: str) -> dict:
-    from .core.baselines import compare_single_update
-    from .core.estimator import EstimatorConfig
+    from meshfg_ros.benchmarks.baselines import compare_single_update
+    from meshfg_ros.core.estimator import EstimatorConfig
 
     out = {}
     for name in tqdm(solvers, desc=f"bench baselines ({label})", file=sys.stderr, disable=not progress):
@@ -159,7 +159,7 @@ def bench_baselines(repeats: int = 3, progress: bool = True) -> dict:
 
 def bench_live(bag: Path) -> dict:
     """Cloud arrival to estimate published, simulation + estimator nodes over real DDS."""
-    from .nodes.latency import measure_live_latency
+    from meshfg_ros.benchmarks.latency import measure_live_latency
 
     return measure_live_latency(bag)
 
@@ -167,7 +167,7 @@ def bench_live(bag: Path) -> dict:
 def machine() -> dict:
     """The CPU and the sparse Cholesky BLAS the figures of this process are measured on
     (blas.configure, as the `meshfg` command and the nodes call it)."""
-    from .core import blas
+    from meshfg_ros import blas
 
     backend = blas.configure()
     return {"cpu": backend.cpu, "blas": backend.name, "blas_threads": backend.threads, "blas_detail": backend.detail}

@@ -28,13 +28,13 @@ import numpy as np
 import scipy.optimize
 import scipy.sparse
 
-from .closest_point import REGION_FACE, project_onto_triangles, projection_jacobian
-from .factors import FactorGraph, PhysicsPriorFactor, PointToSurfaceFactor, TemporalFactor, VolumeBarrierFactor
-from .levenberg_marquardt import LevenbergMarquardtConfig, levenberg_marquardt
-from .linear_solvers import make_linear_solver
-from .mesh import TetMesh
-from .meshing import box_mesh
-from .metrics import sample_surface
+from meshfg_ros.core.closest_point import REGION_FACE, project_onto_triangles, projection_jacobian
+from meshfg_ros.core.factors import FactorGraph, PhysicsPriorFactor, PointToSurfaceFactor, TemporalFactor, VolumeBarrierFactor
+from meshfg_ros.core.levenberg_marquardt import LevenbergMarquardtConfig, levenberg_marquardt
+from meshfg_ros.core.linear_solvers import make_linear_solver
+from meshfg_ros.core.mesh import TetMesh
+from meshfg_ros.synthetic.meshing import box_mesh
+from meshfg_ros.evaluation.metrics import sample_surface
 
 __all__ = [
     "BaselineError",
@@ -435,7 +435,7 @@ def benchmark_update(mesh: TetMesh, sequence, config, warmup: int | None = None)
     one linear solve), final_costs, rmse_m (vertex RMSE of each update against the truth),
     converged_share (of the timed updates) and the last measurement sigma estimate.
     """
-    from .estimator import SlidingWindowEstimator  # avoids an import cycle (estimator uses factors)
+    from meshfg_ros.core.estimator import SlidingWindowEstimator  # avoids an import cycle (estimator uses factors)
 
     estimator = SlidingWindowEstimator(mesh, config)
     warmup = config.window_size - 1 if warmup is None else warmup
@@ -477,7 +477,7 @@ def pending_window(mesh: TetMesh, sequence, config):
     estimator runs over all steps but the last, then adds the last one without optimising.
     Returns (estimator, graph) with the association frozen at the initial guess, ready for
     `compare_single_update`. Needs K held fixed (stiffness_update "update", the default)."""
-    from .estimator import SlidingWindowEstimator  # avoids an import cycle
+    from meshfg_ros.core.estimator import SlidingWindowEstimator  # avoids an import cycle
 
     estimator = SlidingWindowEstimator(mesh, config)
     for step in sequence[:-1]:

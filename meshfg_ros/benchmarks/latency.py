@@ -9,7 +9,7 @@ cloud's arrival to its estimate's arrival (both seen by the recorder, one clock)
 The nodes get the parameters the offline replay would use on the recording
 (meshfg_ros.replay.replay_parameters), so both estimate the same trajectory.
 
-    python -m meshfg_ros.nodes.latency record OUT.npz --clouds N [--timeout S] --ros-args ...
+    python -m meshfg_ros.benchmarks.latency record OUT.npz --clouds N [--timeout S] --ros-args ...
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import PointCloud2
 
 from meshfg_msgs.msg import EstimatorStatus, TetraMesh
-from meshfg_ros.core.parameters import parameters_yaml
+from meshfg_ros.parameters import parameters_yaml
 from meshfg_ros.io.messages import stamp_ns_from_msg
 from meshfg_ros.replay import load_inputs, replay_parameters
 from meshfg_ros.topics import INITIAL_MESH_TOPIC, POINTS_TOPIC, TOOL_POSE_TOPIC
@@ -124,7 +124,7 @@ def run_live_pipeline(
     nodes = ["meshfg_stack"] if single_process else ["simulation_node", "estimator_node"]
     commands = {
         **{name: [executable(name), *node_args] for name in nodes},
-        "recorder": [sys.executable, "-m", "meshfg_ros.nodes.latency", "record", str(out), "--clouds", str(expected),
+        "recorder": [sys.executable, "-m", "meshfg_ros.benchmarks.latency", "record", str(out), "--clouds", str(expected),
                      "--timeout", str(timeout_s), *ros_args],
     }
     processes: dict[str, subprocess.Popen] = {}
@@ -284,9 +284,9 @@ def _connected(node) -> bool:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """`python -m meshfg_ros.nodes.latency record OUT.npz --clouds N [--timeout S] --ros-args ...`."""
+    """`python -m meshfg_ros.benchmarks.latency record OUT.npz --clouds N [--timeout S] --ros-args ...`."""
     argv = sys.argv if argv is None else argv
-    parser = argparse.ArgumentParser(prog="python -m meshfg_ros.nodes.latency")
+    parser = argparse.ArgumentParser(prog="python -m meshfg_ros.benchmarks.latency")
     commands = parser.add_subparsers(dest="command", required=True)
     recorder = commands.add_parser("record", help="record the estimates of a running pipeline")
     recorder.add_argument("out", type=Path)

@@ -26,11 +26,11 @@ from pathlib import Path
 
 import numpy as np
 
-from meshfg_ros.evaluation import evaluate_recordings
+from meshfg_ros.evaluation.evaluate import evaluate_recordings
 from meshfg_ros.io.messages import StatusRecord
 from meshfg_ros.io.recording import RecordingReader
 from meshfg_ros.replay import write_replay
-from meshfg_ros.synth import synthesize
+from meshfg_ros.synthetic.recordings import synthesize
 from meshfg_ros.topics import STATUS_TOPIC
 
 __all__ = ["BUNDLED_SCENES", "SCENES", "SYNTHESISED_SCENES", "TARGETS", "format_table", "run_accuracy",

@@ -16,7 +16,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from meshfg_ros.core.camera import as_point_array, as_triangle_array, first_ray_hits
+from meshfg_ros.synthetic.camera import as_point_array, as_triangle_array, first_ray_hits
 
 
 def vertex_rmse(estimate, truth, indices=None) -> float:

@@ -34,7 +34,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from meshfg_ros.core.closest_point import ClosestPointIndex
-from meshfg_ros.core.metrics import (
+from meshfg_ros.evaluation.metrics import (
     observable_triangles,
     sample_surface,
     unobserved_external_vertices,
@@ -42,7 +42,7 @@ from meshfg_ros.core.metrics import (
 )
 from meshfg_ros.io.messages import MeshState, PointCloudRecord, PoseRecord
 from meshfg_ros.io.recording import RecordingReader
-from meshfg_ros.synth import read_metadata
+from meshfg_ros.io.scenario_metadata import read_metadata
 from meshfg_ros.topics import (
     CAMERA_POSE_TOPIC,
     ESTIMATED_MESH_TOPIC,

@@ -24,7 +24,7 @@ from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-from meshfg_ros.evaluation import evaluate_recordings, evaluated_faces
+from meshfg_ros.evaluation.evaluate import evaluate_recordings, evaluated_faces
 from meshfg_ros.io.messages import MeshState, PointCloudRecord, StatusRecord
 from meshfg_ros.io.recording import RecordingReader
 from meshfg_ros.topics import (

@@ -11,10 +11,10 @@ import sys
 
 from tqdm import tqdm
 
-from .core.estimator import EstimatorConfig, SlidingWindowEstimator
-from .core.metrics import summarise, unobserved_external_vertices, vertex_rmse
-from .core.scenarios import Scenario, generate
-from .core.simulator import XpbdSimulator
+from meshfg_ros.core.estimator import EstimatorConfig, SlidingWindowEstimator
+from meshfg_ros.evaluation.metrics import summarise, unobserved_external_vertices, vertex_rmse
+from meshfg_ros.synthetic.scenarios import Scenario, generate
+from meshfg_ros.core.simulator import XpbdSimulator
 
 ABLATION_CONFIGURATIONS = ("temporal", "measurement", "temporal+measurement", "simulation+measurement", "full")
 CUBE_SCENARIOS = ("cube-translate", "cube-shear-spd", "cube-shear-nonspd")
