@@ -31,8 +31,9 @@ import numpy as np
 import yaml
 from rosbags.highlevel import AnyReader
 
-from meshfg_ros.core.estimator import EstimatorInputError, EstimatorStepError, SlidingWindowEstimator, StepResult
-from meshfg_ros.core.input_checks import INVALID, JUMP_BACK, STALE, Scene, SceneError, check_initial_mesh, stamp_order
+from meshfg_ros.core.estimator import StepResult
+from meshfg_ros.core.input_checks import SceneError, check_initial_mesh
+from meshfg_ros.core.scheduler import OfflinePipeline, run_offline
 from meshfg_ros.core.mesh import TetMesh, load_mesh
 from meshfg_ros.parameters import (
     FrameError,
@@ -42,13 +43,13 @@ from meshfg_ros.parameters import (
     read_parameters_file,
     simulator_config,
 )
-from meshfg_ros.core.simulator import SimulatorConfig, XpbdSimulator
+from meshfg_ros.core.simulator import SimulatorConfig
 from meshfg_ros.io.messages import (
     MeshState,
     PointCloudRecord,
     PoseRecord,
     RosbagsMessageFactory,
-    StatusRecord,
+    status_record,
     meshfg_typestore,
 )
 from meshfg_ros.io.recording import (
@@ -219,105 +220,35 @@ def replay_parameters(inputs: ReplayInputs, overrides: Mapping[str, Any] | None 
 
 def iterate_replay(inputs: ReplayInputs, params: Mapping[str, Any],
                    alter_prediction: Callable[[int, np.ndarray], np.ndarray] | None = None) -> Iterator[ReplayStep]:
-    """Run the nodes' loop over the recorded poses and clouds; yields one step per used cloud.
-    alter_prediction(stamp, predicted) (fault injection, `meshfg fuzz`) replaces each prediction
-    the estimator gets, as a faulty simulation node's message would.
+    """Run the nodes' step loop (core/scheduler.py) over the recorded poses and clouds; yields one
+    step per estimate. alter_prediction(stamp, predicted) (fault injection, `meshfg fuzz`) replaces
+    each prediction the estimator gets, as a faulty simulation node's message would.
 
-    As the nodes do (inputs in arrival order, stamp rule of core/input_checks.py):
-    - a tool pose in another frame than world_frame is dropped; one far outside the scene, or
-      with a stale or invalid stamp, is dropped by the simulator (the estimator still gets the
-      far one, and ignores it); a jump back restarts the simulator's timeline from the initial
-      mesh;
-    - a failed or non-finite prediction resets the simulator to its pose and the cloud's step
-      runs degraded without one;
-    - clouds without points, in an unknown frame, or with a stale or invalid stamp are skipped;
-      a jump back restarts the estimator from the initial mesh;
-    - an update that fails (its documented errors) yields no step and leaves the window as it was.
+    As the nodes do, inputs go in arrival order; a tool pose in another frame than world_frame
+    and a cloud without points or in an unknown frame are dropped here, everything else is the
+    schedulers' rule.
     """
-    mesh = inputs.initial_mesh
     grasped = np.asarray(params["grasped_vertices"], dtype=np.int64) if params["grasped_vertices"] else None
-    model = simulator_config(params)
-    simulator = XpbdSimulator(mesh, model, grasped_vertices=grasped)
-    open_loop = XpbdSimulator(mesh, model, grasped_vertices=grasped)
-    config = estimator_config(params)
-    estimator = SlidingWindowEstimator(mesh, config)
-    scene = Scene.of(mesh.vertices)
-    jump_ns = int(params["clock_jump_threshold"] * _NS_PER_S)
-    estimate = mesh.vertices
-    simulation_only = mesh.vertices
-    predictions: dict[int, np.ndarray] = {}
-    tool_poses: dict[int, np.ndarray] = {}
-    open_loop_states: dict[int, np.ndarray] = {}
-    previous_pose_stamp: int | None = None
-    newest_pose_stamp: int | None = None
-    newest_cloud_stamp: int | None = None
+    pipeline = OfflinePipeline(inputs.initial_mesh, simulator_config(params), estimator_config(params), grasped,
+                               clock_jump_threshold=params["clock_jump_threshold"],
+                               alter_prediction=alter_prediction)
+    for step in run_offline(pipeline, _world_frame_events(inputs, params)):
+        yield ReplayStep(step.stamp_ns, step.points, step.predicted, step.simulation_only, step.result)
+
+
+def _world_frame_events(inputs: ReplayInputs, params: Mapping[str, Any]) -> Iterator[tuple[str, int, np.ndarray]]:
+    """("pose" | "cloud", stamp, world-frame array) of the inputs the nodes would take, in arrival order."""
     for _, kind, record in inputs.events():
-        stamp = record.stamp_ns
         if kind == _POSE:
-            if record.frame_id != params["world_frame"]:
-                continue
-            tool_poses[stamp] = record.pose
-            order = stamp_order(newest_pose_stamp, stamp, jump_ns)
-            if order in (INVALID, STALE) or scene.far(record.pose[None, :3])[0]:
-                continue
-            if order == JUMP_BACK:
-                previous_pose_stamp = None
-                estimate = simulation_only = mesh.vertices
-                predictions.clear()
-            newest_pose_stamp = stamp
-            if previous_pose_stamp is None:
-                simulator.reset(record.pose)
-                open_loop.reset(record.pose)
-            else:
-                dt = (stamp - previous_pose_stamp) / _NS_PER_S
-                predicted = _predict(simulator, estimate, record.pose, dt)
-                if predicted is not None:
-                    predictions[stamp] = predicted
-                advanced = _predict(open_loop, simulation_only, record.pose, dt)
-                if advanced is not None:  # a failed open-loop step leaves the baseline where it was
-                    simulation_only = advanced
-                open_loop_states[stamp] = simulation_only
-            previous_pose_stamp = stamp
+            if record.frame_id == params["world_frame"]:
+                yield "pose", record.stamp_ns, record.pose
             continue
         if len(record.points) == 0:
             continue
         try:
-            points = cloud_to_world(record.points, record.frame_id, params)
+            yield "cloud", record.stamp_ns, cloud_to_world(record.points, record.frame_id, params)
         except FrameError:
             continue
-        order = stamp_order(newest_cloud_stamp, stamp, jump_ns)
-        if order in (INVALID, STALE):
-            continue
-        if order == JUMP_BACK:
-            estimator = SlidingWindowEstimator(mesh, config)
-        newest_cloud_stamp = stamp
-        predicted = predictions.pop(stamp, None)
-        for older in [s for s in predictions if s < stamp]:
-            del predictions[older]
-        if predicted is not None and alter_prediction is not None:
-            predicted = alter_prediction(stamp, predicted)
-        tool_pose = tool_poses.pop(stamp, None)
-        for older in [s for s in tool_poses if s < stamp]:
-            del tool_poses[older]
-        try:
-            result = estimator.update(stamp, points, predicted, tool_pose)
-        except (EstimatorInputError, EstimatorStepError):
-            continue  # as the node: no estimate for this cloud, the window as before it
-        estimate = result.positions
-        yield ReplayStep(stamp, points, predicted, open_loop_states.get(stamp), result)
-
-
-def _predict(simulator: XpbdSimulator, state: np.ndarray, pose: np.ndarray, dt: float) -> np.ndarray | None:
-    """simulator.predict, or None (with the simulator reset to `pose`) when it fails, as the node does."""
-    try:
-        predicted = simulator.predict(state, pose, dt)
-    except (ValueError, RuntimeError):
-        simulator.reset(pose)
-        return None
-    if not np.isfinite(predicted).all():
-        simulator.reset(pose)
-        return None
-    return predicted
 
 
 def replay_recording(
@@ -347,17 +278,6 @@ def _mesh_state(template: MeshState, positions: np.ndarray, stamp_ns: int, step:
     return MeshState(stamp_ns, template.frame_id, step, positions, template.tetrahedra,
                      template.surface_triangles, template.fixed_vertices,
                      np.zeros(0) if position_std is None else position_std)
-
-
-def status_record(result: StepResult, frame_id: str) -> StatusRecord:
-    """The EstimatorStatus record of one update (shared by the replay and the estimator node)."""
-    return StatusRecord(
-        stamp_ns=result.stamp_ns, frame_id=frame_id, step=result.step, iterations=result.iterations,
-        initial_cost=result.initial_cost, final_cost=result.final_cost, solve_time_ms=result.solve_time_ms,
-        num_points=result.num_points, num_points_rejected=result.num_points_rejected,
-        window_size=result.window_size, converged=result.converged, degraded=result.degraded,
-        message=result.message,
-    )
 
 
 def _cost_history(writer: RecordingWriter, history: np.ndarray, stamp_ns: int) -> None:

@@ -1,28 +1,59 @@
-"""The core, the recording IO and the offline tools never import rclpy or ROS message packages."""
+"""The layering of the package: the core is the estimator only and knows nothing of ROS; the
+offline tools never import rclpy; the live nodes never load the synthetic-scene generator."""
+import pkgutil
 import subprocess
 import sys
 
 import pytest
 
-ROS_FREE_MODULES = (
-    "meshfg_ros.core.mesh", "meshfg_ros.core.meshing", "meshfg_ros.core.fem", "meshfg_ros.core.simulator",
-    "meshfg_ros.core.camera", "meshfg_ros.core.scenarios", "meshfg_ros.core.metrics", "meshfg_ros.core.factors",
-    "meshfg_ros.core.levenberg_marquardt", "meshfg_ros.core.linear_solvers", "meshfg_ros.core.estimator",
-    "meshfg_ros.core.parameters", "meshfg_ros.io.recording", "meshfg_ros.replay", "meshfg_ros.evaluation",
-    "meshfg_ros.ablation",
+import meshfg_ros.core
+
+CORE_MODULES = tuple(sorted(f"meshfg_ros.core.{info.name}" for info in pkgutil.iter_modules(meshfg_ros.core.__path__)))
+OFFLINE_MODULES = (
+    "meshfg_ros.parameters", "meshfg_ros.io.recording", "meshfg_ros.replay", "meshfg_ros.synthetic.scenarios",
+    "meshfg_ros.synthetic.recordings", "meshfg_ros.evaluation.evaluate", "meshfg_ros.evaluation.ablation",
+    "meshfg_ros.evaluation.accuracy", "meshfg_ros.benchmarks.baselines",
 )
+ROS_PACKAGES = ("rclpy", "rosidl_parser", "std_msgs", "sensor_msgs", "meshfg_msgs", "geometry_msgs", "tf2_msgs")
 
 
-@pytest.mark.slow  # a fresh interpreter
-def test_core_modules_import_without_ros():
+def _loaded_after_import(modules: tuple[str, ...]) -> set[str]:
+    """The modules a fresh interpreter has loaded after importing `modules`."""
     script = (
         "import sys\n"
-        f"for name in {ROS_FREE_MODULES!r}:\n"
+        f"for name in {modules!r}:\n"
         "    __import__(name)\n"
-        "ros = sorted(m for m in sys.modules if m.split('.')[0] in "
-        "('rclpy', 'rosidl_parser', 'std_msgs', 'sensor_msgs', 'meshfg_msgs', 'geometry_msgs'))\n"
-        "print(','.join(ros))\n"
+        "print('\\n'.join(sorted(sys.modules)))\n"
     )
     result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, cwd="/")
     assert result.returncode == 0, result.stderr
-    assert result.stdout.strip() == ""
+    return set(result.stdout.split())
+
+
+def test_the_core_has_the_estimator_modules():
+    assert {"meshfg_ros.core.estimator", "meshfg_ros.core.scheduler", "meshfg_ros.core.factors",
+            "meshfg_ros.core.levenberg_marquardt"} <= set(CORE_MODULES)
+
+
+@pytest.mark.slow  # a fresh interpreter
+def test_the_core_imports_only_itself_and_no_ros():
+    loaded = _loaded_after_import(CORE_MODULES)
+    ours = {name for name in loaded if name.startswith("meshfg_ros.")}
+    assert ours <= set(CORE_MODULES) | {"meshfg_ros.core"}, sorted(ours - set(CORE_MODULES))
+    assert not {name for name in loaded if name.split(".")[0] in ROS_PACKAGES}
+
+
+@pytest.mark.slow  # a fresh interpreter
+def test_offline_tools_import_without_ros():
+    loaded = _loaded_after_import(OFFLINE_MODULES)
+    assert not {name for name in loaded if name.split(".")[0] in ROS_PACKAGES}
+
+
+@pytest.mark.slow  # a fresh interpreter
+def test_the_live_nodes_do_not_load_the_synthetic_scenes_or_the_evaluation():
+    loaded = _loaded_after_import(("meshfg_ros.nodes.estimator_node", "meshfg_ros.nodes.simulation_node"))
+    unwanted = {name for name in loaded
+                if name.split(".")[:2] in (["meshfg_ros", "synthetic"], ["meshfg_ros", "evaluation"],
+                                           ["meshfg_ros", "benchmarks"])}
+    assert not unwanted, sorted(unwanted)
+    assert "rclpy" in loaded

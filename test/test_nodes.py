@@ -21,6 +21,7 @@ from rcl_interfaces.srv import GetParameters
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Header
 from visualization_msgs.msg import MarkerArray
 
 from meshfg_msgs.msg import EstimatorStatus, PredictionFailure, TetraMesh
@@ -211,8 +212,10 @@ def test_simulation_node_predicts_from_the_latest_estimate(probe, processes, tmp
     mesh_publisher = probe.create_publisher(TetraMesh, "/sim/initial_mesh", LATCHED)
     estimate_publisher = probe.create_publisher(TetraMesh, "/sim/estimated_mesh", LATCHED)
     pose_publisher = probe.create_publisher(PoseStamped, "/sim/tool_pose", KEEP)
+    request_publisher = probe.create_publisher(Header, "/sim/prediction_request", KEEP)
     assert spin_until(probe, lambda: pose_publisher.get_subscription_count() == 1
                       and estimate_publisher.get_subscription_count() == 1
+                      and request_publisher.get_subscription_count() == 1
                       and prediction_subscription.get_publisher_count() == 1
                       and failure_subscription.get_publisher_count() == 1)
     mesh_publisher.publish(mesh_msg(mesh))
@@ -222,48 +225,70 @@ def test_simulation_node_predicts_from_the_latest_estimate(probe, processes, tmp
     def send_pose(k, stamp_ns):
         pose_publisher.publish(tool_pose_msg(poses[k], stamp_ns))
 
+    def request(stamp_ns):  # what the estimator node sends for each cloud it accepts
+        request_publisher.publish(header_msg(stamp_ns, "world", FACTORY))
+
     def received(count):
         assert spin_until(probe, lambda: len(predictions) >= count), f"{len(predictions)} predictions"
         return predictions[count - 1]
 
-    send_pose(0, 1 * S)  # the first pose only resets the simulator
+    send_pose(0, 1 * S)  # the first pose only starts the simulation
     send_pose(1, 2 * S)
+    request(2 * S)
     first = received(1)
     estimate = np.asarray(first.positions).reshape(-1, 3) + [1e-4, 0.0, 0.0]
     estimate_publisher.publish(mesh_msg(mesh, 2 * S, estimate))
-    send_pose(2, 3 * S)  # predicted from the estimate of 2 s
+    send_pose(2, 3 * S)
+    request(3 * S)  # predicted from the estimate of 2 s
     received(2)
-    send_pose(3, 4 * S)  # no estimate of 3 s: after estimate_timeout, from the state of 2 s
+    send_pose(3, 4 * S)
     send_pose(3, 4 * S)  # repeated stamp: dropped
-    estimate_publisher.publish(mesh_msg(mesh, 10 * S, estimate + 1e-3))  # no pose at 10 s: ignored
+    estimate_publisher.publish(mesh_msg(mesh, 10 * S, estimate + 1e-3))  # not a predicted stamp: ignored
+    request(4 * S)  # no estimate of 3 s: after estimate_timeout, from the state of 2 s
     received(3)
     send_pose(4, 5 * S)
+    request(5 * S)
     received(4)
-    # An estimate with the top face pushed through the fixed bottom: the next pose cannot be
-    # predicted, and the node says so on prediction_failed (stamped like the pose) instead.
+    # An estimate with the top face pushed through the fixed bottom: the next request cannot be
+    # predicted, and the node says so on prediction_failed (stamped like the request) instead.
     crushed = mesh.vertices.copy()
     crushed[np.isclose(crushed[:, 2], SIDE), 2] = -SIDE
     estimate_publisher.publish(mesh_msg(mesh, 5 * S, crushed))
     send_pose(4, 6 * S)
+    request(6 * S)
     assert spin_until(probe, lambda: len(failures) == 1)
     assert stamp_ns_from_msg(failures[0].header.stamp) == 6 * S and failures[0].header.frame_id == "world"
     assert "inverted" in failures[0].reason
     # A looped recording: the stamps jump back, the simulation restarts from the initial mesh.
     send_pose(0, 1 * S)
     send_pose(1, 2 * S)
+    request(2 * S)
     received(5)
-    spin_until(probe, lambda: len(predictions) > 5, timeout_s=1.5)
+    # Tool poses need not share the clouds' stamps: a request between two poses is predicted
+    # with the pose interpolated at its stamp.
+    estimate_publisher.publish(mesh_msg(mesh, 2 * S, estimate))
+    send_pose(2, 3 * S)
+    request(2 * S + S // 2)
+    received(6)
+    spin_until(probe, lambda: len(predictions) > 6, timeout_s=1.5)
+
+    def pose(position):
+        return np.concatenate([position, [0.0, 0.0, 0.0, 1.0]])
 
     simulator = XpbdSimulator(mesh, simulator_config(params))
-    simulator.reset(np.concatenate([poses[0], [0.0, 0.0, 0.0, 1.0]]))
-    expected = [simulator.predict(mesh.vertices, np.concatenate([poses[1], [0, 0, 0, 1.0]]), 1.0)]
+    simulator.reset(pose(poses[0]))
+    expected = [simulator.predict(mesh.vertices, pose(poses[1]), 1.0)]
     for k in (2, 3, 4):
-        expected.append(simulator.predict(estimate, np.concatenate([poses[k], [0, 0, 0, 1.0]]), 1.0))
+        expected.append(simulator.predict(estimate, pose(poses[k]), 1.0))
     expected.append(expected[0])
-    assert [stamp_ns_from_msg(p.header.stamp) for p in predictions] == [2 * S, 3 * S, 4 * S, 5 * S, 2 * S]
+    simulator.reset(pose(poses[0]))
+    simulator.predict(mesh.vertices, pose(poses[1]), 1.0)
+    expected.append(simulator.predict(estimate, pose(0.5 * (poses[1] + poses[2])), 0.5))
+    assert [stamp_ns_from_msg(p.header.stamp) for p in predictions] == [2 * S, 3 * S, 4 * S, 5 * S, 2 * S,
+                                                                           2 * S + S // 2]
     assert all(p.header.frame_id == "world" for p in predictions)
     for message, positions in zip(predictions, expected, strict=True):
-        np.testing.assert_array_equal(np.asarray(message.positions).reshape(-1, 3), positions)
+        np.testing.assert_allclose(np.asarray(message.positions).reshape(-1, 3), positions, rtol=0, atol=1e-12)
     assert not np.array_equal(expected[1], expected[0])  # the tool did push the cube
     assert node.alive()
     assert_clean_exit(node, node.interrupt())
@@ -343,7 +368,8 @@ def test_estimator_node_survives_bad_input_and_recovers_from_a_missing_simulator
     io.prediction.publish(mesh_msg(mesh, 3 * S))
     counters = io.send(cloud_msg(points, 3 * S), steps=3, degraded_steps=2)
     assert counters["predictions_received"] == "1"
-    assert io.diagnostics[-1][0] == "estimating"
+    # health tells the truth: most recent steps ran without the simulator
+    assert io.diagnostics[-1][0].startswith("2 of the last 3 steps ran without a simulator prediction")
     # A prediction that arrives too late (its cloud went degraded): ignored.
     io.send(cloud_msg(points, 4 * S), steps=4, degraded_steps=3)
     io.prediction.publish(mesh_msg(mesh, 4 * S))

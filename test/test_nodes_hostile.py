@@ -10,6 +10,7 @@ import pytest
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
+from std_msgs.msg import Header
 from rclpy.parameter import Parameter
 from test_nodes import (  # noqa: F401 - probe and processes are fixtures
     FACTORY,
@@ -33,7 +34,7 @@ from test_nodes import (  # noqa: F401 - probe and processes are fixtures
 
 from meshfg_msgs.msg import TetraMesh
 from meshfg_ros.core.estimator import EstimatorStepError, SlidingWindowEstimator
-from meshfg_ros.io.messages import MeshState, PoseRecord, pose_to_msg
+from meshfg_ros.io.messages import MeshState, PoseRecord, header_msg, pose_to_msg
 
 
 @pytest.mark.slow
@@ -89,8 +90,11 @@ def test_simulation_node_counts_rejected_tool_poses_in_its_diagnostics(probe, pr
     poses.publish(tool_pose_msg(centre, -1 * S))
     poses.publish(pose_to_msg(PoseRecord(3 * S, "map", [*centre, 0.0, 0.0, 0.0, 1.0]), FACTORY))
     poses.publish(tool_pose_msg(centre, 4 * S))
+    requests = probe.create_publisher(Header, "/simhostile/prediction_request", KEEP)
+    assert spin_until(probe, lambda: requests.get_subscription_count() == 1)
+    requests.publish(header_msg(4 * S, "world", FACTORY))  # a cloud at 4 s: predicted
     expected = dict(tool_poses_received="5", tool_poses_rejected_far="1", tool_poses_rejected_stamp="1",
-                    tool_poses_rejected_frame="1", tool_poses_rejected="3", predictions="1")
+                    tool_poses_rejected_frame="1", tool_poses_rejected="3", requests="1", predictions="1")
     assert spin_until(probe, lambda: reports and all(reports[-1][1].get(k) == v for k, v in expected.items())), \
         reports[-1:]
     assert node.alive()
@@ -119,9 +123,9 @@ def test_a_stuck_update_is_an_error_and_does_not_hold_up_shutdown(monkeypatch):
         reports = []
         node._diagnostics_publisher = SimpleNamespace(publish=reports.append)
         mesh = pushed_cube()
-        node._received_initial = MeshState(0, "world", 0, mesh.vertices, mesh.tetrahedra, mesh.surface_triangles,
-                                           mesh.fixed_vertices)
-        node._enqueue(1 * S, top_points(), time.monotonic())
+        node._set_mesh(mesh, MeshState(0, "world", 0, mesh.vertices, mesh.tetrahedra, mesh.surface_triangles,
+                                        mesh.fixed_vertices))
+        node._on_cloud(cloud_msg(top_points(), 1 * S))
         assert entered.wait(30.0)
         for _ in range(100):  # the limit: 0 s + 2 x 0.01 s + the margin of 1 s
             time.sleep(0.1)

@@ -447,6 +447,8 @@ class SlidingWindowEstimator:
         stamp_ns, points, predicted, tool_pose, dropped = self._check_inputs(stamp_ns, points, predicted, tool_pose)
         messages = [f"{dropped} non-finite point(s) dropped"] if dropped else []
         points, predicted, tool_pose, far = self._far_input(points, predicted, tool_pose, messages)
+        if "simulation" not in self.enabled:
+            predicted = None  # a configuration without the physics prior starts from the copy-forward
         self.step += 1
         self.last_stamp_ns = stamp_ns
         self.deadline = None if cfg.update_time_budget is None else start + cfg.update_time_budget

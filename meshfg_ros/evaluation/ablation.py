@@ -1,7 +1,9 @@
 """Factor ablation on the deforming cubes: the paper's Table I.
 
-Each configuration runs the estimator over the same scenario; configurations with the physics
-prior get the simulator's prediction from their own previous estimate (closed loop, as live).
+Each configuration runs the estimator over the same scenario through the nodes' step loop
+(core/scheduler.py): the simulator predicts from each configuration's own previous estimate
+(closed loop, as live); configurations without the physics prior start each state from the
+copy-forward.
 Vertex RMSE against the ground truth over all, external (surface) and unobserved external
 vertices (surface vertices on no measured face), mean and std over steps, in millimetres.
 """
@@ -11,10 +13,10 @@ import sys
 
 from tqdm import tqdm
 
-from meshfg_ros.core.estimator import EstimatorConfig, SlidingWindowEstimator
+from meshfg_ros.core.estimator import EstimatorConfig
+from meshfg_ros.core.scheduler import OfflinePipeline, run_offline
 from meshfg_ros.evaluation.metrics import summarise, unobserved_external_vertices, vertex_rmse
 from meshfg_ros.synthetic.scenarios import Scenario, generate
-from meshfg_ros.core.simulator import XpbdSimulator
 
 ABLATION_CONFIGURATIONS = ("temporal", "measurement", "temporal+measurement", "simulation+measurement", "full")
 CUBE_SCENARIOS = ("cube-translate", "cube-shear-spd", "cube-shear-nonspd")
@@ -39,28 +41,21 @@ def estimator_config_for(scenario: Scenario, factors: str, **overrides) -> Estim
 
 
 def run_configuration(scenario: Scenario, factors: str, progress: tqdm | None = None, **overrides) -> dict:
-    """Estimate every step of `scenario` with one factor configuration; per-step RMSEs (m)."""
+    """Estimate every step of `scenario` with one factor configuration through the nodes' step
+    loop (core/scheduler.py); per-step RMSEs (m) of the steps that gave an estimate."""
     mesh = scenario.initial_mesh
-    estimator = SlidingWindowEstimator(mesh, estimator_config_for(scenario, factors, **overrides))
-    simulator = None
-    if "simulation" in factors or factors == "full":
-        simulator = XpbdSimulator(mesh, scenario.simulator_config, grasped_vertices=scenario.grasped_vertices)
-        simulator.reset(scenario.initial_tool_pose)
+    pipeline = OfflinePipeline(mesh, scenario.simulator_config, estimator_config_for(scenario, factors, **overrides),
+                               scenario.grasped_vertices)
+    truths = {step.stamp_ns: step.truth for step in scenario.steps}
     unobserved = unobserved_external_vertices(mesh.surface_vertices, mesh.surface_triangles,
                                               scenario.observed_triangles)
     vertex_sets = {"all": None, "external": mesh.surface_vertices, "unobserved_external": unobserved}
     errors = {name: [] for name in VERTEX_SETS}
-    iterations, previous_stamp, estimate = [], None, mesh.vertices
-    for step in scenario.steps:
-        predicted = None
-        if simulator is not None:
-            dt = 1.0 if previous_stamp is None else (step.stamp_ns - previous_stamp) * 1e-9
-            predicted = simulator.predict(estimate, step.tool_pose, dt)
-        result = estimator.update(step.stamp_ns, step.points, predicted)
-        estimate, previous_stamp = result.positions, step.stamp_ns
-        iterations.append(result.iterations)
+    iterations = []
+    for step in run_offline(pipeline, scenario.events()):
+        iterations.append(step.result.iterations)
         for name, indices in vertex_sets.items():
-            errors[name].append(vertex_rmse(estimate, step.truth, indices))
+            errors[name].append(vertex_rmse(step.result.positions, truths[step.stamp_ns], indices))
         if progress is not None:
             progress.update(1)
     return {"errors_m": errors, "iterations": iterations, "unobserved_external_count": int(len(unobserved))}

@@ -353,6 +353,18 @@ def mesh_state_from_msg(msg: Any) -> MeshState:
     )
 
 
+def status_record(result: Any, frame_id: str) -> StatusRecord:
+    """The EstimatorStatus record of one update (a core.estimator.StepResult; shared by the
+    replay and the estimator node)."""
+    return StatusRecord(
+        stamp_ns=result.stamp_ns, frame_id=frame_id, step=result.step, iterations=result.iterations,
+        initial_cost=result.initial_cost, final_cost=result.final_cost, solve_time_ms=result.solve_time_ms,
+        num_points=result.num_points, num_points_rejected=result.num_points_rejected,
+        window_size=result.window_size, converged=result.converged, degraded=result.degraded,
+        message=result.message,
+    )
+
+
 def status_to_msg(record: StatusRecord, factory: MessageFactory | None = None) -> Any:
     """meshfg_msgs/EstimatorStatus message for `record`."""
     factory = _default_factory(factory)

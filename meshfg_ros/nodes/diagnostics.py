@@ -1,13 +1,17 @@
-"""Counters of the estimator and simulation nodes and their diagnostic_msgs/DiagnosticArray.
+"""Counters and health of the estimator and simulation nodes, as diagnostic_msgs/DiagnosticArray.
 
 The counters say what happened to the input (clouds received and rejected, and why; stamps
 out of order or invalid; clock jumps; input far outside the scene or contradicted by the cloud,
-core/input_checks.py) and to the steps (degraded, failed, non-finite, solve time and latency),
-so that a robot's diagnostic aggregator shows why estimates are missing or poor.
+core/input_checks.py) and to the steps (degraded, failed, non-finite, points gated out, the time
+of each stage), so that a robot's diagnostic aggregator shows why estimates are missing or poor.
+`EstimatorHealth` turns them into a level and a one-line reason (the README's "Wire it to your
+robot" lists them): it is OK only while recent steps are estimated from most of their points,
+with a prediction, converged, and in time.
 """
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -43,8 +47,14 @@ class EstimatorCounters:
     degraded_steps: int = 0
     failed_steps: int = 0
     nonfinite_estimates: int = 0
-    last_solve_time_ms: float = float("nan")
-    last_latency_ms: float = float("nan")
+    unconverged_steps: int = 0
+    points_used: int = 0
+    points_set_aside: int = 0           # on the tool, far, non-finite or gated out
+    queued_clouds: int = 0              # waiting for a prediction or the solver
+    last_wait_ms: float = float("nan")  # stage times of the last step: arrival to solver start,
+    last_solve_time_ms: float = float("nan")  # the update itself,
+    last_publish_ms: float = float("nan")     # and publishing its outputs
+    last_latency_ms: float = float("nan")     # arrival of the cloud to its estimate published
     median_latency_ms: float = float("nan")
 
     @property
@@ -70,9 +80,11 @@ class SimulatorCounters:
     tool_poses_rejected_stamp: int = 0  # out of order, repeated or invalid (negative) stamps
     tool_poses_rejected_far: int = 0    # far outside the scene (core/input_checks.py)
     clock_jumps_back: int = 0
+    requests: int = 0                   # prediction requests (one per accepted cloud)
     predictions: int = 0
     predictions_failed: int = 0
     estimates_ignored: int = 0          # wrong vertex count, not finite, or far outside the scene
+    last_prediction_ms: float = float("nan")
 
     @property
     def tool_poses_rejected(self) -> int:
@@ -102,3 +114,61 @@ def diagnostic_array(
         values=[KeyValue(key=key, value=value) for key, value in counters.values().items()],
     )
     return DiagnosticArray(header=header_msg(stamp_ns, "", _RCLPY), status=[status])
+
+
+# Health thresholds: over the last HEALTH_WINDOW steps.
+HEALTH_WINDOW = 10
+MOSTLY = 0.5              # "most": more than this share
+LAG_CLOUDS = 3            # queued clouds beyond which the estimator lags its input
+OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
+
+
+class EstimatorHealth:
+    """The estimator node's level and reason from its recent steps and counters (module docstring)."""
+
+    def __init__(self, stalled_after_s: float) -> None:
+        self.stalled_after_s = stalled_after_s
+        self._recent: deque[tuple[bool, bool, int, int]] = deque(maxlen=HEALTH_WINDOW)
+        self._failed_seen = 0
+        self._rejected_seen = 0
+
+    def record(self, degraded: bool, converged: bool, points_used: int, points_set_aside: int) -> None:
+        """One step's outcome."""
+        self._recent.append((degraded, converged, points_used, points_set_aside))
+
+    def assess(self, counters: EstimatorCounters, waiting_for_mesh: bool, unanswered_s: float) -> tuple[bytes, str]:
+        """(level, reason). unanswered_s: how long clouds have arrived without an estimate (0: none)."""
+        new_failures, self._failed_seen = counters.failed_steps - self._failed_seen, counters.failed_steps
+        new_rejections, self._rejected_seen = counters.clouds_rejected - self._rejected_seen, counters.clouds_rejected
+        if waiting_for_mesh:
+            if unanswered_s > self.stalled_after_s:
+                return ERROR, (f"clouds arrive for {unanswered_s:.0f} s but there is no mesh: set mesh_file "
+                               "or publish initial_mesh")
+            return WARN, "waiting for initial_mesh"
+        if unanswered_s > self.stalled_after_s:
+            why = "every cloud is rejected" if new_rejections or counters.steps == 0 and counters.clouds_rejected else (
+                "the solver is stuck or every update fails")
+            return ERROR, f"no estimate for the clouds of the last {unanswered_s:.0f} s: {why}"
+        if new_failures:
+            return WARN, f"{new_failures} updates failed since the last report"
+        if counters.queued_clouds > LAG_CLOUDS:
+            return WARN, (f"lagging: {counters.queued_clouds} clouds wait (median latency "
+                          f"{counters.median_latency_ms:.0f} ms); lower the cloud rate or max_iterations")
+        recent = list(self._recent)
+        if recent:
+            degraded = sum(step[0] for step in recent)
+            if degraded > MOSTLY * len(recent):
+                return WARN, (f"{degraded} of the last {len(recent)} steps ran without a simulator prediction: "
+                              "check tool_pose stamps and frames and the simulation node")
+            used, set_aside = sum(step[2] for step in recent), sum(step[3] for step in recent)
+            if set_aside > MOSTLY * (used + set_aside):
+                return WARN, (f"{set_aside} of {used + set_aside} points of the last {len(recent)} clouds were set "
+                              "aside (tool, gate, far): check units, frames and the mesh registration")
+            unconverged = sum(not step[1] for step in recent)
+            if unconverged > MOSTLY * len(recent):
+                return WARN, f"{unconverged} of the last {len(recent)} updates did not converge"
+        if new_rejections:
+            return WARN, f"{new_rejections} clouds rejected since the last report"
+        if counters.steps == 0:
+            return OK, "waiting for clouds"
+        return OK, "estimating"

@@ -18,14 +18,31 @@ from typing import Any
 import numpy as np
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.parameter import Parameter as RosParameter
 
-from meshfg_ros.core.mesh import TetMesh
-from meshfg_ros.parameters import PARAMETERS, load_parameters
-from meshfg_ros.io.messages import TETRA_MESH, MeshState, RclpyMessageFactory, header_msg
+from meshfg_ros.core.input_checks import check_initial_mesh
+from meshfg_ros.core.mesh import TetMesh, load_mesh
+from meshfg_ros.parameters import PARAMETERS, ParameterError, load_parameters
+from meshfg_ros.io.messages import (
+    TETRA_MESH,
+    MeshState,
+    MessageValidationError,
+    RclpyMessageFactory,
+    header_msg,
+    mesh_state_from_msg,
+)
 from meshfg_ros.io.recording import RECORD_TYPES
 
 RCLPY_FACTORY = RclpyMessageFactory()
+# QoS of the nodes' topics. Meshes are latched (a late-joining planner gets the newest one);
+# predictions and failure reports keep their last ten for a reader that matches late (DDS
+# discovery can finish after the first prediction); requests are reliable, as every one is a step.
+LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+PREDICTION_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                            durability=DurabilityPolicy.TRANSIENT_LOCAL)
+REQUEST_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+STREAM_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 # numpy dtype -> array.array type code of the same item size (Linux), for primitive sequences.
 _TYPECODES = {
     np.dtype(np.float64): "d", np.dtype(np.float32): "f",
@@ -170,3 +187,58 @@ def same_mesh(a: MeshState, b: MeshState) -> bool:
     """Whether two mesh states have equal positions, tetrahedra and fixed vertices."""
     return (np.array_equal(a.positions, b.positions) and np.array_equal(a.tetrahedra, b.tetrahedra)
             and np.array_equal(a.fixed_vertices, b.fixed_vertices))
+
+
+class InitialMeshSource:
+    """The initial mesh of a node: from parameter mesh_file (read at start-up; an unreadable file
+    is a ParameterError, which stops the program) or from the latched `initial_mesh` topic.
+    Calls on_mesh(TetMesh, MeshState) for each new mesh (a repeated message is ignored)."""
+
+    def __init__(self, node: Node, frame: str, on_mesh) -> None:
+        self._node, self._frame, self._on_mesh = node, frame, on_mesh
+        self._state: MeshState | None = None
+        node.create_subscription(RCLPY_FACTORY.message_class(TETRA_MESH), "initial_mesh", self._on_message,
+                                 LATCHED_QOS)
+
+    @property
+    def state(self) -> MeshState | None:
+        """The mesh in use (None: none yet)."""
+        return self._state
+
+    def load_file(self, path: str) -> None:
+        """Load mesh_file ("" : none, wait for the topic)."""
+        if not path:
+            return
+        try:
+            mesh = load_mesh(path)
+        except (OSError, ValueError) as error:
+            raise ParameterError(f"mesh_file {path}: {error}") from None
+        self._install(MeshState(0, self._frame, 0, mesh.vertices, mesh.tetrahedra, mesh.surface_triangles,
+                                mesh.fixed_vertices), mesh)
+
+    def _on_message(self, msg: Any) -> None:
+        logger = self._node.get_logger()
+        try:
+            state = mesh_state_from_msg(msg)
+        except MessageValidationError as error:
+            logger.error(f"initial_mesh rejected: {error}")
+            return
+        if state.frame_id != self._frame:
+            logger.error(f"initial_mesh in frame {state.frame_id!r}, expected {self._frame!r}: rejected")
+            return
+        if self._state is not None and same_mesh(self._state, state):
+            return  # the latched message again (e.g. a reconnection)
+        try:
+            self._install(state, tet_mesh_from_state(state))
+        except ValueError as error:
+            logger.error(f"initial_mesh rejected: {error}")
+
+    def _install(self, state: MeshState, mesh: TetMesh) -> None:
+        check_initial_mesh(mesh.vertices)
+        restart = self._state is not None
+        self._on_mesh(mesh, state)
+        self._state = state
+        if restart:
+            self._node.get_logger().warning("new initial mesh: restarting from it")
+        self._node.get_logger().info(f"initial mesh: {mesh.vertex_count} vertices, {mesh.tetrahedron_count} "
+                                     "tetrahedra")

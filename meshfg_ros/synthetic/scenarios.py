@@ -10,6 +10,7 @@ the model; see shared notes on modelling.
 """
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from pathlib import Path
@@ -64,6 +65,14 @@ class Scenario:
     observed_triangles: np.ndarray | None = None  # (F,) bool mask: faces measurements come from
     estimator_overrides: dict = field(default_factory=dict)  # e.g. the non-SPD prior
     description: str = ""
+
+    def events(self) -> Iterator[tuple[str, int, np.ndarray]]:
+        """What the nodes would receive, in order, as core.scheduler.run_offline takes it: the
+        initial tool pose, then each step's tool pose and cloud (world frame)."""
+        yield "pose", FIRST_STAMP_NS, self.initial_tool_pose
+        for step in self.steps:
+            yield "pose", step.stamp_ns, step.tool_pose
+            yield "cloud", step.stamp_ns, step.points
 
 
 def generate(name: str, seed: int = 0, steps: int | None = None) -> Scenario:

@@ -1,0 +1,475 @@
+"""The step loop of meshfg_ros, ROS-free: which cloud is estimated when, with which prediction.
+
+Two schedulers share the work, as the two nodes do:
+
+- `PredictionScheduler` (the simulation node's side) keeps the simulator's timeline. The first
+  tool pose of a timeline resets the simulator. Every cloud the estimator accepts asks for a
+  prediction at the cloud's stamp t (`request`): the simulator moves the tool from its pose at the
+  previous request (or the first pose) to the tool pose at t, interpolated from the buffered tool
+  poses (core/tool_poses.py), starting from the estimate of the previous request. A request waits
+  for that estimate (estimate_timeout) and for a tool pose at or after t (tool_pose_timeout); then
+  it is answered with a prediction, or with a failure and its reason.
+- `EstimationScheduler` (the estimator node's side) queues the clouds and pairs each with the
+  answer for its stamp and the tool pose at its stamp. A cloud runs once its answer has come, an
+  answer for a later cloud has come, or it has waited prediction_timeout; without a prediction
+  the step runs degraded.
+
+Both apply the stamp rule of core/input_checks.py to their streams (a stale or invalid stamp is
+dropped, a jump back restarts from the initial mesh) and return a `Rejection` (a counter name and
+a one-line reason) for every input they set aside, so that the nodes count and log it.
+
+Time: the schedulers never read a clock. Each call that may wait takes `now_s` (the caller's
+monotonic clock; the nodes pass time.monotonic()), or `flush=True` (the end of a recording: every
+wait is over). `OfflinePipeline` connects the two synchronously for the replay, the ablation, the
+accuracy suite and the benchmarks: the nodes and the replay run this same code.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from meshfg_ros.core.estimator import (
+    EstimatorConfig,
+    EstimatorInputError,
+    EstimatorStepError,
+    SlidingWindowEstimator,
+    StepResult,
+)
+from meshfg_ros.core.input_checks import INVALID, JUMP_BACK, STALE, check_initial_mesh, stamp_order
+from meshfg_ros.core.mesh import TetMesh
+from meshfg_ros.core.simulator import SimulatorConfig, XpbdSimulator
+from meshfg_ros.core.tool_poses import ToolPoseBuffer, ToolPoseUnavailable
+
+NS_PER_S = 1_000_000_000
+# Bounds on what a scheduler holds while it waits: beyond them the oldest entry goes.
+MAX_QUEUED_CLOUDS = 100
+MAX_STORED_ANSWERS = 100
+
+
+@dataclass(frozen=True)
+class Rejection:
+    """An input set aside: the diagnostics counter it counts in and why (one line)."""
+
+    counter: str
+    reason: str
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """The simulator's answer for a cloud's stamp: positions (N, 3), or None with the failure."""
+
+    stamp_ns: int
+    positions: np.ndarray | None
+    failure: str = ""
+    tool_pose: np.ndarray | None = None  # (7,) the tool pose the simulator moved to
+
+
+@dataclass(frozen=True)
+class SchedulingTimeouts:
+    """Wall-time waits [s] of the live nodes (the offline pipeline never waits: it flushes)."""
+
+    prediction_timeout: float = 0.5   # a cloud waits this long for its prediction
+    estimate_timeout: float = 2.0     # a request waits this long for the previous estimate
+    tool_pose_timeout: float = 0.2    # a request waits this long for a tool pose at or after its stamp
+
+
+def _jump_ns(clock_jump_threshold_s: float) -> int:
+    return int(clock_jump_threshold_s * NS_PER_S)
+
+
+# --------------------------------------------------------------------------- simulation side
+@dataclass
+class _Request:
+    stamp_ns: int
+    arrival_s: float
+
+
+class PredictionScheduler:
+    """The simulator's timeline over tool poses and prediction requests (module docstring)."""
+
+    def __init__(self, mesh: TetMesh, model: SimulatorConfig, grasped_vertices: np.ndarray | None = None, *,
+                 clock_jump_threshold: float = 1.0, tool_pose_extrapolation: float = 0.1,
+                 timeouts: SchedulingTimeouts = SchedulingTimeouts()) -> None:
+        self.mesh = mesh
+        self.scene = check_initial_mesh(mesh.vertices)
+        self.simulator = XpbdSimulator(mesh, model, grasped_vertices)
+        self.timeouts = timeouts
+        self._jump_ns = _jump_ns(clock_jump_threshold)
+        self._poses = ToolPoseBuffer(extrapolation_s=tool_pose_extrapolation)
+        self._requests: deque[_Request] = deque()
+        self.restarted = False  # whether the last tool pose restarted the timeline
+        self._restart_timeline()
+
+    def _restart_timeline(self) -> None:
+        """Forget poses, requests and estimates: the next tool pose starts a new timeline."""
+        self._poses.clear()
+        self._requests.clear()
+        self._start_ns: int | None = None       # stamp of the timeline's first tool pose
+        self._newest_pose_ns: int | None = None
+        self._previous_ns: int | None = None    # stamp the simulator's tool pose belongs to
+        self._previous_done_s = 0.0
+        self._state = self.mesh.vertices.copy()
+        self._state_ns: int | None = None       # stamp of the estimate self._state is
+        self._skipped_ns: int | None = None     # newest stamp the estimator will not answer
+
+    @property
+    def waiting(self) -> int:
+        """Requests not answered yet."""
+        return len(self._requests)
+
+    def add_tool_pose(self, stamp_ns: int, pose: np.ndarray) -> Rejection | None:
+        """Take a tool pose (7,) (world frame); a Rejection when it is set aside. A stamp that
+        jumps back restarts the timeline (`restarted` is then True until the next call)."""
+        self.restarted = False
+        pose = np.asarray(pose, dtype=np.float64)
+        if pose.shape != (7,) or not np.isfinite(pose).all():
+            return Rejection("tool_poses_rejected_malformed", f"tool pose at {stamp_ns} ns is not 7 finite numbers")
+        order = stamp_order(self._newest_pose_ns, stamp_ns, self._jump_ns)
+        if order in (STALE, INVALID):
+            reason = "is negative" if order == INVALID else f"is not newer than {self._newest_pose_ns} ns"
+            return Rejection("tool_poses_rejected_stamp", f"tool pose stamp {stamp_ns} ns {reason}: dropped")
+        if self.scene.far(pose[None, :3])[0]:
+            return Rejection("tool_poses_rejected_far",
+                             f"tool pose at {stamp_ns} ns is {self.scene.describe(pose[None, :3])}: dropped")
+        if order == JUMP_BACK:
+            self._restart_timeline()
+            self.restarted = True
+        self._newest_pose_ns = stamp_ns
+        self._poses.add(stamp_ns, pose)
+        if self._start_ns is None:
+            self._start_ns = self._previous_ns = stamp_ns
+            self.simulator.reset(pose)
+        return None
+
+    def request(self, stamp_ns: int, now_s: float = 0.0) -> None:
+        """Ask for a prediction at a cloud's stamp (answered by `poll`, in stamp order)."""
+        self._requests.append(_Request(stamp_ns, now_s))
+        while len(self._requests) > MAX_QUEUED_CLOUDS:
+            self._requests.popleft()
+
+    def add_estimate(self, stamp_ns: int, positions: np.ndarray | None) -> Rejection | None:
+        """The estimate at a requested stamp; None: the estimator gives none for it (its update
+        failed), so the next request need not wait and starts from the newest state."""
+        if self._start_ns is None or not self._start_ns <= stamp_ns <= self._previous_ns:
+            return None  # not a stamp this timeline predicted (a looped recording, or no pose yet)
+        if positions is None:
+            self._skipped_ns = max(stamp_ns, self._skipped_ns or 0)
+            return None
+        positions = np.asarray(positions, dtype=np.float64)
+        if (positions.shape != self._state.shape or not np.isfinite(positions).all()
+                or self.scene.far(positions).any()):
+            return Rejection("estimates_ignored", f"estimate at {stamp_ns} ns has a wrong vertex count, "
+                             "non-finite positions or positions far outside the scene: ignored")
+        if self._state_ns is None or stamp_ns > self._state_ns:
+            self._state, self._state_ns = positions, stamp_ns
+        return None
+
+    def poll(self, now_s: float = 0.0, flush: bool = False) -> list[Prediction]:
+        """Answer the requests that are ready, oldest first (module docstring)."""
+        answers = []
+        while self._requests and self._start_ns is not None:
+            request = self._requests[0]
+            answer = self._answer(request, now_s, flush)
+            if answer is None:
+                break
+            self._requests.popleft()
+            answers.append(answer)
+        return answers
+
+    def _answer(self, request: _Request, now_s: float, flush: bool) -> Prediction | None:
+        stamp = request.stamp_ns
+        if stamp <= self._previous_ns:
+            if stamp == self._start_ns:
+                return Prediction(stamp, None, "the first tool pose only starts the simulation")
+            return Prediction(stamp, None, f"the cloud is not newer than the simulator's tool pose "
+                                           f"({self._previous_ns} ns)")
+        waited_s = now_s - max(request.arrival_s, self._previous_done_s)
+        answered = self._state_ns is not None and self._state_ns >= self._previous_ns
+        answered = answered or self._previous_ns == self._start_ns or (self._skipped_ns or -1) >= self._previous_ns
+        if not (answered or flush or waited_s >= self.timeouts.estimate_timeout):
+            return None
+        covered = self._newest_pose_ns is not None and self._newest_pose_ns >= stamp
+        if not (covered or flush or waited_s >= self.timeouts.tool_pose_timeout):
+            return None
+        try:
+            pose = self._poses.pose_at(stamp)
+        except ToolPoseUnavailable as error:
+            return self._finish(Prediction(stamp, None, str(error)), now_s)
+        dt = (stamp - self._previous_ns) / NS_PER_S
+        try:
+            predicted = self.simulator.predict(self._state, pose, dt)
+        except (ValueError, RuntimeError) as error:
+            self.simulator.reset(pose)
+            return self._finish(Prediction(stamp, None, str(error), pose), now_s)
+        if not np.isfinite(predicted).all():
+            self.simulator.reset(pose)
+            return self._finish(Prediction(stamp, None, "the predicted positions are not finite", pose), now_s)
+        return self._finish(Prediction(stamp, predicted, "", pose), now_s)
+
+    def _finish(self, answer: Prediction, now_s: float) -> Prediction:
+        self._previous_ns = answer.stamp_ns
+        self._previous_done_s = now_s
+        return answer
+
+
+# --------------------------------------------------------------------------- estimator side
+@dataclass(frozen=True, eq=False)
+class CloudStep:
+    """A cloud ready to run: its world-frame points, its prediction (or None) and tool pose."""
+
+    stamp_ns: int
+    points: np.ndarray
+    arrival_s: float
+    predicted: np.ndarray | None
+    tool_pose: np.ndarray | None
+    restart: bool = False  # the estimator restarts from the initial mesh before this step
+
+
+@dataclass(frozen=True)
+class StepOutcome:
+    """What running a CloudStep gave: a finite result, or None with the error's text."""
+
+    step: CloudStep
+    result: StepResult | None
+    error: str = ""
+    counter: str = ""  # "failed_steps" or "nonfinite_estimates" when result is None
+
+
+class EstimationScheduler:
+    """The estimator's queue of clouds, paired with predictions and tool poses (module docstring).
+
+    Thread-safe use (the estimator node): the add_* methods and `next_step` under the caller's
+    lock, `run` outside it (it only touches the estimator).
+    """
+
+    def __init__(self, mesh: TetMesh, config: EstimatorConfig, *, clock_jump_threshold: float = 1.0,
+                 tool_pose_extrapolation: float = 0.1, timeouts: SchedulingTimeouts = SchedulingTimeouts()) -> None:
+        self.mesh = mesh
+        self.config = config
+        self.timeouts = timeouts
+        self.estimator = SlidingWindowEstimator(mesh, config)
+        self._jump_ns = _jump_ns(clock_jump_threshold)
+        self._poses = ToolPoseBuffer(extrapolation_s=tool_pose_extrapolation)
+        self._clouds: deque[tuple[int, np.ndarray, float, bool]] = deque()  # stamp, points, arrival, restart
+        self._answers: dict[int, Prediction] = {}
+        self._newest_cloud_ns: int | None = None
+        self._newest_pose_ns: int | None = None
+        self._newest_answer_ns: int | None = None
+        self._last_step_ns: int | None = None
+        self._solver_free_s = 0.0
+
+    @property
+    def queued(self) -> int:
+        """Clouds waiting to run."""
+        return len(self._clouds)
+
+    def add_cloud(self, stamp_ns: int, points: np.ndarray, now_s: float = 0.0) -> list[Rejection]:
+        """Queue a cloud (K, 3) in the world frame. Returns what was set aside: this cloud (a stale
+        or invalid stamp), the oldest queued one (backlog), or the restart a jump back causes
+        (counter clock_jumps_back). A cloud without rejection of its own is to be requested."""
+        order = stamp_order(self._newest_cloud_ns, stamp_ns, self._jump_ns)
+        if order in (STALE, INVALID):
+            reason = "is negative" if order == INVALID else f"is not newer than {self._newest_cloud_ns} ns"
+            return [Rejection("clouds_rejected_stamp", f"cloud stamp {stamp_ns} ns {reason}: dropped")]
+        notes = []
+        restart = order == JUMP_BACK
+        if restart:
+            back_s = (self._newest_cloud_ns - stamp_ns) / NS_PER_S
+            notes.append(Rejection("clock_jumps_back",
+                                   f"cloud stamp jumped back by {back_s:.3f} s: restarting from the initial mesh"))
+        self._newest_cloud_ns = stamp_ns
+        self._clouds.append((stamp_ns, points, now_s, restart))
+        if len(self._clouds) > MAX_QUEUED_CLOUDS:
+            dropped = self._clouds.popleft()
+            notes.append(Rejection("clouds_dropped_backlog", f"cloud at {dropped[0]} ns dropped: "
+                                   f"{MAX_QUEUED_CLOUDS} clouds wait for the solver"))
+        return notes
+
+    def add_tool_pose(self, stamp_ns: int, pose: np.ndarray) -> None:
+        """Buffer a tool pose (world frame) for the tool gate; a jump back empties the buffer."""
+        pose = np.asarray(pose, dtype=np.float64)
+        if pose.shape != (7,) or not np.isfinite(pose).all():
+            return  # the simulation side counts it
+        order = stamp_order(self._newest_pose_ns, stamp_ns, self._jump_ns)
+        if order in (STALE, INVALID):
+            return
+        if order == JUMP_BACK:
+            self._poses.clear()
+        self._newest_pose_ns = stamp_ns
+        self._poses.add(stamp_ns, pose)
+
+    def add_prediction(self, answer: Prediction) -> Rejection | None:
+        """Take the simulator's answer for a stamp (a prediction or a failure)."""
+        stamp = answer.stamp_ns
+        newest = self._newest_answer_ns
+        if newest is not None and newest - stamp > self._jump_ns:
+            self._answers.clear()  # the simulator restarted its timeline (a looped recording)
+        elif self._last_step_ns is not None and 0 <= self._last_step_ns - stamp <= self._jump_ns:
+            return Rejection("predictions_rejected", f"prediction at {stamp} ns comes after its cloud ran")
+        if answer.positions is not None and answer.positions.shape != self.mesh.vertices.shape:
+            self._newest_answer_ns = stamp
+            self._answers[stamp] = Prediction(stamp, None, "wrong vertex count")
+            return Rejection("predictions_rejected", f"prediction at {stamp} ns has {answer.positions.shape[0]} "
+                             f"vertices, the mesh {self.mesh.vertex_count}: ignored")
+        self._newest_answer_ns = stamp
+        self._answers[stamp] = answer
+        while len(self._answers) > MAX_STORED_ANSWERS:
+            del self._answers[min(self._answers)]
+        return None
+
+    def next_step(self, now_s: float = 0.0, flush: bool = False) -> CloudStep | None:
+        """The oldest cloud if it is ready to run (module docstring), else None."""
+        if not self._clouds:
+            return None
+        stamp, points, arrival_s, restart = self._clouds[0]
+        waited = flush or now_s - max(arrival_s, self._solver_free_s) >= self.timeouts.prediction_timeout
+        answer = self._answers.get(stamp)
+        later_answer = any(stamp < other <= self._newest_cloud_ns for other in self._answers)
+        if answer is None and not (later_answer or waited):
+            return None
+        pose_pending = self._newest_pose_ns is not None and self._newest_pose_ns < stamp
+        if pose_pending and not (waited or (answer is not None and answer.tool_pose is not None)):
+            return None
+        self._clouds.popleft()
+        for old in [other for other in self._answers if other <= stamp]:
+            del self._answers[old]
+        self._last_step_ns = stamp
+        tool_pose = answer.tool_pose if answer is not None and answer.tool_pose is not None else self._tool_pose(stamp)
+        predicted = answer.positions if answer is not None else None
+        return CloudStep(stamp, points, arrival_s, predicted, tool_pose, restart)
+
+    def _tool_pose(self, stamp_ns: int) -> np.ndarray | None:
+        try:
+            return self._poses.pose_at(stamp_ns)
+        except ToolPoseUnavailable:
+            return None
+
+    def run(self, step: CloudStep, now: Callable[[], float] | None = None) -> StepOutcome:
+        """Run one step on the estimator. A failed update leaves the window as it was; a
+        non-finite result (never returned) restarts the estimator from the initial mesh."""
+        if step.restart:
+            self.estimator = SlidingWindowEstimator(self.mesh, self.config)
+        try:
+            result = self.estimator.update(step.stamp_ns, step.points, step.predicted, step.tool_pose)
+        except (EstimatorInputError, EstimatorStepError) as error:
+            outcome = StepOutcome(step, None, str(error), "failed_steps")
+        else:
+            if _finite(result):
+                outcome = StepOutcome(step, result)
+            else:
+                self.estimator = SlidingWindowEstimator(self.mesh, self.config)
+                outcome = StepOutcome(step, None, "the estimate is not finite: the estimator restarts from the "
+                                      "initial mesh", "nonfinite_estimates")
+        self._solver_free_s = now() if now is not None else 0.0
+        return outcome
+
+
+def _finite(result: StepResult) -> bool:
+    values = [result.positions, result.position_std, result.initial_cost, result.final_cost, result.solve_time_ms]
+    return all(np.isfinite(np.asarray(value, dtype=np.float64)).all() for value in values)
+
+
+# --------------------------------------------------------------------------- offline
+@dataclass(frozen=True)
+class PipelineStep:
+    """One estimate of the offline pipeline, with its inputs and the simulation-alone baseline."""
+
+    stamp_ns: int
+    points: np.ndarray
+    predicted: np.ndarray | None
+    simulation_only: np.ndarray | None
+    result: StepResult
+
+
+class OfflinePipeline:
+    """Both schedulers connected synchronously, plus the open-loop simulation ("simulation
+    alone": the same simulator and tool poses, fed its own predictions instead of estimates).
+
+    Feed tool poses and world-frame clouds in arrival order (`tool_pose`, `cloud`); each call
+    returns the steps it completed; `finish` flushes the waits at the end of the input.
+    """
+
+    def __init__(self, mesh: TetMesh, model: SimulatorConfig, config: EstimatorConfig,
+                 grasped_vertices: np.ndarray | None = None, *, clock_jump_threshold: float = 1.0,
+                 tool_pose_extrapolation: float = 0.1,
+                 alter_prediction: Callable[[int, np.ndarray], np.ndarray] | None = None) -> None:
+        shared = dict(clock_jump_threshold=clock_jump_threshold, tool_pose_extrapolation=tool_pose_extrapolation)
+        self.simulation = PredictionScheduler(mesh, model, grasped_vertices, **shared)
+        self.open_loop = PredictionScheduler(mesh, model, grasped_vertices, **shared)
+        self.estimation = EstimationScheduler(mesh, config, **shared)
+        self._alter_prediction = alter_prediction
+        self._open_loop_states: dict[int, np.ndarray] = {}
+        self._simulation_only = mesh.vertices
+
+    def tool_pose(self, stamp_ns: int, pose: np.ndarray) -> list[PipelineStep]:
+        """Take a tool pose (world frame)."""
+        if self.simulation.add_tool_pose(stamp_ns, pose) is None and self.simulation.restarted:
+            self._simulation_only = self.simulation.mesh.vertices
+        self.open_loop.add_tool_pose(stamp_ns, pose)
+        self.estimation.add_tool_pose(stamp_ns, pose)
+        return self._pump(False)
+
+    def cloud(self, stamp_ns: int, points: np.ndarray) -> list[PipelineStep]:
+        """Take a cloud (K, 3) in the world frame."""
+        rejections = self.estimation.add_cloud(stamp_ns, points)
+        if not any(r.counter == "clouds_rejected_stamp" for r in rejections):
+            self.simulation.request(stamp_ns)
+            self.open_loop.request(stamp_ns)
+        return self._pump(False)
+
+    def finish(self) -> list[PipelineStep]:
+        """Run what still waits (the input has ended)."""
+        return self._pump(True)
+
+    def _pump(self, flush: bool) -> list[PipelineStep]:
+        steps = []
+        while True:
+            for answer in self.open_loop.poll(flush=flush):
+                if answer.positions is not None:  # a failed open-loop step leaves the baseline where it was
+                    self._simulation_only = answer.positions
+                self.open_loop.add_estimate(answer.stamp_ns, answer.positions)
+                self._open_loop_states[answer.stamp_ns] = self._simulation_only
+            answers = self.simulation.poll(flush=flush)
+            for answer in answers:
+                if answer.positions is not None and self._alter_prediction is not None:
+                    answer = Prediction(answer.stamp_ns, self._alter_prediction(answer.stamp_ns, answer.positions),
+                                        answer.failure, answer.tool_pose)
+                self.estimation.add_prediction(answer)
+            step = self.estimation.next_step(flush=flush)
+            if step is None and not answers:
+                return steps
+            while step is not None:
+                outcome = self.estimation.run(step)
+                positions = outcome.result.positions if outcome.result is not None else None
+                self.simulation.add_estimate(step.stamp_ns, positions)
+                if outcome.result is not None:
+                    steps.append(PipelineStep(step.stamp_ns, step.points, step.predicted,
+                                              self._open_loop_states.pop(step.stamp_ns, None), outcome.result))
+                for old in [s for s in self._open_loop_states if s < step.stamp_ns]:
+                    del self._open_loop_states[old]
+                step = self.estimation.next_step(flush=flush)
+
+
+def run_offline(pipeline: OfflinePipeline, events: Iterator[tuple[str, int, np.ndarray]]) -> Iterator[PipelineStep]:
+    """Drive `pipeline` with ("pose" | "cloud", stamp_ns, array) events in arrival order."""
+    for kind, stamp_ns, data in events:
+        yield from (pipeline.tool_pose if kind == "pose" else pipeline.cloud)(stamp_ns, data)
+    yield from pipeline.finish()
+
+
+__all__ = [
+    "CloudStep",
+    "EstimationScheduler",
+    "OfflinePipeline",
+    "PipelineStep",
+    "Prediction",
+    "PredictionScheduler",
+    "Rejection",
+    "SchedulingTimeouts",
+    "StepOutcome",
+    "run_offline",
+]
