@@ -8,9 +8,9 @@ import torch
 from torch.func import jacrev, vmap
 
 from meshfg_ros.benchmarks.baselines import WhitenedProblem, freeze_associations
+from meshfg_ros.core.factor_graph import FactorGraph
 from meshfg_ros.core.factors import (
     FactorError,
-    FactorGraph,
     PhysicsPriorFactor,
     PointToSurfaceFactor,
     TemporalFactor,

@@ -7,7 +7,8 @@ import scipy.optimize
 import scipy.sparse
 
 from meshfg_ros.benchmarks.baselines import compare_single_update
-from meshfg_ros.core.factors import MIN_VOLUME_RATIO_PER_STEP, FactorGraph, PhysicsPriorFactor, prior_scale
+from meshfg_ros.core.factor_graph import MIN_VOLUME_RATIO_PER_STEP, FactorGraph
+from meshfg_ros.core.factors import PhysicsPriorFactor, prior_scale
 from meshfg_ros.core.fem import ElasticModel
 from meshfg_ros.core.levenberg_marquardt import LevenbergMarquardtConfig, levenberg_marquardt
 from meshfg_ros.core.linear_solvers import (
@@ -17,9 +18,9 @@ from meshfg_ros.core.linear_solvers import (
     NotPositiveDefiniteError,
     PCGSolver,
     SuperLUSolver,
-    WindowSystem,
     make_linear_solver,
 )
+from meshfg_ros.core.linear_system import WindowSystem
 from meshfg_ros.core import sparse_cholesky
 from meshfg_ros.synthetic.meshing import cube_mesh
 

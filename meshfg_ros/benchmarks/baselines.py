@@ -29,7 +29,8 @@ import scipy.optimize
 import scipy.sparse
 
 from meshfg_ros.core.closest_point import REGION_FACE, project_onto_triangles, projection_jacobian
-from meshfg_ros.core.factors import FactorGraph, PhysicsPriorFactor, PointToSurfaceFactor, TemporalFactor, VolumeBarrierFactor
+from meshfg_ros.core.factor_graph import FactorGraph
+from meshfg_ros.core.factors import PhysicsPriorFactor, PointToSurfaceFactor, TemporalFactor, VolumeBarrierFactor
 from meshfg_ros.core.levenberg_marquardt import LevenbergMarquardtConfig, levenberg_marquardt
 from meshfg_ros.core.linear_solvers import make_linear_solver
 from meshfg_ros.core.mesh import TetMesh

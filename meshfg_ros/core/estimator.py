@@ -7,7 +7,7 @@ new cloud, and the temporal factor to the previous state; then Levenberg-Marquar
 every state of the window jointly, and the newest state is returned with its per-vertex
 posterior standard deviation.
 
-Design decisions (see also factors.py, levenberg_marquardt.py, linear_solvers.py):
+Design decisions (see also factors.py, factor_graph.py, levenberg_marquardt.py, linear_solvers.py):
 - Initial value of a new state: the prediction when given, else the previous estimate
   (copy-forward). A configuration with the physics prior but no prediction uses the
   copy-forward state as the prediction and flags the step degraded.
@@ -72,8 +72,8 @@ import numpy as np
 import scipy.linalg
 
 from meshfg_ros.core.closest_point import ClosestPointIndex
+from meshfg_ros.core.factor_graph import FactorGraph
 from meshfg_ros.core.factors import (
-    FactorGraph,
     PhysicsPriorFactor,
     PointToSurfaceFactor,
     TemporalFactor,
