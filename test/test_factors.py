@@ -10,6 +10,7 @@ from torch.func import jacrev, vmap
 from meshfg_ros.benchmarks.baselines import WhitenedProblem, freeze_associations
 from meshfg_ros.core.factor_graph import FactorGraph
 from meshfg_ros.core.factors import (
+    Factor,
     FactorError,
     PhysicsPriorFactor,
     PointToSurfaceFactor,
@@ -320,6 +321,14 @@ def test_graph_rejects_bad_factors(cube, model):
         PointToSurfaceFactor(0, np.zeros((3, 2)), cube.surface_triangles, cube.vertices)
     with pytest.raises(FactorError):
         prior_scale(model.stiffness(), 0.0)
+    graph.add_state(0, cube.vertices)
+    graph.add_state(1, cube.vertices)
+
+    class TwoStates(Factor):  # spans two states without declaring identity blocks
+        keys = (0, 1)
+
+    with pytest.raises(FactorError, match="identity_blocks"):
+        graph.add_factor(TwoStates())
 
 
 def test_volume_barrier_gradient_hessian_and_bounds(cube):

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse
 
-from meshfg_ros.core.factors import Factor, FactorError, FactorLinearization, TemporalFactor, checked_state
+from meshfg_ros.core.factors import Factor, FactorError, FactorLinearization, checked_state
 from meshfg_ros.core.linear_system import WindowSystem, diagonal_positions
 
 __all__ = ["MIN_VOLUME_RATIO_PER_STEP", "FactorGraph"]
@@ -59,8 +59,8 @@ class FactorGraph:
     gradient and in the cost, until the next linearisation. States that are re-linearised are
     "active": `cost` evaluates their factors exactly. Old window states, which get no new
     measurements, thus cost nothing until they really move. threshold 0 re-linearises every
-    state at every iteration (exact Levenberg-Marquardt on the window). Temporal factors are
-    exact quadratics and always evaluated directly. States in `exact_keys` (the estimator's
+    state at every iteration (exact Levenberg-Marquardt on the window). Factors with
+    identity_blocks (the temporal ones) are exact quadratics and always evaluated directly. States in `exact_keys` (the estimator's
     newest state, the one its new measurements and prediction act on) ignore the threshold.
     """
 
@@ -154,9 +154,8 @@ class FactorGraph:
         cached = self._cache.get(key) or self._relinearize(key, self.states[key])
         blocks = cached.data[self._vertex_block_slots].copy()
         temporal = 0.0
-        for factor in self._cross_factors():
-            if key in factor.keys and isinstance(factor, TemporalFactor):
-                temporal += factor.weight
+        for factor in self._identity_factors():
+            temporal += factor.identity_terms().get((key, key), 0.0)
         return blocks + temporal * np.eye(3)
 
     # ------------------------------------------------------------------------ states
@@ -181,11 +180,15 @@ class FactorGraph:
         return state
 
     def add_factor(self, factor: Factor) -> None:
+        """Add `factor`; one without identity_blocks must act on one state (whose cached
+        linearisation it invalidates)."""
         unknown = [key for key in factor.keys if key not in self.states]
         if unknown:
             raise FactorError(f"factor touches unknown state {unknown[0]!r}")
+        if not factor.identity_blocks and len(factor.keys) != 1:
+            raise FactorError("factors across states must give scaled-identity terms only (identity_blocks)")
         self.factors.append(factor)
-        if len(factor.keys) == 1 and not isinstance(factor, TemporalFactor):
+        if not factor.identity_blocks:
             self._cache.pop(factor.keys[0], None)
 
     def get_x(self) -> np.ndarray:
@@ -205,8 +208,9 @@ class FactorGraph:
 
     # ------------------------------------------------------------------------ problem
     def state_factors(self, key) -> list:
-        """Factors on state `key` alone, except temporal ones (exact quadratics, never cached)."""
-        return [factor for factor in self.factors if factor.keys == (key,) and not isinstance(factor, TemporalFactor)]
+        """The factors linearised into state `key`'s block and cached with it: those on `key`
+        alone without identity_blocks (identity-block factors are exact quadratics, never cached)."""
+        return [factor for factor in self.factors if factor.keys == (key,) and not factor.identity_blocks]
 
     def replace_state_factors(self, key, factors) -> None:
         """Put `factors` in place of state `key`'s `state_factors` (the estimator re-weights its
@@ -320,11 +324,13 @@ class FactorGraph:
         """Signed volumes (W, M) of the window's states (kept per state, see _window_geometry)."""
         return self._window_geometry(states)[0]
 
-    def _cross_factors(self) -> list:
-        return [factor for factor in self.factors if len(factor.keys) != 1 or isinstance(factor, TemporalFactor)]
+    def _identity_factors(self) -> list:
+        """The identity_blocks factors: evaluated directly, their terms go into the diagonal
+        shift and the couplings of the window system."""
+        return [factor for factor in self.factors if factor.identity_blocks]
 
     def cost(self, x: np.ndarray) -> float:
-        """Total cost: exact for active states and temporal factors, cached model for the rest."""
+        """Total cost: exact for active states and identity-block factors, cached model for the rest."""
         states = self.states_from_x(x)
         total = 0.0
         for key in self.keys:
@@ -333,7 +339,7 @@ class FactorGraph:
                 total += sum(factor.cost(states) for factor in self.state_factors(key))
             else:
                 total += self._model(cached, states[key])[0]
-        total += sum(factor.cost(states) for factor in self._cross_factors())
+        total += sum(factor.cost(states) for factor in self._identity_factors())
         return float(total)
 
     def gradient(self, x: np.ndarray):
@@ -366,7 +372,7 @@ class FactorGraph:
                 self._active.add(key)
             cost_t, gradient[t] = self._model(cached, states[key])
             cost += cost_t
-        for factor in self._cross_factors():
+        for factor in self._identity_factors():
             terms = factor.linearize(states, hessian=False)
             cost += terms.cost
             for key, values in terms.gradients.items():
@@ -377,8 +383,8 @@ class FactorGraph:
         """(WindowSystem of J^T W J, gradient J^T W r over the free dofs, cost) at x.
 
         The system's blocks are the states' cached linearisations themselves (not copied: at
-        organ scale, W copies of 1.4M values cost ~60 ms an update); the temporal factors' terms
-        go into its diagonal shift."""
+        organ scale, W copies of 1.4M values cost ~60 ms an update); the identity-block
+        factors' terms go into its diagonal shift and its couplings."""
         states = self.states_from_x(x)
         window = len(self.keys)
         gradient = np.zeros((window, self.dof_count))
@@ -401,7 +407,7 @@ class FactorGraph:
             blocks.append(cached.block)
             revisions.append(cached.revision)
         position = {key: t for t, key in enumerate(self.keys)}
-        for factor in self._cross_factors():
+        for factor in self._identity_factors():
             terms = factor.linearize(states)
             cost += terms.cost
             for key, values in terms.gradients.items():
@@ -415,7 +421,7 @@ class FactorGraph:
                 else:
                     raise FactorError("identity terms may only couple consecutive states")
             if terms.hessians or terms.point_blocks or terms.element_blocks:
-                raise FactorError("factors across states must give scaled-identity terms only")
+                raise FactorError(f"{type(factor).__name__} declares identity_blocks but gave other terms")
         shift = np.repeat(coupling_diagonal[:, None], self.block_size, axis=1) if coupling_diagonal.any() else None
         system = WindowSystem(blocks, couplings, list(self.keys), self._diagonal_index, coupling_diagonal,
                               self._vertex_block_slots, revisions, shift)

@@ -101,9 +101,27 @@ class ElementBlocks:
 
 
 class Factor:
-    """Base: keys (the state keys it touches), residual, Jacobians, cost and linearisation."""
+    """Base: keys (the state keys it touches), residual, Jacobians, cost and linearisation.
+
+    `identity_blocks` declares the structure of the factor's Gauss-Newton terms, which decides
+    how a FactorGraph assembles it:
+      False (default)  a factor on one state (one key) whose terms (Hessians, point or element
+                       blocks) go into that state's block; the graph linearises it with the
+                       state's other such factors and caches the result per state.
+      True             terms that are c * I blocks on and between the states of its keys
+                       (`identity_terms`, constant in X: an exact quadratic); the graph
+                       evaluates it directly in every cost and linearisation and puts the
+                       blocks into the window system's diagonal and its couplings between
+                       consecutive states.
+    """
 
     keys: tuple = ()
+    identity_blocks: bool = False
+
+    def identity_terms(self) -> dict:
+        """{(key_i, key_j): c}, the c * I blocks of an identity_blocks factor (i == j: on the
+        diagonal block of state i; i != j: between states i and j)."""
+        raise NotImplementedError
 
     def residual(self, states: dict) -> np.ndarray:
         raise NotImplementedError
@@ -308,7 +326,10 @@ class VolumeBarrierFactor(Factor):
 
 class TemporalFactor(Factor):
     """r = X_t - X_previous with information I / sigma^2; the previous state is a key of the
-    graph, or (anchor) a constant state: one that left the window or the initial mesh."""
+    graph, or (anchor) a constant state: one that left the window or the initial mesh. Its
+    Gauss-Newton terms are multiples of the identity (identity_blocks)."""
+
+    identity_blocks = True
 
     def __init__(self, key, sigma: float, previous_key=None, anchor=None):
         if not (np.isfinite(sigma) and sigma > 0.0):
@@ -340,15 +361,19 @@ class TemporalFactor(Factor):
         r = self.residual(states)
         return 0.5 * self.weight * float(r @ r)
 
+    def identity_terms(self):
+        terms = {(self.key, self.key): self.weight}
+        if self.anchor is None:
+            terms[(self.previous_key, self.previous_key)] = self.weight
+            terms[(self.previous_key, self.key)] = -self.weight
+        return terms
+
     def linearize(self, states, hessian=True):
         r = self.residual(states)
-        out = FactorLinearization(cost=0.5 * self.weight * float(r @ r))
+        out = FactorLinearization(cost=0.5 * self.weight * float(r @ r), identity_terms=self.identity_terms())
         out.gradients[self.key] = self.weight * r
-        out.identity_terms[(self.key, self.key)] = self.weight
         if self.anchor is None:
             out.gradients[self.previous_key] = -self.weight * r
-            out.identity_terms[(self.previous_key, self.previous_key)] = self.weight
-            out.identity_terms[(self.previous_key, self.key)] = -self.weight
         return out
 
 
