@@ -42,7 +42,7 @@ from meshfg_ros.parameters import (
     read_parameters_file,
     simulator_config,
 )
-from meshfg_ros.core.simulator import SimulatorConfig, XpbdSimulator
+from meshfg_ros.core.simulator import ElasticSimulator, SimulatorConfig
 from meshfg_ros.io.messages import (
     MeshState,
     PointCloudRecord,
@@ -237,8 +237,8 @@ def iterate_replay(inputs: ReplayInputs, params: Mapping[str, Any],
     mesh = inputs.initial_mesh
     grasped = np.asarray(params["grasped_vertices"], dtype=np.int64) if params["grasped_vertices"] else None
     model = simulator_config(params)
-    simulator = XpbdSimulator(mesh, model, grasped_vertices=grasped)
-    open_loop = XpbdSimulator(mesh, model, grasped_vertices=grasped)
+    simulator = ElasticSimulator(mesh, model, grasped_vertices=grasped)
+    open_loop = ElasticSimulator(mesh, model, grasped_vertices=grasped)
     config = estimator_config(params)
     estimator = SlidingWindowEstimator(mesh, config)
     scene = Scene.of(mesh.vertices)
@@ -307,7 +307,7 @@ def iterate_replay(inputs: ReplayInputs, params: Mapping[str, Any],
         yield ReplayStep(stamp, points, predicted, open_loop_states.get(stamp), result)
 
 
-def _predict(simulator: XpbdSimulator, state: np.ndarray, pose: np.ndarray, dt: float) -> np.ndarray | None:
+def _predict(simulator: ElasticSimulator, state: np.ndarray, pose: np.ndarray, dt: float) -> np.ndarray | None:
     """simulator.predict, or None (with the simulator reset to `pose`) when it fails, as the node does."""
     try:
         predicted = simulator.predict(state, pose, dt)

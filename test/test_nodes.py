@@ -27,7 +27,7 @@ from meshfg_msgs.msg import EstimatorStatus, PredictionFailure, TetraMesh
 from meshfg_ros import blas
 from meshfg_ros.synthetic.meshing import cube_mesh
 from meshfg_ros.parameters import load_parameters, simulator_config
-from meshfg_ros.core.simulator import XpbdSimulator
+from meshfg_ros.core.simulator import ElasticSimulator
 from meshfg_ros.io.messages import (
     MeshState,
     PointCloudRecord,
@@ -254,7 +254,7 @@ def test_simulation_node_predicts_from_the_latest_estimate(probe, processes, tmp
     received(5)
     spin_until(probe, lambda: len(predictions) > 5, timeout_s=1.5)
 
-    simulator = XpbdSimulator(mesh, simulator_config(params))
+    simulator = ElasticSimulator(mesh, simulator_config(params))
     simulator.reset(np.concatenate([poses[0], [0.0, 0.0, 0.0, 1.0]]))
     expected = [simulator.predict(mesh.vertices, np.concatenate([poses[1], [0, 0, 0, 1.0]]), 1.0)]
     for k in (2, 3, 4):

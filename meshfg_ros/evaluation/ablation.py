@@ -14,7 +14,7 @@ from tqdm import tqdm
 from meshfg_ros.core.estimator import EstimatorConfig, SlidingWindowEstimator
 from meshfg_ros.evaluation.metrics import summarise, unobserved_external_vertices, vertex_rmse
 from meshfg_ros.synthetic.scenarios import Scenario, generate
-from meshfg_ros.core.simulator import XpbdSimulator
+from meshfg_ros.core.simulator import ElasticSimulator
 
 ABLATION_CONFIGURATIONS = ("temporal", "measurement", "temporal+measurement", "simulation+measurement", "full")
 CUBE_SCENARIOS = ("cube-translate", "cube-shear-spd", "cube-shear-nonspd")
@@ -44,7 +44,7 @@ def run_configuration(scenario: Scenario, factors: str, progress: tqdm | None = 
     estimator = SlidingWindowEstimator(mesh, estimator_config_for(scenario, factors, **overrides))
     simulator = None
     if "simulation" in factors or factors == "full":
-        simulator = XpbdSimulator(mesh, scenario.simulator_config, grasped_vertices=scenario.grasped_vertices)
+        simulator = ElasticSimulator(mesh, scenario.simulator_config, grasped_vertices=scenario.grasped_vertices)
         simulator.reset(scenario.initial_tool_pose)
     unobserved = unobserved_external_vertices(mesh.surface_vertices, mesh.surface_triangles,
                                               scenario.observed_triangles)

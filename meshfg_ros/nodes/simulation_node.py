@@ -38,7 +38,7 @@ from meshfg_msgs.msg import PredictionFailure, TetraMesh
 from meshfg_ros.core.input_checks import INVALID, JUMP_BACK, STALE, Scene, check_initial_mesh, stamp_order
 from meshfg_ros.core.mesh import load_mesh
 from meshfg_ros.parameters import simulator_config
-from meshfg_ros.core.simulator import XpbdSimulator
+from meshfg_ros.core.simulator import ElasticSimulator
 from meshfg_ros.io.messages import (
     MeshState,
     MessageValidationError,
@@ -91,7 +91,7 @@ class SimulationNode(Node):
         self._config = simulator_config(self.params)
         self._frame = self.params["world_frame"]
         self._jump_ns = int(self.params["clock_jump_threshold"] * _NS_PER_S)
-        self._simulator: XpbdSimulator | None = None
+        self._simulator: ElasticSimulator | None = None
         self._messages: MeshMessages | None = None
         self._initial: MeshState | None = None
         self._scene: Scene | None = None
@@ -151,7 +151,7 @@ class SimulationNode(Node):
         grasped = np.asarray(self.params["grasped_vertices"], dtype=np.int64)
         try:
             scene = check_initial_mesh(state.positions)
-            simulator = XpbdSimulator(tet_mesh_from_state(state), self._config, grasped if grasped.size else None)
+            simulator = ElasticSimulator(tet_mesh_from_state(state), self._config, grasped if grasped.size else None)
         except ValueError as error:
             self.get_logger().error(f"cannot simulate the initial mesh: {error}")
             return
