@@ -35,12 +35,14 @@ __all__ = [
     "LinearSolver",
     "NotPositiveDefiniteError",
     "PCGSolver",
+    "PRECONDITIONERS",
     "SolveStats",
     "SuperLUSolver",
     "make_linear_solver",
 ]
 
 LINEAR_SOLVERS = ("pcg", "cholesky", "superlu")
+PRECONDITIONERS = ("auto", "block", "vertex")
 
 
 class LinearSolveError(RuntimeError):
@@ -144,48 +146,37 @@ class PCGSolver(LinearSolver):
     """Preconditioned conjugate gradients exploiting the window's time structure.
 
     Preconditioners (`preconditioner`):
-      "time"    the window matrix with every state block replaced by their mean Bbar:
-                M = I (x) Bbar + T (x) I, T the (W, W) time Laplacian of the couplings. With
-                T = Q diag(mu) Q^T it is block diagonal in the time eigenbasis, so applying it
-                is W sparse Cholesky solves with (Bbar + mu_j I), factored once and reused
-                across LM iterations and updates until the mean block drifts by more than
-                `refresh_change` (relative Frobenius norm), T changes, or PCG needs more than
-                `refresh_iterations` iterations. Exact in the couplings, which block Jacobi
-                misses: the smooth deformation modes, weakly held by K, are mostly tied
-                through time.
-      "block"   block Jacobi over the time steps: each state's block Cholesky-factored and
-                cached by its key, refreshed when the block drifts by more than
-                `refresh_change` (a re-linearisation, damping, a new temporal neighbour) or
-                PCG needs more than `refresh_iterations` (exact without couplings).
-                (Measured: a new state's own factor pays for itself; borrowing the previous
-                newest state's factor took its first solve from 2 to ~30 iterations.)
-      "vertex"  like "time" with Bbar reduced to its 3x3 vertex blocks (no factorisation:
-                for large meshes where sparse Cholesky is too slow).
-      "auto"    "block" up to `cholesky_max_block` dofs per state, else "vertex". Measured on
-                the estimator's windows (tolerance 1e-8, cholespy factors at the time):
-                512 vertices, W=10, 13k unknowns: block 49 ms with cached factors (20 its),
-                vertex 90 ms (120 its), time 215 ms (84 its: the blocks' measurement terms
-                differ too much from their mean), whole-window Cholesky 7.9 s, SuperLU
-                8.6 s. With CHOLMOD through cvxopt, in the estimator (tolerance 1e-3,
-                simulation_sigma 1e-4): 10.6k vertices, W=5, 152k unknowns, median linear
-                solve block 0.61 s (one 30k-dof factorisation 0.74 s, one solve 25 ms),
-                vertex 1.8 s; update 2.6 s against 4.9 s. With METIS ordering
-                (sparse_cholesky.py) the factorisation is 0.44 s and a solve 18 ms.
-                Tried at that scale, with "block" at 1.28 s median per update (3 PCG its):
-                borrowing the previous newest factor 1.17 s (5-7 its, growing as the factor
-                ages); Cholesky for the two newest states and vertex blocks for the rest
-                1.09 s, but one update took 43 its (3.2 s); x/y/z-separated scalar blocks
-                (trace of each 3x3 block, a 9x smaller factor) 25-29 its, 1.65 s; MKL PARDISO
-                with 2 threads factors in 0.24 s, but its solves took 25-45 ms and its OpenMP
-                threads slowed numpy: 1.43-1.51 s. cvxopt's OpenBLAS is a single-threaded
-                build; with CHOLMOD's BLAS bound to MKL on both cores instead (blas.py) the
-                factorisation takes 0.26 s, a solve 12-14 ms, and the update 0.87-0.92 s.
+      "block"   block Jacobi over the time steps: each state's block Cholesky-factored
+                (sparse_cholesky.py) and cached by its key, refreshed when the block drifts by
+                more than `refresh_change` (relative Frobenius norm: a re-linearisation,
+                damping, a new temporal neighbour) or PCG needs more than
+                `refresh_iterations` iterations. Exact without couplings.
+      "vertex"  M = I (x) Bbar + T (x) I, Bbar the 3x3 vertex blocks of the states' mean block
+                and T the (W, W) time Laplacian of the couplings. With T = Q diag(mu) Q^T it
+                is block diagonal in the time eigenbasis, so applying it is a batch of 3x3
+                solves with (Bbar_v + mu_j I): no factorisation, for meshes where a state's
+                sparse Cholesky is too slow. Exact in the couplings, which tie the smooth
+                deformation modes (weakly held by K) through time. Refreshed when the mean
+                block drifts by more than `refresh_change` or T changes.
+      "auto"    "block" up to `cholesky_max_block` dofs per state, else "vertex".
+    Block Jacobi with a factor per state needs the fewest iterations on the estimator's
+    windows: about 20 against 120 for "vertex" on a 512-vertex window (W=10, 13k unknowns,
+    tolerance 1e-8), where whole-window Cholesky or SuperLU is over 100 times slower. On an
+    organ-scale window (10.6k vertices, W=5, 152k unknowns, tolerance 1e-3) PCG needs about 3
+    iterations, so one state's factorisation (30k dofs: 0.26 s with CHOLMOD's BLAS on MKL,
+    0.44 s on single-threaded OpenBLAS, blas.py) dominates the update and a solve with a
+    factor takes 12-18 ms. What would save factorisations costs more iterations than it saves
+    there: the previous newest state's factor (5-7 iterations, more as it ages), Cholesky for
+    the two newest states and vertex blocks for the rest (some updates take 40 or more),
+    x/y/z-separated scalar blocks (a 9 times smaller factor, 25-29 iterations); MKL PARDISO's
+    OpenMP threads slow numpy down.
     tolerance: relative residual |b - A x| / |b|; max_iterations: cap (LinearSolveError).
     reserved_factors: when the first factor of a sparsity pattern is made, this many in all are
     made at once (the extra ones spares), so that later updates never factor into fresh memory:
-    the estimator reserves its window's W. On this machine (a VM) the first touch of fresh
-    memory costs ~2.4 ms/MB: a new organ-scale factor (132 MB) took 0.5-0.7 s against 0.23 s
-    for a refactor, which made the window-filling update the slowest of a run.
+    the first touch of fresh pages is slow (an organ-scale factor holds about 130 MB, and
+    factoring into fresh memory takes two to three times as long as a refactor), and without
+    spares every update that fills the window would pay it. The estimator reserves its
+    window's W.
     The loop is hand-written because scipy's cg cannot report negative curvature, which is
     how an indefinite system is detected (NotPositiveDefiniteError).
     """
@@ -195,8 +186,8 @@ class PCGSolver(LinearSolver):
     def __init__(self, tolerance: float = 1e-8, max_iterations: int = 1000, preconditioner: str = "auto",
                  refresh_iterations: int = 100, refresh_change: float = 0.05, cholesky_max_block: int = 100_000,
                  reserved_factors: int = 0):
-        if preconditioner not in ("auto", "time", "block", "vertex"):
-            raise ValueError(f"preconditioner must be auto, time, block or vertex, got {preconditioner!r}")
+        if preconditioner not in PRECONDITIONERS:
+            raise ValueError(f"preconditioner must be one of {PRECONDITIONERS}, got {preconditioner!r}")
         self.tolerance = float(tolerance)
         self.max_iterations = int(max_iterations)
         self.preconditioner = preconditioner
@@ -210,7 +201,7 @@ class PCGSolver(LinearSolver):
         """Drop every cached factor."""
         self._block_factors: dict = {}   # key -> _BlockFactor
         self._spare: list = []           # factors no longer in use, their symbolic analysis reusable
-        self._time: dict | None = None   # laplacian, eigenvectors, factors, mean data
+        self._vertex: dict | None = None  # "vertex": laplacian, eigenvectors, inverse blocks, mean data
         self.factorizations = 0
 
     def _mode(self, system: WindowSystem) -> str:
@@ -268,28 +259,18 @@ class PCGSolver(LinearSolver):
             return
         laplacian = system.time_laplacian()
         mean = self._mean_block_data(system)
-        cached = self._time
-        if (not force and cached is not None and cached["mode"] == mode and cached["laplacian"].shape == laplacian.shape
+        cached = self._vertex
+        if (not force and cached is not None and cached["laplacian"].shape == laplacian.shape
                 and np.allclose(cached["laplacian"], laplacian, rtol=1e-12, atol=0.0)
                 and self._change(mean, cached["mean"]) <= self.refresh_change):
             return
         eigenvalues, eigenvectors = np.linalg.eigh(laplacian)
-        if cached is not None and cached["mode"] == "time":
-            self._spare.extend(cached["factors"])
-            self._time = None
-        if mode == "time":
-            factors = []
-            for eigenvalue in eigenvalues:
-                shifted = mean.copy()
-                shifted[system.diagonal_index] += eigenvalue
-                factors.append(self._factor(shifted, system.pattern))
-        else:
-            vertex_blocks = system.vertex_blocks(mean)  # (V, 3, 3)
-            shifted = vertex_blocks[None] + eigenvalues[:, None, None, None] * np.eye(3)
-            if not np.all(np.linalg.eigvalsh(shifted) > 0.0):
-                raise NotPositiveDefiniteError("a vertex block of the preconditioner is not positive definite")
-            factors = np.linalg.inv(shifted)  # (W, V, 3, 3)
-        self._time = dict(mode=mode, laplacian=laplacian, eigenvectors=eigenvectors, factors=factors, mean=mean)
+        vertex_blocks = system.vertex_blocks(mean)  # (V, 3, 3)
+        shifted = vertex_blocks[None] + eigenvalues[:, None, None, None] * np.eye(3)
+        if not np.all(np.linalg.eigvalsh(shifted) > 0.0):
+            raise NotPositiveDefiniteError("a vertex block of the preconditioner is not positive definite")
+        inverses = np.linalg.inv(shifted)  # (W, V, 3, 3)
+        self._vertex = dict(laplacian=laplacian, eigenvectors=eigenvectors, inverses=inverses, mean=mean)
 
     # ------------------------------------------------------------------ application
     def _precondition(self, system: WindowSystem, mode: str, residual: np.ndarray) -> np.ndarray:
@@ -299,16 +280,10 @@ class PCGSolver(LinearSolver):
             for t, key in enumerate(system.keys):
                 out[t] = self._block_factors[key].factor.solve(parts[t])
             return out.reshape(-1)
-        eigenvectors = self._time["eigenvectors"]
+        eigenvectors = self._vertex["eigenvectors"]
         rotated = eigenvectors.T @ parts
-        if mode == "time":
-            solved = np.zeros_like(rotated)
-            for j, factor in enumerate(self._time["factors"]):
-                solved[j] = factor.solve(rotated[j])
-        else:
-            solved = np.einsum("wvij,wvj->wvi", self._time["factors"], rotated.reshape(len(parts), -1, 3))
-            solved = solved.reshape(rotated.shape)
-        return (eigenvectors @ solved).reshape(-1)
+        solved = np.einsum("wvij,wvj->wvi", self._vertex["inverses"], rotated.reshape(len(parts), -1, 3))
+        return (eigenvectors @ solved.reshape(rotated.shape)).reshape(-1)
 
     def solve(self, system, rhs):
         start = time.perf_counter()
