@@ -6,7 +6,7 @@ solvers want it:
   physics prior   sqrt(scale) R_e (xhat_e - x_e) per element, R_e^T R_e = K_e (symmetric
                   square root of the element stiffness, so sum_e = scale K), and
                   sqrt(ridge) (xhat - x); needs PSD element matrices (linear, corotational or
-                  projected) and information that does not move (relinearize=False or linear).
+                  projected); the information is the one the factor holds (fixed per update).
   measurements    sqrt(w_k) (q_k - m_k) on the frozen closest triangle (no robust kernel).
   temporal        (X_t - X_prev) / sigma.
 `solve_scipy` runs scipy.optimize.least_squares on it and `solve_gtsam` builds the same
@@ -66,8 +66,6 @@ def freeze_associations(graph: FactorGraph) -> None:
 
 def _element_roots(factor: PhysicsPriorFactor) -> np.ndarray:
     """R_e (M, 12, 12) with R_e^T R_e = K_e at the state the factor's information is fixed at."""
-    if factor.kind != "linear" and factor.relinearize:
-        raise BaselineError("the physics prior's information must be fixed (relinearize=False or linear K)")
     if factor.information_state is None:
         factor.information(factor.predicted)
     matrices = factor.model.element_matrices(factor.information_state, kind=factor.kind,
@@ -477,7 +475,7 @@ def pending_window(mesh: TetMesh, sequence, config):
     """The window problem of the last step of `sequence` as the estimator poses it: the
     estimator runs over all steps but the last, then adds the last one without optimising.
     Returns (estimator, graph) with the association frozen at the initial guess, ready for
-    `compare_single_update`. Needs K held fixed (stiffness_update "update", the default)."""
+    `compare_single_update`."""
     from meshfg_ros.core.estimator import SlidingWindowEstimator  # avoids an import cycle
 
     estimator = SlidingWindowEstimator(mesh, config)

@@ -19,15 +19,14 @@ Design decisions (see also factors.py, factor_graph.py, levenberg_marquardt.py, 
   fixed. test_estimator measures the difference to the growing full batch (`growing=True`,
   the paper's offline graph).
 - Fixed (boundary) vertices are eliminated: held at their initial positions.
-- K_t(X_t) (stiffness_update): "update" (default) evaluates K at each state's linearisation
-  point once per update, at the first LM iteration that re-linearises the state, and holds
-  it for that update's remaining iterations; "iteration" re-evaluates it at every LM
-  iteration. Both treat K as the information, not differentiated. With "iteration" the
-  objective itself moves between iterations (K(X) changes the cost at the same X), and on
-  weakly determined (smooth, unobserved) modes the optimum moves by up to ~mm with it: LM
-  then stalls at max_iterations rejecting steps (measured on the synthetic box); "update"
-  gives each update a fixed objective that LM provably decreases, and K still follows X_t
-  from one update to the next.
+- K_t(X_t) (stiffness_update "update", the only one): K is evaluated at each state's
+  linearisation point once per update, at the first LM iteration that re-linearises the
+  state, and held for that update's remaining iterations; it is the information, not
+  differentiated. Each update thus has a fixed objective that LM provably decreases, and K
+  still follows X_t from one update to the next. Re-evaluating K at every LM iteration would
+  move the objective itself between iterations (K(X) changes the cost at the same X): on
+  weakly determined (smooth, unobserved) modes its optimum moves by up to about a millimetre
+  with it, and LM stalls at max_iterations rejecting steps.
 - Old states are re-linearised only when they moved more than relinearize_threshold
   (default: the nominal measurement_sigma, RMS over vertices) since their last linearisation
   (FactorGraph, as iSAM2's relinearisation threshold): the quadratic model error that
@@ -137,7 +136,7 @@ _MEDIAN_ABSOLUTE_TO_SIGMA = 1.4826
 # solved again with it, at most MAX_REWEIGHT_ROUNDS times (the first update, from the nominal).
 REWEIGHT_CHANGE = 0.25
 MAX_REWEIGHT_ROUNDS = 4
-STIFFNESS_UPDATES = ("update", "iteration")
+STIFFNESS_UPDATES = ("update",)
 # Innovation test (SlidingWindowEstimator._innovation_test): a prediction is rejected when the
 # robust spread of the cloud's distances to its surface exceeds INNOVATION_SIGMAS nominal
 # measurement sigmas, INNOVATION_DIAGONALS of the scene's diagonal (against a sigma set far too
@@ -520,10 +519,8 @@ class SlidingWindowEstimator:
         factors = []
         if "simulation" in self.enabled:
             scale = self.prior_scale * (cfg.simulation_sigma / self.simulation_sigma) ** 2
-            factors.append(PhysicsPriorFactor(
-                key, pending.prediction, self.model, cfg.stiffness_kind, cfg.spd_projection, scale,
-                self.prior_ridge, relinearize=cfg.stiffness_update == "iteration",
-            ))
+            factors.append(PhysicsPriorFactor(key, pending.prediction, self.model, cfg.stiffness_kind,
+                                              cfg.spd_projection, scale, self.prior_ridge))
             factors.append(VolumeBarrierFactor(key, self.model.tetrahedra,
                                                signed_volumes(pending.prediction, self.model.tetrahedra),
                                                scale * self.bulk_energy_scale))

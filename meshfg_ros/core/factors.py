@@ -162,18 +162,16 @@ class PhysicsPriorFactor(Factor):
     """r = Xhat - X with information Lambda(X) = scale * K(X) + ridge * I.
 
     model: an ElasticModel (core.fem); kind / spd_projection select K. K depends on X and is
-    treated as the information matrix, not differentiated. With relinearize=True it is
-    re-evaluated at the linearisation point on every `linearize` (once per LM iteration);
-    with relinearize=False it is evaluated at the first linearisation and kept until
-    `invalidate_information()` (the estimator does that once per update, see estimator.py).
-    `cost` uses the Lambda of the last evaluation, so a trial step is judged on the same
-    quadratic as its model. The tiny ridge fixes the 6 rigid-body modes a free body's K leaves without
+    treated as the information matrix, not differentiated. It is evaluated at the first
+    linearisation and kept until `invalidate_information()` (the estimator calls it once per
+    update, see estimator.py), so each update optimises one fixed objective. `cost` uses the
+    same Lambda, so a trial step is judged on the same quadratic as its model. The tiny ridge fixes the 6 rigid-body modes a free body's K leaves without
     information. Raw neo-Hookean K may be indefinite: then Lambda is too, and the solver's
     damping must make the step system positive definite.
     """
 
     def __init__(self, key, predicted, model, kind: str = "corotational", spd_projection: bool = False,
-                 scale: float = 1.0, ridge: float = 0.0, relinearize: bool = True):
+                 scale: float = 1.0, ridge: float = 0.0):
         self.keys = (key,)
         self.model = model
         self.predicted = checked_state(predicted, model.vertex_count, "predicted state")
@@ -181,14 +179,12 @@ class PhysicsPriorFactor(Factor):
         self.spd_projection = bool(spd_projection)
         self.scale = float(scale)
         self.ridge = float(ridge)
-        self.relinearize = bool(relinearize)
         self._information: scipy.sparse.csr_matrix | None = None
         self.information_state: np.ndarray | None = None  # where Lambda was last evaluated
 
     def information(self, state: np.ndarray) -> scipy.sparse.csr_matrix:
-        """Lambda at `state` (N, 3); cached when K cannot change (linear kind or relinearize off)."""
-        constant = self.kind == "linear" or not self.relinearize
-        if self._information is None or not constant:
+        """Lambda, evaluated at `state` (N, 3) when there is none since `invalidate_information`."""
+        if self._information is None:
             stiffness = self.model.stiffness(state, kind=self.kind, spd_projection=self.spd_projection)
             information = (self.scale * stiffness).tocsr()
             if self.ridge:
