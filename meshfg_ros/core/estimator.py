@@ -291,6 +291,7 @@ class StepResult:
     accepted_steps: int = 0
     measurement_sigma: float = 0.0   # m, the measurement noise the update was weighted with (estimated)
     simulation_sigma: float = 0.0    # m, the simulation sigma the prior's weight corresponds to (estimated)
+    linear_solve_ms: list = field(default_factory=list)  # wall time of each linear solve of the update's LM runs
 
 
 @dataclass
@@ -549,7 +550,7 @@ class SlidingWindowEstimator:
         messages = pending.messages
         lm_messages = []
         result = self._optimise(lm_messages)
-        iterations, rounds = result["iterations"], 0
+        iterations, rounds, solve_times = result["iterations"], 0, list(result["solve_times_ms"])
         while self.config.estimate_weights:
             distances = self._residual_distances(pending.key)
             if distances is None or self.noise.observe(distances) <= REWEIGHT_CHANGE or rounds == MAX_REWEIGHT_ROUNDS:
@@ -559,6 +560,7 @@ class SlidingWindowEstimator:
             lm_messages = []
             result = self._optimise(lm_messages)
             iterations += result["iterations"]
+            solve_times += result["solve_times_ms"]
         messages.extend(lm_messages)
         if rounds:
             messages.append(f"solved again with the re-estimated measurement sigma {rounds} time(s)")
@@ -576,7 +578,7 @@ class SlidingWindowEstimator:
             num_points_rejected=pending.num_points_rejected + pending.num_points_gated, window_size=len(graph.keys),
             message="; ".join(messages), cost_history=result["cost_history"],
             accepted_steps=result["accepted_steps"], measurement_sigma=self.noise.sigma,
-            simulation_sigma=self.simulation_sigma,
+            simulation_sigma=self.simulation_sigma, linear_solve_ms=solve_times,
         )
 
     @property
@@ -618,7 +620,7 @@ class SlidingWindowEstimator:
             messages.append(f"optimisation failed ({error}); kept the initial guess")
             cost = float(graph.cost(x0))
             return dict(iterations=0, initial_cost=cost, final_cost=cost, converged=False, cost_history=[cost],
-                        accepted_steps=0)
+                        accepted_steps=0, solve_times_ms=[])
         if not np.all(np.isfinite(lm.x)):
             messages.append("optimisation produced non-finite values; kept the initial guess")
             lm.x = x0
@@ -626,7 +628,8 @@ class SlidingWindowEstimator:
         messages.extend(lm.messages)
         messages.append(lm.summary())
         return dict(iterations=lm.iterations, initial_cost=lm.initial_cost, final_cost=lm.final_cost,
-                    converged=lm.converged, cost_history=list(lm.cost_history), accepted_steps=lm.accepted_steps)
+                    converged=lm.converged, cost_history=list(lm.cost_history), accepted_steps=lm.accepted_steps,
+                    solve_times_ms=list(lm.solve_times_ms))
 
     # ------------------------------------------------------------------------- covariance
     def _position_std(self, messages) -> np.ndarray:
