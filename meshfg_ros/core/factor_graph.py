@@ -425,8 +425,9 @@ class FactorGraph:
         shift = np.repeat(coupling_diagonal[:, None], self.block_size, axis=1) if coupling_diagonal.any() else None
         system = WindowSystem(blocks, couplings, list(self.keys), self._diagonal_index, coupling_diagonal,
                               self._vertex_block_slots, revisions, shift)
-        # Scattered Hessians serve states that get re-linearised; keep only those of this round's
-        # (memory stays bounded by the active states, also in growing mode).
+        # Scattered Hessians serve states that get re-linearised; keep only those of the states
+        # this linearisation re-linearised (memory stays bounded by the active states, also in
+        # growing mode).
         self._scattered_hessians = {factor: kept for factor, kept in self._scattered_hessians.items()
                                     if factor.keys[0] in self._active}
         return system, gradient[:, self.free_dofs].reshape(-1), cost

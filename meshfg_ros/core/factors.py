@@ -476,9 +476,9 @@ class PointToSurfaceFactor(Factor):
         the gradient). Gauss-Newton on the vector r = q - m instead adds d^2 (dn/dX)^T (dn/dX),
         a stiffness against turning the face that the distance does not have; at a window's
         optimum the prior holds the surface off the data, the d keep a systematic part and that
-        term made Levenberg-Marquardt's steps stop short (measured on the airway scene: the
-        vector form's curvature along a step was 1.35x the true one, LM converged linearly at
-        about half the remaining decrease per iteration). A point projected onto an edge or a
+        term makes Levenberg-Marquardt's steps stop short (on the airway scene the vector form's
+        curvature along a step is 1.35 times the true one, and LM converges linearly, at about
+        half the remaining decrease per iteration). A point projected onto an edge or a
         vertex keeps the vector form, which is exact there (distance to a line or a point)."""
         face = association.region == REGION_FACE
         hessians = np.empty((len(residual), 81))

@@ -33,8 +33,8 @@ class WindowSystem:
     and revision differ at most on the diagonal (damping, temporal terms), which lets the PCG
     preconditioner compare them on the diagonal alone. `diagonal_shift` (W, n) (optional) is
     added to the blocks' diagonals without copying them: LM's damping, applied to every trial
-    damping of one linearisation (building damped copies of ten blocks took 0.8 ms at paper
-    scale); `block_data(t)` and `blocks` include it.
+    damping of one linearisation (damped copies of ten blocks would cost 0.8 ms per trial at
+    paper scale); `block_data(t)` and `blocks` include it.
     """
 
     def __init__(self, blocks, couplings, keys, diagonal_index: np.ndarray, coupling_diagonal=None,
