@@ -5,12 +5,12 @@ import sys
 import pytest
 
 ROS_FREE_MODULES = (
-    "meshfg_ros.core.mesh", "meshfg_ros.core.meshing", "meshfg_ros.core.fem", "meshfg_ros.core.simulator",
-    "meshfg_ros.core.camera", "meshfg_ros.core.scenarios", "meshfg_ros.core.metrics", "meshfg_ros.core.factors",
-    "meshfg_ros.core.factor_graph", "meshfg_ros.core.linear_system",
+    "meshfg_ros.core.mesh", "meshfg_ros.synthetic.meshing", "meshfg_ros.core.fem", "meshfg_ros.core.simulator",
+    "meshfg_ros.synthetic.camera", "meshfg_ros.synthetic.scenarios", "meshfg_ros.evaluation.metrics",
+    "meshfg_ros.core.factors", "meshfg_ros.core.factor_graph", "meshfg_ros.core.linear_system",
     "meshfg_ros.core.levenberg_marquardt", "meshfg_ros.core.linear_solvers", "meshfg_ros.core.estimator",
-    "meshfg_ros.core.parameters", "meshfg_ros.io.recording", "meshfg_ros.replay", "meshfg_ros.evaluation",
-    "meshfg_ros.ablation",
+    "meshfg_ros.parameters", "meshfg_ros.io.recording", "meshfg_ros.replay", "meshfg_ros.evaluation",
+    "meshfg_ros.evaluation.ablation",
 )
 
 
