@@ -293,7 +293,7 @@ def parameters_yaml(params: Mapping[str, Any]) -> str:
 
 
 def simulator_config(params: Mapping[str, Any]) -> SimulatorConfig:
-    """The simulator settings of validated parameters (grasped_vertices go to XpbdSimulator)."""
+    """The simulator settings of validated parameters (grasped_vertices go to ElasticSimulator)."""
     return SimulatorConfig(
         youngs_modulus=params["youngs_modulus"],
         poisson_ratio=params["poisson_ratio"],

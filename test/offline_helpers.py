@@ -15,7 +15,7 @@ import numpy as np
 from meshfg_ros.synthetic.meshing import cube_mesh
 from meshfg_ros.evaluation.metrics import sample_surface
 from meshfg_ros.synthetic.scenarios import FIRST_STAMP_NS, STEP_PERIOD_NS, Scenario, ScenarioStep, pose
-from meshfg_ros.core.simulator import SimulatorConfig, XpbdSimulator
+from meshfg_ros.core.simulator import ElasticSimulator, SimulatorConfig
 
 SIDE = 0.02
 TOOL_RADIUS = 5e-3
@@ -45,7 +45,7 @@ def tiny_scenario(steps: int = 3, seed: int = 0, camera: bool = False) -> Scenar
                              substeps=4, solver_iterations=4)
     top = np.array([SIDE / 2, SIDE / 2, SIDE + TOOL_RADIUS])
     tool_poses = [pose(top - np.array([0.0, 0.0, PUSH_PER_STEP * k])) for k in range(steps + 1)]
-    simulator = XpbdSimulator(mesh, config)
+    simulator = ElasticSimulator(mesh, config)
     simulator.reset(tool_poses[0])
     normals = mesh.triangle_normals()
     observed = (normals @ np.array([0.0, 0.0, 1.0]) > 0.99) | (normals @ np.array([1.0, 0.0, 0.0]) > 0.99) \

@@ -12,7 +12,7 @@ from offline_helpers import BAGS, MESHFG
 from meshfg_ros.core.estimator import EstimatorConfig, SlidingWindowEstimator
 from meshfg_ros.parameters import estimator_config, load_parameters, simulator_config
 from meshfg_ros.synthetic.scenarios import generate
-from meshfg_ros.core.simulator import XpbdSimulator
+from meshfg_ros.core.simulator import ElasticSimulator
 from meshfg_ros.replay import scenario_parameters
 from meshfg_ros.synthetic.recordings import scenario_metadata
 
@@ -29,7 +29,7 @@ def dome():
 def run_defaults(scenario, points_of=lambda step: step.points, **config):
     """The replay's loop on a scenario in memory, with what a user knows of it (its metadata)."""
     params = load_parameters(scenario_parameters(scenario_metadata(scenario)))
-    simulator, open_loop = (XpbdSimulator(scenario.initial_mesh, simulator_config(params)) for _ in range(2))
+    simulator, open_loop = (ElasticSimulator(scenario.initial_mesh, simulator_config(params)) for _ in range(2))
     simulator.reset(scenario.initial_tool_pose)
     open_loop.reset(scenario.initial_tool_pose)
     estimator = SlidingWindowEstimator(scenario.initial_mesh, EstimatorConfig(**{

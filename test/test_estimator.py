@@ -60,6 +60,8 @@ def test_full_estimate_beats_the_prediction(scene):
     for result, step in zip(results, sequence):
         assert rmse(result.positions, step.truth) < 0.6 * rmse(step.predicted, step.truth)
         assert result.converged and result.iterations <= 8
+        assert len(result.linear_solve_ms) <= result.iterations and all(t >= 0.0 for t in result.linear_solve_ms)
+    assert any(result.linear_solve_ms for result in results)  # one wall time per linear solve
 
 
 def test_missing_prediction_degrades_to_copy_forward(scene):
@@ -163,7 +165,8 @@ def test_bad_input_and_nan_points(scene):
 
 @pytest.mark.parametrize("field, value", [("factors", "all"), ("window_size", 0), ("measurement_sigma", -1.0),
                                           ("robust_kernel", "tukey"), ("linear_solver", "qr"),
-                                          ("stiffness_kind", "stvk"), ("covariance", "full")])
+                                          ("stiffness_kind", "stvk"), ("covariance", "full"),
+                                          ("stiffness_update", "iteration")])
 def test_config_validation(field, value):
     with pytest.raises(EstimatorConfigError, match=field):
         EstimatorConfig(**{field: value})

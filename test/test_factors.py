@@ -8,9 +8,10 @@ import torch
 from torch.func import jacrev, vmap
 
 from meshfg_ros.benchmarks.baselines import WhitenedProblem, freeze_associations
+from meshfg_ros.core.factor_graph import FactorGraph
 from meshfg_ros.core.factors import (
+    Factor,
     FactorError,
-    FactorGraph,
     PhysicsPriorFactor,
     PointToSurfaceFactor,
     TemporalFactor,
@@ -158,18 +159,15 @@ def test_prior_scale_sets_mean_information(model, cube):
     noise = prior.noise_model(cube.vertices)  # the prior's sqrt-information (whitening) form
     whitened = noise.whiten(r.reshape(-1))
     assert 0.5 * whitened @ whitened == pytest.approx(prior.cost(states), rel=1e-9)
-    rebuilt = InformationMatrixNoise.from_sqrt_information(noise.sqrt_information())
-    np.testing.assert_allclose(rebuilt.information.toarray(), information.toarray(), rtol=1e-9, atol=1e-6)
 
 
-def test_physics_information_follows_the_state_unless_fixed(cube, model):
+def test_physics_information_is_held_until_invalidated(cube, model):
     state = deformed(cube, 8.0)
-    moving = PhysicsPriorFactor(0, state, model, "corotational")
-    fixed = PhysicsPriorFactor(0, state, model, "corotational", relinearize=False)
-    first = moving.information(cube.vertices)
-    fixed.information(cube.vertices)
-    assert abs(moving.information(state) - first).max() > 1e-3 * abs(first).max()
-    assert abs(fixed.information(state) - first).max() == 0.0
+    prior = PhysicsPriorFactor(0, state, model, "corotational")
+    first = prior.information(cube.vertices)
+    assert abs(prior.information(state) - first).max() == 0.0
+    prior.invalidate_information()
+    assert abs(prior.information(state) - first).max() > 1e-3 * abs(first).max()
 
 
 def test_gating_rejects_far_points(cube):
@@ -228,8 +226,7 @@ def build_window(cube, model, threshold=0.0, keys=3):
         truth = deformed(cube, 0.5 * (key + 1), seed=10 + key)
         predicted = deformed(cube, 0.5 * (key + 1), seed=20 + key)
         graph.add_state(key, predicted)
-        graph.add_factor(PhysicsPriorFactor(key, predicted, model, "corotational", scale=scale, ridge=1.0,
-                                            relinearize=False))
+        graph.add_factor(PhysicsPriorFactor(key, predicted, model, "corotational", scale=scale, ridge=1.0))
         graph.add_factor(PointToSurfaceFactor(key, noisy_points(truth, cube.surface_triangles, 200, key),
                                               cube.surface_triangles, predicted, IsotropicNoise(1e-3)))
         graph.add_factor(TemporalFactor(key, 5e-3, previous_key=key - 1) if key
@@ -299,7 +296,7 @@ def test_gradient_without_hessians_rebases_the_model(cube, model):
     relaxed.exact_keys = {2}
     far = 10.0 * step
     reference = build_window(cube, model, threshold=0.0)
-    reference.linearize(x)  # K is held from the first linearisation (relinearize=False)
+    reference.linearize(x)  # K is held from the first linearisation
     _, reference_gradient, reference_cost = reference.linearize(x + far)
     system, _, _ = relaxed.linearize(x)
     relaxed.gradient(x + far)
@@ -320,6 +317,14 @@ def test_graph_rejects_bad_factors(cube, model):
         PointToSurfaceFactor(0, np.zeros((3, 2)), cube.surface_triangles, cube.vertices)
     with pytest.raises(FactorError):
         prior_scale(model.stiffness(), 0.0)
+    graph.add_state(0, cube.vertices)
+    graph.add_state(1, cube.vertices)
+
+    class TwoStates(Factor):  # spans two states without declaring identity blocks
+        keys = (0, 1)
+
+    with pytest.raises(FactorError, match="identity_blocks"):
+        graph.add_factor(TwoStates())
 
 
 def test_volume_barrier_gradient_hessian_and_bounds(cube):

@@ -8,7 +8,7 @@ import pytest
 
 from meshfg_ros.core.mesh import signed_volumes
 from meshfg_ros.synthetic.scenarios import MISMATCH_SCENARIOS, SCENARIOS, ScenarioError, generate
-from meshfg_ros.core.simulator import SimulatorConfig, XpbdSimulator
+from meshfg_ros.core.simulator import ElasticSimulator, SimulatorConfig
 from meshfg_ros.replay import scenario_parameters
 from meshfg_ros.synthetic.recordings import scenario_metadata
 from meshfg_ros.synthetic import mismatch_scenes
@@ -38,7 +38,7 @@ def scene(scene_pair):
 def open_loop(scene):
     """The nominal simulator driven by the reported tool poses from the initial mesh, as the
     replay's 'simulation alone' baseline."""
-    simulator = XpbdSimulator(scene.initial_mesh, scene.simulator_config)
+    simulator = ElasticSimulator(scene.initial_mesh, scene.simulator_config)
     simulator.reset(scene.initial_tool_pose)
     state, states = scene.initial_mesh.vertices, []
     for step in scene.steps:

@@ -28,7 +28,7 @@ from meshfg_msgs.msg import EstimatorStatus, PredictionFailure, TetraMesh
 from meshfg_ros import blas
 from meshfg_ros.synthetic.meshing import cube_mesh
 from meshfg_ros.parameters import load_parameters, simulator_config
-from meshfg_ros.core.simulator import XpbdSimulator
+from meshfg_ros.core.simulator import ElasticSimulator
 from meshfg_ros.io.messages import (
     MeshState,
     PointCloudRecord,
@@ -275,7 +275,7 @@ def test_simulation_node_predicts_from_the_latest_estimate(probe, processes, tmp
     def pose(position):
         return np.concatenate([position, [0.0, 0.0, 0.0, 1.0]])
 
-    simulator = XpbdSimulator(mesh, simulator_config(params))
+    simulator = ElasticSimulator(mesh, simulator_config(params))
     simulator.reset(pose(poses[0]))
     expected = [simulator.predict(mesh.vertices, pose(poses[1]), 1.0)]
     for k in (2, 3, 4):

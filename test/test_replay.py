@@ -12,7 +12,7 @@ from meshfg_ros.core.estimator import SlidingWindowEstimator
 from meshfg_ros.core.mesh import MeshFileError, save_mesh
 from meshfg_ros.parameters import ParameterError, estimator_config, simulator_config
 from meshfg_ros.synthetic.scenarios import FIRST_STAMP_NS, STEP_PERIOD_NS
-from meshfg_ros.core.simulator import XpbdSimulator
+from meshfg_ros.core.simulator import ElasticSimulator
 from meshfg_ros.io.messages import MeshState, PointCloudRecord, PoseRecord, StatusRecord
 from meshfg_ros.io.recording import RecordingExistsError, RecordingReader, RecordingWriter
 from meshfg_ros.replay import (
@@ -95,7 +95,7 @@ def test_loop_matches_the_nodes_semantics(scenario, recording, replayed):
     inputs = load_inputs(recording)
     params = replayed.parameters
     mesh = scenario.initial_mesh
-    simulator = XpbdSimulator(mesh, simulator_config(params))
+    simulator = ElasticSimulator(mesh, simulator_config(params))
     estimator = SlidingWindowEstimator(mesh, estimator_config(params))
     simulator.reset(scenario.initial_tool_pose)
     estimate = mesh.vertices
@@ -111,7 +111,7 @@ def test_loop_matches_the_nodes_semantics(scenario, recording, replayed):
 
 
 def test_simulation_only_runs_open_loop(scenario, replayed):
-    simulator = XpbdSimulator(scenario.initial_mesh, simulator_config(replayed.parameters))
+    simulator = ElasticSimulator(scenario.initial_mesh, simulator_config(replayed.parameters))
     simulator.reset(scenario.initial_tool_pose)
     state = scenario.initial_mesh.vertices
     for step, replay_step in zip(scenario.steps, replayed.steps):

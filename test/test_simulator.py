@@ -12,11 +12,11 @@ from meshfg_ros.core.fem import ElasticModel, free_dofs
 from meshfg_ros.core.mesh import signed_volumes
 from meshfg_ros.synthetic.meshing import cube_mesh, structured_box_mesh
 from meshfg_ros.core.simulator import (
+    ElasticSimulator,
     ElementInversionError,
     SimulatorConfig,
     SimulatorConfigError,
     SimulatorInputError,
-    XpbdSimulator,
     colour_tetrahedra,
     colour_vertices,
 )
@@ -55,7 +55,7 @@ def sheared_cube(solver: str, substeps: int, iterations: int, shift, divisions: 
         youngs_modulus=YOUNGS_MODULUS, poisson_ratio=POISSON_RATIO, tool_mode="grasp",
         substeps=substeps, solver_iterations=iterations, solver=solver,
     )
-    simulator = XpbdSimulator(mesh, config, grasped_vertices=top)
+    simulator = ElasticSimulator(mesh, config, grasped_vertices=top)
     start = pose([0.05, 0.05, 0.1])
     simulator.reset(start)
     result = simulator.predict(mesh.vertices, start + np.concatenate([shift, np.zeros(4)]), dt=1.0)
@@ -102,7 +102,7 @@ def push(mesh, solver: str, contact: str = "stick", depths=(1e-3, 2e-3, 3e-3, 4e
     """Tool centres moving straight down into the top centre by `depths`, and the predicted states."""
     config = SimulatorConfig(youngs_modulus=YOUNGS_MODULUS, poisson_ratio=POISSON_RATIO, tool_radius=radius,
                              solver=solver, tool_contact=contact)
-    simulator = XpbdSimulator(mesh, config)
+    simulator = ElasticSimulator(mesh, config)
     touching = np.array([0.03, 0.03, 0.03 + radius])
     centres = [touching - [0.0, 0.0, depth] for depth in (0.0, *depths)]
     simulator.reset(pose(centres[0]))
@@ -148,7 +148,7 @@ def test_vbd_push_converges_with_iterations(pushed_block):
                              substeps=1)
 
     def displacement(iterations):
-        simulator = XpbdSimulator(mesh, replace(config, solver_iterations=iterations))
+        simulator = ElasticSimulator(mesh, replace(config, solver_iterations=iterations))
         simulator.reset(pose([0.03, 0.03, 0.038]))
         return simulator.predict(mesh.vertices, pose([0.03, 0.03, 0.035]), dt=1.0) - mesh.vertices
 
@@ -167,7 +167,7 @@ def test_grasp_translation_carries_a_free_body(solver, substeps, iterations, tol
     top = np.flatnonzero(mesh.vertices[:, 2] > 0.1 - 1e-9)
     config = SimulatorConfig(tool_mode="grasp", solver=solver, substeps=substeps,
                              solver_iterations=iterations)
-    simulator = XpbdSimulator(mesh, config, grasped_vertices=top)
+    simulator = ElasticSimulator(mesh, config, grasped_vertices=top)
     start = pose([0.05, 0.05, 0.1])
     simulator.reset(start)
     step = np.array([1e-3, 5e-4, -5e-4])
@@ -182,7 +182,7 @@ def test_grasp_rotation_follows_the_slerped_tool():
     mesh = cube_mesh(side=0.1, divisions=3)
     top = np.flatnonzero(mesh.vertices[:, 2] > 0.1 - 1e-9)
     config = SimulatorConfig(tool_mode="grasp", substeps=4, solver_iterations=10)
-    simulator = XpbdSimulator(mesh, config, grasped_vertices=top)
+    simulator = ElasticSimulator(mesh, config, grasped_vertices=top)
     start = pose([0.05, 0.05, 0.1])
     state = mesh.vertices
     for k in range(4):  # the first predict sets the reference pose
@@ -202,7 +202,7 @@ def test_gravity_sag_matches_linear_fem():
     gravity = np.array([0.0, 0.0, -9.81])
     config = SimulatorConfig(youngs_modulus=stiff, poisson_ratio=POISSON_RATIO, gravity=tuple(gravity),
                              substeps=1, solver_iterations=3)
-    simulator = XpbdSimulator(mesh, config)
+    simulator = ElasticSimulator(mesh, config)
     far_away = pose([1.0, 1.0, 1.0])
     sag = simulator.predict(mesh.vertices, far_away, dt=1.0) - mesh.vertices
     volumes = signed_volumes(mesh.vertices, mesh.tetrahedra)
@@ -216,7 +216,7 @@ def test_gravity_sag_matches_linear_fem():
 
 @pytest.mark.parametrize("solver", ["vbd", "xpbd"])
 def test_rest_state_stays_at_rest(pushed_block, solver):
-    simulator = XpbdSimulator(pushed_block, SimulatorConfig(solver=solver))
+    simulator = ElasticSimulator(pushed_block, SimulatorConfig(solver=solver))
     state = simulator.predict(pushed_block.vertices, pose([1.0, 1.0, 1.0]), dt=1.0)
     assert np.abs(state - pushed_block.vertices).max() < 1e-15
     np.testing.assert_array_equal(simulator.previous_tool_pose, pose([1.0, 1.0, 1.0]))
@@ -245,7 +245,7 @@ def test_inverting_grasp_motion_is_reported():
     bottom = np.flatnonzero(mesh.vertices[:, 2] < 1e-9)
     top = np.flatnonzero(mesh.vertices[:, 2] > 0.1 - 1e-9)
     config = SimulatorConfig(tool_mode="grasp")
-    simulator = XpbdSimulator(mesh.with_fixed(bottom), config, grasped_vertices=top)
+    simulator = ElasticSimulator(mesh.with_fixed(bottom), config, grasped_vertices=top)
     simulator.reset(pose([0.05, 0.05, 0.1]))
     with pytest.raises(ElementInversionError, match="inverted"):
         simulator.predict(mesh.vertices, pose([0.05, 0.05, -0.05]), dt=1.0)  # top driven through the bottom
@@ -259,7 +259,7 @@ def test_diverging_xpbd_is_reported_not_returned():
     mesh = mesh.with_fixed(np.flatnonzero(mesh.vertices[:, 2] < 1e-9))
     config = SimulatorConfig(solver="xpbd", gravity=(0.0, 0.0, -9.81), substeps=1, solver_iterations=2)
     with pytest.raises(ElementInversionError, match="not finite"):
-        XpbdSimulator(mesh, config).predict(mesh.vertices, pose([1.0, 1.0, 1.0]), dt=1.0)
+        ElasticSimulator(mesh, config).predict(mesh.vertices, pose([1.0, 1.0, 1.0]), dt=1.0)
 
 
 @pytest.mark.parametrize(
@@ -284,14 +284,14 @@ def test_invalid_settings_are_rejected(settings, message):
 def test_invalid_inputs_are_rejected(pushed_block):
     mesh = pushed_block
     with pytest.raises(SimulatorInputError, match="only used"):
-        XpbdSimulator(mesh, SimulatorConfig(), grasped_vertices=[1])
+        ElasticSimulator(mesh, SimulatorConfig(), grasped_vertices=[1])
     with pytest.raises(SimulatorInputError, match="non-empty"):
-        XpbdSimulator(mesh, SimulatorConfig(tool_mode="grasp"))
+        ElasticSimulator(mesh, SimulatorConfig(tool_mode="grasp"))
     with pytest.raises(SimulatorInputError, match="fixed"):
-        XpbdSimulator(mesh, SimulatorConfig(tool_mode="grasp"), grasped_vertices=mesh.fixed_vertices[:2])
+        ElasticSimulator(mesh, SimulatorConfig(tool_mode="grasp"), grasped_vertices=mesh.fixed_vertices[:2])
     with pytest.raises(SimulatorInputError, match="out of range"):
-        XpbdSimulator(mesh, SimulatorConfig(tool_mode="grasp"), grasped_vertices=[mesh.vertex_count])
-    simulator = XpbdSimulator(mesh, SimulatorConfig())
+        ElasticSimulator(mesh, SimulatorConfig(tool_mode="grasp"), grasped_vertices=[mesh.vertex_count])
+    simulator = ElasticSimulator(mesh, SimulatorConfig())
     with pytest.raises(SimulatorInputError, match="previous_state"):
         simulator.predict(mesh.vertices[1:], pose([0.0, 0.0, 1.0]), dt=1.0)
     with pytest.raises(SimulatorInputError, match="tool_pose"):
@@ -314,7 +314,7 @@ def test_stuck_vertices_stay_stuck_when_the_next_start_is_a_noisy_estimate():
     radius = 8e-3
     centres = [mesh.vertices[top] + np.array([0.0, radius - 1.5e-3 * k, 0.0]) for k in range(6)]
     config = SimulatorConfig(youngs_modulus=4e3, poisson_ratio=0.45, tool_radius=radius, tool_mode="sphere")
-    reference = XpbdSimulator(mesh, config)
+    reference = ElasticSimulator(mesh, config)
     reference.reset(pose(centres[0]))
     states = [mesh.vertices]
     for centre in centres[1:]:
@@ -323,7 +323,7 @@ def test_stuck_vertices_stay_stuck_when_the_next_start_is_a_noisy_estimate():
     free = np.setdiff1d(np.arange(mesh.vertex_count), mesh.fixed_vertices)
     rng = np.random.default_rng(0)
     for seed in range(6):
-        simulator = XpbdSimulator(mesh, config)
+        simulator = ElasticSimulator(mesh, config)
         simulator.reset(pose(centres[0]))
         for k in range(1, 4):
             simulator.predict(states[k - 1], pose(centres[k]), 1.0)

@@ -53,7 +53,7 @@ def bench_core(repeats: int = 5, progress: bool = True) -> dict:
     from meshfg_ros.core.fem import ElasticModel
     from meshfg_ros.synthetic.meshing import airway_phantom, box_mesh
     from meshfg_ros.synthetic.scenarios import liver_mesh, pose
-    from meshfg_ros.core.simulator import SimulatorConfig, XpbdSimulator
+    from meshfg_ros.core.simulator import ElasticSimulator, SimulatorConfig
 
     box = box_mesh(10_000, (0.1, 0.1, 0.1))
     box = box.with_fixed(np.flatnonzero(np.isclose(box.vertices[:, 2], 0.0)))
@@ -69,7 +69,7 @@ def bench_core(repeats: int = 5, progress: bool = True) -> dict:
         free = np.setdiff1d(mesh.surface_vertices, mesh.fixed_vertices)
         top = free[np.argmax(mesh.vertices[free, 1])]
         start = mesh.vertices[top] + np.array([0.0, radius, 0.0])
-        simulator = XpbdSimulator(mesh, SimulatorConfig(tool_radius=radius))
+        simulator = ElasticSimulator(mesh, SimulatorConfig(tool_radius=radius))
         simulator.reset(pose(start))
         target = pose(start - np.array([0.0, 0.02 * extent.max(), 0.0]))
 

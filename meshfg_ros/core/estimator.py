@@ -7,7 +7,7 @@ new cloud, and the temporal factor to the previous state; then Levenberg-Marquar
 every state of the window jointly, and the newest state is returned with its per-vertex
 posterior standard deviation.
 
-Design decisions (see also factors.py, levenberg_marquardt.py, linear_solvers.py):
+Design decisions (see also factors.py, factor_graph.py, levenberg_marquardt.py, linear_solvers.py):
 - Initial value of a new state: the prediction when given, else the previous estimate
   (copy-forward). A configuration with the physics prior but no prediction uses the
   copy-forward state as the prediction and flags the step degraded.
@@ -19,15 +19,14 @@ Design decisions (see also factors.py, levenberg_marquardt.py, linear_solvers.py
   fixed. test_estimator measures the difference to the growing full batch (`growing=True`,
   the paper's offline graph).
 - Fixed (boundary) vertices are eliminated: held at their initial positions.
-- K_t(X_t) (stiffness_update): "update" (default) evaluates K at each state's linearisation
-  point once per update, at the first LM iteration that re-linearises the state, and holds
-  it for that update's remaining iterations; "iteration" re-evaluates it at every LM
-  iteration. Both treat K as the information, not differentiated. With "iteration" the
-  objective itself moves between iterations (K(X) changes the cost at the same X), and on
-  weakly determined (smooth, unobserved) modes the optimum moves by up to ~mm with it: LM
-  then stalls at max_iterations rejecting steps (measured on the synthetic box); "update"
-  gives each update a fixed objective that LM provably decreases, and K still follows X_t
-  from one update to the next.
+- K_t(X_t) (stiffness_update "update", the only one): K is evaluated at each state's
+  linearisation point once per update, at the first LM iteration that re-linearises the
+  state, and held for that update's remaining iterations; it is the information, not
+  differentiated. Each update thus has a fixed objective that LM provably decreases, and K
+  still follows X_t from one update to the next. Re-evaluating K at every LM iteration would
+  move the objective itself between iterations (K(X) changes the cost at the same X): on
+  weakly determined (smooth, unobserved) modes its optimum moves by up to about a millimetre
+  with it, and LM stalls at max_iterations rejecting steps.
 - Old states are re-linearised only when they moved more than relinearize_threshold
   (default: the nominal measurement_sigma, RMS over vertices) since their last linearisation
   (FactorGraph, as iSAM2's relinearisation threshold): the quadratic model error that
@@ -72,8 +71,8 @@ import numpy as np
 import scipy.linalg
 
 from meshfg_ros.core.closest_point import ClosestPointIndex
+from meshfg_ros.core.factor_graph import FactorGraph
 from meshfg_ros.core.factors import (
-    FactorGraph,
     PhysicsPriorFactor,
     PointToSurfaceFactor,
     TemporalFactor,
@@ -137,7 +136,7 @@ _MEDIAN_ABSOLUTE_TO_SIGMA = 1.4826
 # solved again with it, at most MAX_REWEIGHT_ROUNDS times (the first update, from the nominal).
 REWEIGHT_CHANGE = 0.25
 MAX_REWEIGHT_ROUNDS = 4
-STIFFNESS_UPDATES = ("update", "iteration")
+STIFFNESS_UPDATES = ("update",)
 # Innovation test (SlidingWindowEstimator._innovation_test): a prediction is rejected when the
 # robust spread of the cloud's distances to its surface exceeds INNOVATION_SIGMAS nominal
 # measurement sigmas, INNOVATION_DIAGONALS of the scene's diagonal (against a sigma set far too
@@ -292,6 +291,7 @@ class StepResult:
     accepted_steps: int = 0
     measurement_sigma: float = 0.0   # m, the measurement noise the update was weighted with (estimated)
     simulation_sigma: float = 0.0    # m, the simulation sigma the prior's weight corresponds to (estimated)
+    linear_solve_ms: list = field(default_factory=list)  # wall time of each linear solve of the update's LM runs
 
 
 @dataclass
@@ -522,10 +522,8 @@ class SlidingWindowEstimator:
         factors = []
         if "simulation" in self.enabled:
             scale = self.prior_scale * (cfg.simulation_sigma / self.simulation_sigma) ** 2
-            factors.append(PhysicsPriorFactor(
-                key, pending.prediction, self.model, cfg.stiffness_kind, cfg.spd_projection, scale,
-                self.prior_ridge, relinearize=cfg.stiffness_update == "iteration",
-            ))
+            factors.append(PhysicsPriorFactor(key, pending.prediction, self.model, cfg.stiffness_kind,
+                                              cfg.spd_projection, scale, self.prior_ridge))
             factors.append(VolumeBarrierFactor(key, self.model.tetrahedra,
                                                signed_volumes(pending.prediction, self.model.tetrahedra),
                                                scale * self.bulk_energy_scale))
@@ -554,7 +552,7 @@ class SlidingWindowEstimator:
         messages = pending.messages
         lm_messages = []
         result = self._optimise(lm_messages)
-        iterations, rounds = result["iterations"], 0
+        iterations, rounds, solve_times = result["iterations"], 0, list(result["solve_times_ms"])
         while self.config.estimate_weights:
             distances = self._residual_distances(pending.key)
             if distances is None or self.noise.observe(distances) <= REWEIGHT_CHANGE or rounds == MAX_REWEIGHT_ROUNDS:
@@ -564,6 +562,7 @@ class SlidingWindowEstimator:
             lm_messages = []
             result = self._optimise(lm_messages)
             iterations += result["iterations"]
+            solve_times += result["solve_times_ms"]
         messages.extend(lm_messages)
         if rounds:
             messages.append(f"solved again with the re-estimated measurement sigma {rounds} time(s)")
@@ -581,7 +580,7 @@ class SlidingWindowEstimator:
             num_points_rejected=pending.num_points_rejected + pending.num_points_gated, window_size=len(graph.keys),
             message="; ".join(messages), cost_history=result["cost_history"],
             accepted_steps=result["accepted_steps"], measurement_sigma=self.noise.sigma,
-            simulation_sigma=self.simulation_sigma,
+            simulation_sigma=self.simulation_sigma, linear_solve_ms=solve_times,
         )
 
     @property
@@ -623,7 +622,7 @@ class SlidingWindowEstimator:
             messages.append(f"optimisation failed ({error}); kept the initial guess")
             cost = float(graph.cost(x0))
             return dict(iterations=0, initial_cost=cost, final_cost=cost, converged=False, cost_history=[cost],
-                        accepted_steps=0)
+                        accepted_steps=0, solve_times_ms=[])
         if not np.all(np.isfinite(lm.x)):
             messages.append("optimisation produced non-finite values; kept the initial guess")
             lm.x = x0
@@ -631,7 +630,8 @@ class SlidingWindowEstimator:
         messages.extend(lm.messages)
         messages.append(lm.summary())
         return dict(iterations=lm.iterations, initial_cost=lm.initial_cost, final_cost=lm.final_cost,
-                    converged=lm.converged, cost_history=list(lm.cost_history), accepted_steps=lm.accepted_steps)
+                    converged=lm.converged, cost_history=list(lm.cost_history), accepted_steps=lm.accepted_steps,
+                    solve_times_ms=list(lm.solve_times_ms))
 
     # ------------------------------------------------------------------------- covariance
     def _position_std(self, messages) -> np.ndarray:

@@ -6,11 +6,11 @@ and the cost F = 0.5 r^T W r. Each iteration is four steps:
 - propose: solve (H + lambda D) dx = -g with D = diag(H) (Marquardt; clamped below by
   `damping_floor` * mean |diag H| so unconstrained coordinates still get damped) or D = I.
   A damped system that is not positive definite (the paper's raw Neo-Hookean prior can make H
-  indefinite; Cholesky or PCG reports it) proposes nothing.
-- judge: the problem's `step_fraction(x, dx)` (optional) gives the largest fraction alpha of
-  the step that keeps every element's volume above its margin, so a step that would invert a
-  tetrahedron is shortened, not thrown away. The shortened step alpha dx is accepted when its
-  gain ratio
+  indefinite; Cholesky or PCG reports it) proposes nothing. The problem's
+  `step_fraction(x, dx)` (optional) gives the largest fraction alpha of the step that keeps
+  every element's volume above its margin, so a step that would invert a tetrahedron is
+  shortened, not thrown away.
+- judge: the proposed step alpha dx is accepted when its gain ratio
       rho = (F(x) - F(x + alpha dx)) / (L(0) - L(alpha dx)),
       L(0) - L(alpha dx) = -alpha g.dx - 0.5 alpha^2 dx.H dx
   is positive.
@@ -24,9 +24,11 @@ and the cost F = 0.5 r^T W r. Each iteration is four steps:
     "decrement": the Newton decrement 0.5 g^T H^-1 g of the undamped model, estimated with the
                  solver's preconditioner (`solver.decrement`), is below the cost tolerance
                  max(absolute_cost_tolerance, cost_tolerance * F);
+    "predicted decrease": a full proposed step would lower the model by less than the cost
+                 tolerance (it is then not taken);
     "cost":      an accepted full step lowered F by less than the cost tolerance;
     "step":      an accepted full step shorter than step_tolerance * (|x| + step_tolerance).
-  The last three describe the undamped model only when the damping is small, so they count
+  The last four describe the undamped model only when the damping is small, so they count
   only while lambda <= `convergence_damping`: a heavily damped step is short and lowers the
   cost little wherever x is. After an accepted step whose model error |actual - predicted
   decrease| was below the cost tolerance, a problem with `gradient(x) -> (g, F)` is first asked
@@ -154,79 +156,67 @@ class _Run:
         self.gradient_first = False  # the last step's model was accurate: try the gradient alone first
         self.fresh_hessian = True   # the decrement test has not yet seen this linearisation
 
-    def tolerance(self, cost: float) -> float:
-        """Cost changes below this do not matter: max(absolute, relative * cost)."""
-        return max(self.config.absolute_cost_tolerance, self.config.cost_tolerance * cost)
+    # ------------------------------------------------------------------ the run
+    def run(self) -> LevenbergMarquardtResult:
+        """Iterate until x passes a convergence test, a limit is reached or an iteration ends
+        the run (each step a (reason, converged) pair or None)."""
+        stop = None
+        while stop is None:
+            stop = self.test_convergence() or self.limit_reached() or self.iterate()
+        return self.finish(*stop)
 
-    # ------------------------------------------------------------------ damping
-    def _scaling(self, system) -> np.ndarray:
-        if self.config.damping_mode == "identity":
-            return np.ones(system.size)
-        diagonal = np.abs(system.diagonal())
-        return np.maximum(diagonal, self.config.damping_floor * max(float(diagonal.mean()), 1e-300))
-
-    def _damped(self, damping: float):
-        return self.system.with_added_diagonal(damping * self._scaling(self.system))
-
-    @property
-    def lightly_damped(self) -> bool:
-        """Whether the damped model is close enough to the undamped one for its small predicted
-        decrease (or a small accepted decrease) to mean optimality."""
-        if self.config.damping_mode == "identity":
-            scale = float(np.max(np.abs(self.system.diagonal()), initial=1.0))
-            return self.damping <= self.config.convergence_damping * scale
-        return self.damping <= self.config.convergence_damping
-
-    def adapt_damping(self, proposal: _Proposal | None, accepted: bool) -> None:
-        if accepted:
-            self.damping *= max(1.0 / 3.0, 1.0 - (2.0 * proposal.gain - 1.0) ** 3)
-            self.nu = 2.0
-            if proposal.fraction < 1.0:
-                self.damping *= 2.0
-        else:
-            self.damping *= self.nu
-            self.nu *= 2.0
-
-    # ------------------------------------------------------------------ convergence
-    def small_gradient(self) -> bool:
-        return np.max(np.abs(self.gradient), initial=0.0) <= self.config.gradient_tolerance * self.initial_gradient
-
-    def small_decrement(self) -> bool:
-        """Newton decrement of the (floor-damped) model below the cost tolerance."""
-        if not self.lightly_damped:
-            return False
+    def iterate(self) -> tuple[str, bool] | None:
+        """One iteration: propose a step, judge it, adapt the damping."""
+        result = self.result
+        result.iterations += 1
         try:
-            estimate = self.solver.decrement(self._damped(self.damping), self.gradient)
-        except (NotPositiveDefiniteError, LinearSolveError):
-            return False
-        return 0.0 <= estimate <= self.tolerance(self.cost)
-
-    def converged_here(self) -> str | None:
-        """The optimality test x passes with the current gradient and Hessians, or None."""
-        if self.small_gradient():
-            return "gradient"
-        if self.fresh_hessian:
-            self.fresh_hessian = False
-            if self.small_decrement():
-                return "decrement"
+            proposal = self.propose()
+        except LinearSolveError as error:
+            result.messages.append(str(error))
+            result.cost_history.append(self.cost)
+            return "linear solver failed", False
+        if proposal is not None and self.negligible(proposal):
+            result.cost_history.append(self.cost)
+            return "predicted decrease", True
+        accepted = proposal is not None and self.judge(proposal)
+        reason = self.converged_by_step(proposal) if accepted else None
+        if accepted:
+            self.accept(proposal)
+        result.cost_history.append(self.cost)
+        self.adapt_damping(proposal, accepted)
+        if reason:
+            return reason, True
+        if not accepted and self.damping > self.config.max_damping:
+            return "damping limit", False
         return None
 
-    def relinearize(self) -> str | None:
-        """New Hessians at x, after a gradient-only convergence test where the last step's model
-        was accurate; returns the test that passed, if one did."""
-        if self.gradient_first:
-            self.gradient, self.cost = self.problem.gradient(self.x)
-            self.fresh_hessian = True
-            reason = self.converged_here()
-            if reason:
-                return reason
-        self.system, self.gradient, self.cost = self.problem.linearize(self.x)
-        self.linearized, self.fresh_hessian = True, True
+    def test_convergence(self) -> tuple[str, bool] | None:
+        """Whether x passes an optimality test, re-linearising first when x moved."""
+        reason = None if self.linearized else self.relinearize()
+        reason = reason or self.converged_here()
+        return (reason, True) if reason else None
+
+    def limit_reached(self) -> tuple[str, bool] | None:
+        if self.result.iterations >= self.config.max_iterations:
+            return "max_iterations", False
+        if self.deadline is not None and time.perf_counter() > self.deadline:
+            return "time budget", False
         return None
 
-    # ------------------------------------------------------------------ one iteration
-    def propose(self) -> np.ndarray | None:
-        """The damped Gauss-Newton step, or None when the damped system is not positive definite."""
+    def finish(self, reason: str, converged: bool) -> LevenbergMarquardtResult:
+        result = self.result
+        result.reason, result.converged = reason, converged
+        result.x, result.final_cost = self.x, self.cost
+        if result.not_positive_definite:
+            result.messages.append(
+                f"damped system not positive definite {result.not_positive_definite} time(s): damping raised"
+            )
+        return result
+
+    # ------------------------------------------------------------------ propose
+    def propose(self) -> _Proposal | None:
+        """The damped Gauss-Newton step cut to its feasible fraction, or None when the damped
+        system is not positive definite or the step is not finite."""
         try:
             step, stats = self.solver.solve(self._damped(self.damping), -self.gradient)
         except NotPositiveDefiniteError:
@@ -235,7 +225,7 @@ class _Run:
         self.result.solve_times_ms.append(stats.time_ms)
         if stats.message:
             self.result.messages.append(stats.message)
-        return step if np.all(np.isfinite(step)) else None
+        return self.shorten(step) if np.all(np.isfinite(step)) else None
 
     def shorten(self, step: np.ndarray) -> _Proposal:
         """Cut the step to its feasible fraction; the model's decrease for what is left."""
@@ -246,6 +236,22 @@ class _Run:
         predicted = -float(self.gradient @ scaled) - 0.5 * float(scaled @ self.system.matvec(scaled))
         return _Proposal(scaled, fraction, predicted, self.cost)
 
+    def _damped(self, damping: float):
+        return self.system.with_added_diagonal(damping * self._scaling(self.system))
+
+    def _scaling(self, system) -> np.ndarray:
+        if self.config.damping_mode == "identity":
+            return np.ones(system.size)
+        diagonal = np.abs(system.diagonal())
+        return np.maximum(diagonal, self.config.damping_floor * max(float(diagonal.mean()), 1e-300))
+
+    def negligible(self, proposal: _Proposal) -> bool:
+        """A full, lightly damped step whose predicted decrease is below the cost tolerance:
+        x is optimal to that tolerance (the "predicted decrease" test)."""
+        return (proposal.fraction == 1.0 and self.lightly_damped
+                and 0.0 <= proposal.predicted <= self.tolerance(self.cost))
+
+    # ------------------------------------------------------------------ judge
     def judge(self, proposal: _Proposal) -> bool:
         """Evaluate the trial's true cost; whether the step is accepted (positive gain ratio)."""
         if proposal.fraction > 0.0 and proposal.predicted > 0.0:
@@ -284,67 +290,87 @@ class _Run:
             proposal.step, proposal.trial, proposal.trial_cost = longer, trial, trial_cost
             self.result.extrapolated_steps += 1
 
-    def accept(self, proposal: _Proposal) -> str | None:
-        """Move to the trial; returns the convergence test the accepted step passes, if any."""
-        small_decrease = proposal.actual < self.tolerance(self.cost)
-        step_norm, x_norm = float(np.linalg.norm(proposal.step)), float(np.linalg.norm(self.x))
+    def converged_by_step(self, proposal: _Proposal) -> str | None:
+        """The convergence test an accepted step passes ("cost" or "step"), judged from the x
+        it leaves; a shortened or heavily damped step passes none."""
+        if proposal.fraction < 1.0 or not self.lightly_damped:
+            return None
+        if proposal.actual < self.tolerance(self.cost):
+            return "cost"
+        tolerance = self.config.step_tolerance
+        if float(np.linalg.norm(proposal.step)) <= tolerance * (float(np.linalg.norm(self.x)) + tolerance):
+            return "step"
+        return None
+
+    def accept(self, proposal: _Proposal) -> None:
+        """Move to the trial. When the model predicted its decrease to within the cost
+        tolerance, the next convergence test asks for the gradient alone first."""
         self.gradient_first = (hasattr(self.problem, "gradient") and proposal.gain <= EXTRAPOLATION_GAIN and
                                abs(proposal.actual - proposal.predicted) <= self.tolerance(proposal.trial_cost))
         self.x, self.cost = proposal.trial, proposal.trial_cost
         self.linearized = False
         self.result.accepted_steps += 1
-        if proposal.fraction < 1.0 or not self.lightly_damped:
-            return None
-        if small_decrease:
-            return "cost"
-        if step_norm <= self.config.step_tolerance * (x_norm + self.config.step_tolerance):
-            return "step"
+
+    # ------------------------------------------------------------------ adapt the damping
+    def adapt_damping(self, proposal: _Proposal | None, accepted: bool) -> None:
+        if accepted:
+            self.damping *= max(1.0 / 3.0, 1.0 - (2.0 * proposal.gain - 1.0) ** 3)
+            self.nu = 2.0
+            if proposal.fraction < 1.0:
+                self.damping *= 2.0
+        else:
+            self.damping *= self.nu
+            self.nu *= 2.0
+
+    @property
+    def lightly_damped(self) -> bool:
+        """Whether the damped model is close enough to the undamped one for its small predicted
+        decrease (or a small accepted decrease) to mean optimality."""
+        if self.config.damping_mode == "identity":
+            scale = float(np.max(np.abs(self.system.diagonal()), initial=1.0))
+            return self.damping <= self.config.convergence_damping * scale
+        return self.damping <= self.config.convergence_damping
+
+    # ------------------------------------------------------------------ test convergence
+    def tolerance(self, cost: float) -> float:
+        """Cost changes below this do not matter: max(absolute, relative * cost)."""
+        return max(self.config.absolute_cost_tolerance, self.config.cost_tolerance * cost)
+
+    def converged_here(self) -> str | None:
+        """The optimality test x passes with the current gradient and Hessians, or None."""
+        if self.small_gradient():
+            return "gradient"
+        if self.fresh_hessian:
+            self.fresh_hessian = False
+            if self.small_decrement():
+                return "decrement"
         return None
 
-    def run(self) -> LevenbergMarquardtResult:
-        result, config = self.result, self.config
-        while True:
-            reason = None if self.linearized else self.relinearize()
-            reason = reason or self.converged_here()
+    def small_gradient(self) -> bool:
+        return np.max(np.abs(self.gradient), initial=0.0) <= self.config.gradient_tolerance * self.initial_gradient
+
+    def small_decrement(self) -> bool:
+        """Newton decrement of the (floor-damped) model below the cost tolerance."""
+        if not self.lightly_damped:
+            return False
+        try:
+            estimate = self.solver.decrement(self._damped(self.damping), self.gradient)
+        except (NotPositiveDefiniteError, LinearSolveError):
+            return False
+        return 0.0 <= estimate <= self.tolerance(self.cost)
+
+    def relinearize(self) -> str | None:
+        """New Hessians at x, after a gradient-only convergence test where the last step's model
+        was accurate; returns the test that passed, if one did."""
+        if self.gradient_first:
+            self.gradient, self.cost = self.problem.gradient(self.x)
+            self.fresh_hessian = True
+            reason = self.converged_here()
             if reason:
-                result.converged, result.reason = True, reason
-                break
-            if result.iterations >= config.max_iterations:
-                result.reason = "max_iterations"
-                break
-            if self.deadline is not None and time.perf_counter() > self.deadline:
-                result.reason = "time budget"
-                break
-            result.iterations += 1
-            try:
-                step = self.propose()
-            except LinearSolveError as error:
-                result.messages.append(str(error))
-                result.reason = "linear solver failed"
-                result.cost_history.append(self.cost)
-                break
-            proposal = None if step is None else self.shorten(step)
-            if (proposal is not None and proposal.fraction == 1.0 and self.lightly_damped
-                    and 0.0 <= proposal.predicted <= self.tolerance(self.cost)):
-                result.cost_history.append(self.cost)
-                result.converged, result.reason = True, "predicted decrease"
-                break
-            accepted = proposal is not None and self.judge(proposal)
-            reason = self.accept(proposal) if accepted else None
-            result.cost_history.append(self.cost)
-            self.adapt_damping(proposal, accepted)
-            if reason:
-                result.converged, result.reason = True, reason
-                break
-            if not accepted and self.damping > config.max_damping:
-                result.reason = "damping limit"
-                break
-        result.x, result.final_cost = self.x, self.cost
-        if result.not_positive_definite:
-            result.messages.append(
-                f"damped system not positive definite {result.not_positive_definite} time(s): damping raised"
-            )
-        return result
+                return reason
+        self.system, self.gradient, self.cost = self.problem.linearize(self.x)
+        self.linearized, self.fresh_hessian = True, True
+        return None
 
 
 def levenberg_marquardt(problem, x0: np.ndarray, config: LevenbergMarquardtConfig | None = None,

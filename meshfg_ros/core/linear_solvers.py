@@ -1,9 +1,7 @@
 """Swappable solvers for the (damped) normal equations of the sliding window.
 
-The window's Gauss-Newton matrix is block tridiagonal in time: one sparse block per state
-(physics prior + measurements + the temporal terms' diagonal) and, between consecutive
-states, the temporal factor's -c I. `WindowSystem` keeps that structure (so a matrix-vector
-product never builds the global matrix), and converts to one sparse matrix for direct solvers.
+They solve a `WindowSystem` (linear_system.py): the window's block-tridiagonal Gauss-Newton
+matrix, kept in blocks so that PCG never builds the global matrix.
 
 Solvers (all return the solution and `SolveStats`):
   "pcg"       conjugate gradients with a preconditioner built on the time structure (see
@@ -25,6 +23,7 @@ import numpy as np
 import scipy.sparse
 import scipy.sparse.linalg
 
+from meshfg_ros.core.linear_system import WindowSystem
 from meshfg_ros.core.noise import NotPositiveDefiniteError
 from meshfg_ros.core.sparse_cholesky import SparseCholesky
 
@@ -36,167 +35,18 @@ __all__ = [
     "LinearSolver",
     "NotPositiveDefiniteError",
     "PCGSolver",
+    "PRECONDITIONERS",
     "SolveStats",
     "SuperLUSolver",
-    "WindowSystem",
     "make_linear_solver",
 ]
 
 LINEAR_SOLVERS = ("pcg", "cholesky", "superlu")
+PRECONDITIONERS = ("auto", "block", "vertex")
 
 
 class LinearSolveError(RuntimeError):
     """A solver failed for a reason other than indefiniteness (no convergence, singular LU)."""
-
-
-def diagonal_positions(matrix: scipy.sparse.csr_matrix) -> np.ndarray:
-    """Index into matrix.data of every diagonal entry (the pattern must hold the whole diagonal)."""
-    rows = np.repeat(np.arange(matrix.shape[0]), np.diff(matrix.indptr))
-    positions = np.flatnonzero(matrix.indices == rows)
-    if positions.size != matrix.shape[0]:
-        raise ValueError("sparse pattern lacks diagonal entries")
-    return positions
-
-
-class WindowSystem:
-    """Symmetric block-tridiagonal matrix: blocks[t] (csr, n x n) on the diagonal and
-    couplings[t] * I between block t and t + 1; keys name the blocks (for factor caching).
-
-    All blocks share one sparse pattern whose diagonal is at `diagonal_index` in `data`.
-    revisions[t] (optional) names block t's off-diagonal values: two blocks with the same key
-    and revision differ at most on the diagonal (damping, temporal terms), which lets the PCG
-    preconditioner compare them on the diagonal alone. `diagonal_shift` (W, n) (optional) is
-    added to the blocks' diagonals without copying them: LM's damping, applied to every trial
-    damping of one linearisation (building damped copies of ten blocks took 0.8 ms at paper
-    scale); `block_data(t)` and `blocks` include it.
-    """
-
-    def __init__(self, blocks, couplings, keys, diagonal_index: np.ndarray, coupling_diagonal=None,
-                 vertex_block_index: np.ndarray | None = None, revisions=None, diagonal_shift=None):
-        self._base_blocks = list(blocks)
-        self.couplings = np.asarray(couplings, dtype=np.float64).reshape(-1)
-        self.keys = list(keys)
-        self.diagonal_index = diagonal_index
-        # The part c_t of each block's diagonal that comes from the couplings (temporal
-        # factors), so blocks minus it and the couplings form the time Laplacian exactly.
-        self.coupling_diagonal = (
-            np.zeros(len(self.keys)) if coupling_diagonal is None else np.asarray(coupling_diagonal, dtype=np.float64)
-        )
-        self._vertex_block_index = vertex_block_index
-        self.revisions = [None] * len(self.keys) if revisions is None else list(revisions)
-        if len(self.couplings) != max(len(self._base_blocks) - 1, 0) or len(self.keys) != len(self._base_blocks):
-            raise ValueError("a window system needs W blocks, W keys and W - 1 couplings")
-        self.pattern = self._base_blocks[0]  # the shared sparsity pattern (its values: block 0's)
-        self.block_size = self.pattern.shape[0]
-        self.size = self.block_size * len(self.keys)
-        self.diagonal_shift = (None if diagonal_shift is None
-                               else np.asarray(diagonal_shift, dtype=np.float64).reshape(len(self.keys), self.block_size))
-        self._shifted_blocks: list | None = None
-
-    @property
-    def blocks(self) -> list:
-        """The diagonal blocks as csr matrices, the diagonal shift included (built on first use)."""
-        if self.diagonal_shift is None:
-            return self._base_blocks
-        if self._shifted_blocks is None:
-            self._shifted_blocks = [
-                scipy.sparse.csr_matrix((self.block_data(t), block.indices, block.indptr), shape=block.shape)
-                for t, block in enumerate(self._base_blocks)
-            ]
-        return self._shifted_blocks
-
-    def block_data(self, t: int) -> np.ndarray:
-        """Values of block t on the shared pattern, the shift included (a new array)."""
-        data = self._base_blocks[t].data.copy()
-        if self.diagonal_shift is not None:
-            data[self.diagonal_index] += self.diagonal_shift[t]
-        return data
-
-    def block_diagonal(self, t: int) -> np.ndarray:
-        diagonal = self._base_blocks[t].data[self.diagonal_index]
-        return diagonal if self.diagonal_shift is None else diagonal + self.diagonal_shift[t]
-
-    def vertex_blocks(self, data: np.ndarray) -> np.ndarray:
-        """The 3x3 diagonal (vertex) blocks, (n/3, 3, 3), of a block with values `data` on the
-        shared pattern (entries missing from the pattern are zero)."""
-        if self._vertex_block_index is not None:
-            return data[self._vertex_block_index]
-        if self.block_size % 3:
-            raise ValueError("vertex blocks need a block size divisible by 3")
-        first = self.pattern
-        matrix = scipy.sparse.csr_matrix((data, first.indices, first.indptr), shape=first.shape)
-        dofs = 3 * np.arange(self.block_size // 3)[:, None, None] + np.arange(3)
-        rows = np.broadcast_to(dofs, (self.block_size // 3, 3, 3))
-        return np.asarray(matrix[rows.reshape(-1), rows.transpose(0, 2, 1).reshape(-1)]).reshape(-1, 3, 3)
-
-    def time_laplacian(self) -> np.ndarray:
-        """(W, W) matrix of the couplings: coupling_diagonal on the diagonal, couplings beside it."""
-        laplacian = np.diag(self.coupling_diagonal)
-        index = np.arange(len(self.couplings))
-        laplacian[index, index + 1] = laplacian[index + 1, index] = self.couplings
-        return laplacian
-
-    @classmethod
-    def single(cls, matrix, key=0) -> WindowSystem:
-        """A plain sparse symmetric matrix as a one-block system."""
-        matrix = scipy.sparse.csr_matrix(matrix, dtype=np.float64)
-        matrix = (matrix + scipy.sparse.diags(np.zeros(matrix.shape[0]))).tocsr()
-        matrix.sum_duplicates()
-        matrix.sort_indices()
-        return cls([matrix], [], [key], diagonal_positions(matrix))
-
-    def _split(self, x: np.ndarray) -> np.ndarray:
-        return x.reshape(len(self.keys), self.block_size)
-
-    def matvec(self, x: np.ndarray) -> np.ndarray:
-        parts = self._split(x)
-        out = np.empty_like(parts)
-        for t, block in enumerate(self._base_blocks):
-            out[t] = block @ parts[t]
-        if self.diagonal_shift is not None:
-            out += self.diagonal_shift * parts
-        if len(self.couplings):
-            out[:-1] += self.couplings[:, None] * parts[1:]
-            out[1:] += self.couplings[:, None] * parts[:-1]
-        return out.reshape(-1)
-
-    def diagonal(self) -> np.ndarray:
-        return np.concatenate([self.block_diagonal(t) for t in range(len(self.keys))])
-
-    def with_added_diagonal(self, values: np.ndarray) -> WindowSystem:
-        """A new system with `values` (size,) added to the diagonal (the damping); shares the
-        blocks with this one."""
-        shift = self._split(np.asarray(values, dtype=np.float64))
-        if self.diagonal_shift is not None:
-            shift = shift + self.diagonal_shift
-        return WindowSystem(self._base_blocks, self.couplings, self.keys, self.diagonal_index, self.coupling_diagonal,
-                            self._vertex_block_index, self.revisions, shift)
-
-    def to_coo(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(rows, cols, data) of the whole matrix, int32 indices."""
-        first = self.pattern
-        block_rows = np.repeat(np.arange(self.block_size, dtype=np.int64), np.diff(first.indptr))
-        rows, cols, data = [], [], []
-        for t, block in enumerate(self._base_blocks):
-            offset = t * self.block_size
-            rows.append(block_rows + offset)
-            cols.append(block.indices.astype(np.int64) + offset)
-            data.append(self.block_data(t))
-        local = np.arange(self.block_size, dtype=np.int64)
-        for t, coupling in enumerate(self.couplings):
-            upper, lower = local + t * self.block_size, local + (t + 1) * self.block_size
-            rows += [upper, lower]
-            cols += [lower, upper]
-            data += [np.full(self.block_size, coupling)] * 2
-        return (
-            np.concatenate(rows).astype(np.int32),
-            np.concatenate(cols).astype(np.int32),
-            np.concatenate(data),
-        )
-
-    def to_csr(self) -> scipy.sparse.csr_matrix:
-        rows, cols, data = self.to_coo()
-        return scipy.sparse.csr_matrix((data, (rows, cols)), shape=(self.size, self.size))
 
 
 @dataclass
@@ -296,48 +146,37 @@ class PCGSolver(LinearSolver):
     """Preconditioned conjugate gradients exploiting the window's time structure.
 
     Preconditioners (`preconditioner`):
-      "time"    the window matrix with every state block replaced by their mean Bbar:
-                M = I (x) Bbar + T (x) I, T the (W, W) time Laplacian of the couplings. With
-                T = Q diag(mu) Q^T it is block diagonal in the time eigenbasis, so applying it
-                is W sparse Cholesky solves with (Bbar + mu_j I), factored once and reused
-                across LM iterations and updates until the mean block drifts by more than
-                `refresh_change` (relative Frobenius norm), T changes, or PCG needs more than
-                `refresh_iterations` iterations. Exact in the couplings, which block Jacobi
-                misses: the smooth deformation modes, weakly held by K, are mostly tied
-                through time.
-      "block"   block Jacobi over the time steps: each state's block Cholesky-factored and
-                cached by its key, refreshed when the block drifts by more than
-                `refresh_change` (a re-linearisation, damping, a new temporal neighbour) or
-                PCG needs more than `refresh_iterations` (exact without couplings).
-                (Measured: a new state's own factor pays for itself; borrowing the previous
-                newest state's factor took its first solve from 2 to ~30 iterations.)
-      "vertex"  like "time" with Bbar reduced to its 3x3 vertex blocks (no factorisation:
-                for large meshes where sparse Cholesky is too slow).
-      "auto"    "block" up to `cholesky_max_block` dofs per state, else "vertex". Measured on
-                the estimator's windows (tolerance 1e-8, cholespy factors at the time):
-                512 vertices, W=10, 13k unknowns: block 49 ms with cached factors (20 its),
-                vertex 90 ms (120 its), time 215 ms (84 its: the blocks' measurement terms
-                differ too much from their mean), whole-window Cholesky 7.9 s, SuperLU
-                8.6 s. With CHOLMOD through cvxopt, in the estimator (tolerance 1e-3,
-                simulation_sigma 1e-4): 10.6k vertices, W=5, 152k unknowns, median linear
-                solve block 0.61 s (one 30k-dof factorisation 0.74 s, one solve 25 ms),
-                vertex 1.8 s; update 2.6 s against 4.9 s. With METIS ordering
-                (sparse_cholesky.py) the factorisation is 0.44 s and a solve 18 ms.
-                Tried at that scale, with "block" at 1.28 s median per update (3 PCG its):
-                borrowing the previous newest factor 1.17 s (5-7 its, growing as the factor
-                ages); Cholesky for the two newest states and vertex blocks for the rest
-                1.09 s, but one update took 43 its (3.2 s); x/y/z-separated scalar blocks
-                (trace of each 3x3 block, a 9x smaller factor) 25-29 its, 1.65 s; MKL PARDISO
-                with 2 threads factors in 0.24 s, but its solves took 25-45 ms and its OpenMP
-                threads slowed numpy: 1.43-1.51 s. cvxopt's OpenBLAS is a single-threaded
-                build; with CHOLMOD's BLAS bound to MKL on both cores instead (blas.py) the
-                factorisation takes 0.26 s, a solve 12-14 ms, and the update 0.87-0.92 s.
+      "block"   block Jacobi over the time steps: each state's block Cholesky-factored
+                (sparse_cholesky.py) and cached by its key, refreshed when the block drifts by
+                more than `refresh_change` (relative Frobenius norm: a re-linearisation,
+                damping, a new temporal neighbour) or PCG needs more than
+                `refresh_iterations` iterations. Exact without couplings.
+      "vertex"  M = I (x) Bbar + T (x) I, Bbar the 3x3 vertex blocks of the states' mean block
+                and T the (W, W) time Laplacian of the couplings. With T = Q diag(mu) Q^T it
+                is block diagonal in the time eigenbasis, so applying it is a batch of 3x3
+                solves with (Bbar_v + mu_j I): no factorisation, for meshes where a state's
+                sparse Cholesky is too slow. Exact in the couplings, which tie the smooth
+                deformation modes (weakly held by K) through time. Refreshed when the mean
+                block drifts by more than `refresh_change` or T changes.
+      "auto"    "block" up to `cholesky_max_block` dofs per state, else "vertex".
+    Block Jacobi with a factor per state needs the fewest iterations on the estimator's
+    windows: about 20 against 120 for "vertex" on a 512-vertex window (W=10, 13k unknowns,
+    tolerance 1e-8), where whole-window Cholesky or SuperLU is over 100 times slower. On an
+    organ-scale window (10.6k vertices, W=5, 152k unknowns, tolerance 1e-3) PCG needs about 3
+    iterations, so one state's factorisation (30k dofs: 0.26 s with CHOLMOD's BLAS on MKL,
+    0.44 s on single-threaded OpenBLAS, blas.py) dominates the update and a solve with a
+    factor takes 12-18 ms. What would save factorisations costs more iterations than it saves
+    there: the previous newest state's factor (5-7 iterations, more as it ages), Cholesky for
+    the two newest states and vertex blocks for the rest (some updates take 40 or more),
+    x/y/z-separated scalar blocks (a 9 times smaller factor, 25-29 iterations); MKL PARDISO's
+    OpenMP threads slow numpy down.
     tolerance: relative residual |b - A x| / |b|; max_iterations: cap (LinearSolveError).
     reserved_factors: when the first factor of a sparsity pattern is made, this many in all are
     made at once (the extra ones spares), so that later updates never factor into fresh memory:
-    the estimator reserves its window's W. On this machine (a VM) the first touch of fresh
-    memory costs ~2.4 ms/MB: a new organ-scale factor (132 MB) took 0.5-0.7 s against 0.23 s
-    for a refactor, which made the window-filling update the slowest of a run.
+    the first touch of fresh pages is slow (an organ-scale factor holds about 130 MB, and
+    factoring into fresh memory takes two to three times as long as a refactor), and without
+    spares every update that fills the window would pay it. The estimator reserves its
+    window's W.
     The loop is hand-written because scipy's cg cannot report negative curvature, which is
     how an indefinite system is detected (NotPositiveDefiniteError).
     """
@@ -347,8 +186,8 @@ class PCGSolver(LinearSolver):
     def __init__(self, tolerance: float = 1e-8, max_iterations: int = 1000, preconditioner: str = "auto",
                  refresh_iterations: int = 100, refresh_change: float = 0.05, cholesky_max_block: int = 100_000,
                  reserved_factors: int = 0):
-        if preconditioner not in ("auto", "time", "block", "vertex"):
-            raise ValueError(f"preconditioner must be auto, time, block or vertex, got {preconditioner!r}")
+        if preconditioner not in PRECONDITIONERS:
+            raise ValueError(f"preconditioner must be one of {PRECONDITIONERS}, got {preconditioner!r}")
         self.tolerance = float(tolerance)
         self.max_iterations = int(max_iterations)
         self.preconditioner = preconditioner
@@ -362,7 +201,7 @@ class PCGSolver(LinearSolver):
         """Drop every cached factor."""
         self._block_factors: dict = {}   # key -> _BlockFactor
         self._spare: list = []           # factors no longer in use, their symbolic analysis reusable
-        self._time: dict | None = None   # laplacian, eigenvectors, factors, mean data
+        self._vertex: dict | None = None  # "vertex": laplacian, eigenvectors, inverse blocks, mean data
         self.factorizations = 0
 
     def _mode(self, system: WindowSystem) -> str:
@@ -420,28 +259,18 @@ class PCGSolver(LinearSolver):
             return
         laplacian = system.time_laplacian()
         mean = self._mean_block_data(system)
-        cached = self._time
-        if (not force and cached is not None and cached["mode"] == mode and cached["laplacian"].shape == laplacian.shape
+        cached = self._vertex
+        if (not force and cached is not None and cached["laplacian"].shape == laplacian.shape
                 and np.allclose(cached["laplacian"], laplacian, rtol=1e-12, atol=0.0)
                 and self._change(mean, cached["mean"]) <= self.refresh_change):
             return
         eigenvalues, eigenvectors = np.linalg.eigh(laplacian)
-        if cached is not None and cached["mode"] == "time":
-            self._spare.extend(cached["factors"])
-            self._time = None
-        if mode == "time":
-            factors = []
-            for eigenvalue in eigenvalues:
-                shifted = mean.copy()
-                shifted[system.diagonal_index] += eigenvalue
-                factors.append(self._factor(shifted, system.pattern))
-        else:
-            vertex_blocks = system.vertex_blocks(mean)  # (V, 3, 3)
-            shifted = vertex_blocks[None] + eigenvalues[:, None, None, None] * np.eye(3)
-            if not np.all(np.linalg.eigvalsh(shifted) > 0.0):
-                raise NotPositiveDefiniteError("a vertex block of the preconditioner is not positive definite")
-            factors = np.linalg.inv(shifted)  # (W, V, 3, 3)
-        self._time = dict(mode=mode, laplacian=laplacian, eigenvectors=eigenvectors, factors=factors, mean=mean)
+        vertex_blocks = system.vertex_blocks(mean)  # (V, 3, 3)
+        shifted = vertex_blocks[None] + eigenvalues[:, None, None, None] * np.eye(3)
+        if not np.all(np.linalg.eigvalsh(shifted) > 0.0):
+            raise NotPositiveDefiniteError("a vertex block of the preconditioner is not positive definite")
+        inverses = np.linalg.inv(shifted)  # (W, V, 3, 3)
+        self._vertex = dict(laplacian=laplacian, eigenvectors=eigenvectors, inverses=inverses, mean=mean)
 
     # ------------------------------------------------------------------ application
     def _precondition(self, system: WindowSystem, mode: str, residual: np.ndarray) -> np.ndarray:
@@ -451,16 +280,10 @@ class PCGSolver(LinearSolver):
             for t, key in enumerate(system.keys):
                 out[t] = self._block_factors[key].factor.solve(parts[t])
             return out.reshape(-1)
-        eigenvectors = self._time["eigenvectors"]
+        eigenvectors = self._vertex["eigenvectors"]
         rotated = eigenvectors.T @ parts
-        if mode == "time":
-            solved = np.zeros_like(rotated)
-            for j, factor in enumerate(self._time["factors"]):
-                solved[j] = factor.solve(rotated[j])
-        else:
-            solved = np.einsum("wvij,wvj->wvi", self._time["factors"], rotated.reshape(len(parts), -1, 3))
-            solved = solved.reshape(rotated.shape)
-        return (eigenvectors @ solved).reshape(-1)
+        solved = np.einsum("wvij,wvj->wvi", self._vertex["inverses"], rotated.reshape(len(parts), -1, 3))
+        return (eigenvectors @ solved.reshape(rotated.shape)).reshape(-1)
 
     def solve(self, system, rhs):
         start = time.perf_counter()

@@ -106,12 +106,6 @@ class InformationMatrixNoise:
             raise NoiseModelError("information matrix has NaN or infinite entries")
         self.information = information
 
-    @classmethod
-    def from_sqrt_information(cls, sqrt_information) -> InformationMatrixNoise:
-        """Lambda = R^T R from a square-root information R (m, m)."""
-        root = scipy.sparse.csr_matrix(sqrt_information, dtype=np.float64)
-        return cls((root.T @ root).tocsr())
-
     def squared_norm(self, residual: np.ndarray) -> float:
         """r^T Lambda r (negative when Lambda is indefinite)."""
         residual = np.asarray(residual, dtype=np.float64).reshape(-1)

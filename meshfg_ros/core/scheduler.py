@@ -41,7 +41,7 @@ from meshfg_ros.core.estimator import (
 )
 from meshfg_ros.core.input_checks import INVALID, JUMP_BACK, STALE, check_initial_mesh, stamp_order
 from meshfg_ros.core.mesh import TetMesh
-from meshfg_ros.core.simulator import SimulatorConfig, XpbdSimulator
+from meshfg_ros.core.simulator import SimulatorConfig, ElasticSimulator
 from meshfg_ros.core.tool_poses import ToolPoseBuffer, ToolPoseUnavailable
 
 NS_PER_S = 1_000_000_000
@@ -96,7 +96,7 @@ class PredictionScheduler:
                  timeouts: SchedulingTimeouts = SchedulingTimeouts()) -> None:
         self.mesh = mesh
         self.scene = check_initial_mesh(mesh.vertices)
-        self.simulator = XpbdSimulator(mesh, model, grasped_vertices)
+        self.simulator = ElasticSimulator(mesh, model, grasped_vertices)
         self.timeouts = timeouts
         self._jump_ns = _jump_ns(clock_jump_threshold)
         self._poses = ToolPoseBuffer(extrapolation_s=tool_pose_extrapolation)

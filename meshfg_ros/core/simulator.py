@@ -1,11 +1,12 @@
-"""Position-based simulator for tetrahedral meshes: the predictor of the physics prior.
+"""Elastic simulator for tetrahedral meshes: the predictor of the physics prior.
 
-`XpbdSimulator.predict(previous_state, tool_pose, dt)` moves the tool from its previous pose to
-`tool_pose` in `substeps` increments (linear position, slerp orientation) and returns the
-tissue near quasi-static equilibrium. Two solvers share the set-up, the tool and the API.
+`ElasticSimulator.predict(previous_state, tool_pose, dt)` moves the tool from its previous pose
+to `tool_pose` in `substeps` increments (linear position, slerp orientation) and returns the
+tissue near quasi-static equilibrium. The simulator owns the set-up, the tool contact and the
+API; how a sub-step moves the tissue is a strategy chosen by SimulatorConfig.solver:
 
-"vbd" (default): quasi-static vertex block descent (Chen et al. 2024) on the stable
-    Neo-Hookean energy of Macklin & Mueller 2021,
+"vbd" (default, `VertexBlockDescent`): quasi-static vertex block descent (Chen et al. 2024)
+    on the stable Neo-Hookean energy of Macklin & Mueller 2021,
         Psi = mu/2 (I_C - 3) + lambda'/2 (J - gamma)^2,  lambda' = lambda + mu,  gamma = 1 + mu / lambda'.
     I_C is quadratic and J affine in one vertex, so a vertex's energy is an exact quadratic
     with SPD Hessian V (mu |g|^2 I + lambda' (cof F g)(cof F g)^T): each block solve is exact,
@@ -14,8 +15,9 @@ tissue near quasi-static equilibrium. Two solvers share the set-up, the tool and
     a quasi-Newton step with the rest Hessian K0 (factorised once; constrained at the tool) for
     the smooth, global error that Gauss-Seidel alone removes in O(n^2) sweeps. The fixed point
     is the true equilibrium whatever the iteration count.
-"xpbd" (Macklin et al. 2016): damped dynamics; per sub-step, Gauss-Seidel over per-element
-    Neo-Hookean constraints with compliance, solved as a coupled 2x2 system per element:
+"xpbd" (`ExtendedPositionBasedDynamics`, Macklin et al. 2016): damped dynamics; per
+    sub-step, Gauss-Seidel over per-element Neo-Hookean constraints with compliance, solved
+    as a coupled 2x2 system per element:
         C_D = sqrt(I_C J^(-2/3) - 3),  alpha_D = 1 / (mu V)      (isochoric)
         C_H = J - 1,                   alpha_H = 1 / (kappa V)   (volume, kappa = lambda + 2 mu / 3)
     Both vanish at rest. The split of Macklin & Mueller 2021 (C_D = sqrt(I_C), C_H = J - gamma)
@@ -44,13 +46,17 @@ from meshfg_ros.core.mesh import TetMesh, name_elements, signed_volumes
 
 __all__ = [
     "SOLVERS",
+    "SOLVER_STRATEGIES",
     "TOOL_CONTACTS",
     "TOOL_MODES",
+    "ElasticSimulator",
     "ElementInversionError",
+    "ExtendedPositionBasedDynamics",
     "SimulatorConfig",
     "SimulatorConfigError",
     "SimulatorInputError",
-    "XpbdSimulator",
+    "SimulatorSolver",
+    "VertexBlockDescent",
     "colour_tetrahedra",
     "colour_vertices",
 ]
@@ -101,7 +107,7 @@ class ElementInversionError(RuntimeError):
 
 @dataclass(frozen=True)
 class SimulatorConfig:
-    """Material, tool and solver settings of `XpbdSimulator` (SI units)."""
+    """Material, tool and solver settings of `ElasticSimulator` (SI units)."""
 
     youngs_modulus: float = 3.0e3  # Pa; soft tissue is of the order of kPa
     poisson_ratio: float = 0.45
@@ -115,7 +121,7 @@ class SimulatorConfig:
     # m / s^2; xpbd moves (dt / substeps)^2 g per sub-step before solving: keep it << element size
     gravity: tuple[float, float, float] = (0.0, 0.0, 0.0)
     deterministic: bool = True  # required: both solvers are bit-reproducible
-    solver: str = "vbd"  # "vbd" or "xpbd", see the module docstring
+    solver: str = "vbd"  # "vbd" or "xpbd": the sub-step strategy (SOLVER_STRATEGIES), see the module docstring
 
     def __post_init__(self):
         checks = [
@@ -273,84 +279,84 @@ def _as_pose(tool_pose) -> np.ndarray:
     return np.concatenate([pose[:3], pose[3:] / norm])
 
 
-# ---------------------------------------------------------------------------- simulator
+# ------------------------------------------------------------------------ shared set-up
 
 
-class XpbdSimulator:
-    """Quasi-static position-based prediction of a tetrahedral mesh pushed or held by a tool.
+@dataclass(frozen=True)
+class _Body:
+    """What every solver strategy starts from: the rest mesh, the settings, which vertices
+    move, and the elements' rest data."""
 
-    Fixed vertices (`rest_mesh.fixed_vertices`) never move. In "sphere" mode movable vertices
-    inside the tool sphere (radius `tool_radius` about the tool position) are pushed onto its
-    surface. With tool_contact "stick", vertices touching the sphere when a sub-step starts
-    move with it for that sub-step unless it moves away from them: frictionless contact of a
-    single vertex on a sphere is an unstable equilibrium (the tissue slides off the pole,
-    differently for every iteration count), which sticking removes. Sticking persists across
-    predictions: a vertex stuck at the end of the last one is put back on the sphere and stays
-    stuck when the next starting state (an estimate) has it within _CONTACT_MEMORY_BAND tool
-    radii of the surface. Without that memory a 0.1 mm correction that lifts the vertex off the
-    tool releases it, it slides off the pole, the tool passes between the vertices of a coarse
-    mesh and the prediction jumps by centimetres (measured on the SOFA liver). In "grasp" mode
-    `grasped_vertices` follow the tool rigidly: at pose T they sit at T T0^-1 applied to their
-    rest positions, T0 being the first tool pose (set by `reset`, or by the first `predict`).
+    rest_mesh: TetMesh
+    config: SimulatorConfig
+    kinematic: np.ndarray  # (N,) bool: fixed or grasped (moved by the boundary or the tool only)
+    movable_vertices: np.ndarray  # (n,) the others
+    volumes: np.ndarray  # (M,) rest volumes
+    rest_inverse: np.ndarray  # (M, 3, 3) Dm^-1
+    corner_gradient: np.ndarray  # (M, 4, 3) shape-function gradients of the corners
+    vertex_mass: np.ndarray  # (N,) lumped mass
+    gravity: np.ndarray  # (3,) m / s^2
+
+
+def _outside_tool(points: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
+    """`points` (k, 3) with those inside the tool sphere (`radius` about `centre`) moved
+    radially onto its surface."""
+    offsets = points - centre
+    distances = np.sqrt(np.einsum("ij,ij->i", offsets, offsets))
+    inside = np.flatnonzero(distances < radius)
+    if inside.size == 0:
+        return points
+    pushed = points.copy()
+    directions = offsets[inside] / np.maximum(distances[inside], np.finfo(float).tiny)[:, None]
+    pushed[inside] = centre + radius * directions
+    return pushed
+
+
+# ---------------------------------------------------------------------- solver strategies
+
+
+class SimulatorSolver:
+    """How one sub-step moves the tissue (SimulatorConfig.solver picks the strategy).
+
+    `begin` is called once per prediction with its starting state; `substep` moves `state` in
+    place for a sub-step of `step` seconds with the tool at `tool_centre`, keeping the `held`
+    vertices (stuck to the tool) where they are. Fixed and grasped vertices are the
+    simulator's: a strategy moves only `movable_vertices`.
     """
 
-    def __init__(self, rest_mesh: TetMesh, config: SimulatorConfig, grasped_vertices=None):
-        self.rest_mesh = rest_mesh
-        self.config = config
-        self.grasped_vertices = self._checked_grasp(grasped_vertices, rest_mesh, config)
-        vertex_count = rest_mesh.vertex_count
-        kinematic = np.zeros(vertex_count, dtype=bool)
-        kinematic[rest_mesh.fixed_vertices] = True
-        kinematic[self.grasped_vertices] = True
-        self.movable_vertices = np.flatnonzero(~kinematic)
+    def begin(self, state: np.ndarray) -> None:
+        """Start a prediction from `state` (N, 3)."""
 
-        tets = rest_mesh.tetrahedra
-        rest_edges = rest_mesh.vertices[tets[:, 1:]] - rest_mesh.vertices[tets[:, :1]]  # rows = edges
-        volumes = np.linalg.det(rest_edges) / 6.0
-        rest_inverse = np.linalg.inv(np.transpose(rest_edges, (0, 2, 1)))  # Dm^-1, Dm columns = edges
-        corner_gradient = _CORNER_FROM_EDGES @ rest_inverse  # (M, 4, 3) shape-function gradients
-        corner_volumes = np.repeat(volumes / 4.0, 4)
-        vertex_mass = config.density * np.bincount(tets.reshape(-1), corner_volumes, vertex_count)
-        self._gravity = np.asarray(config.gravity, dtype=np.float64)
-        if config.solver == "vbd":
-            self._volumetric_modulus = config.lame_lambda + config.shear_modulus  # lambda'
-            self._rest_volume_ratio = 1.0 + config.shear_modulus / self._volumetric_modulus  # gamma
-            self._volumes = volumes
-            self._corners_em = np.ascontiguousarray(tets.T)
-            self._rest_inverse_em = np.ascontiguousarray(rest_inverse.transpose(1, 2, 0))
-            self._corner_volume_gradient_em = np.ascontiguousarray(
-                (volumes[:, None, None] * corner_gradient).transpose(1, 2, 0)
-            )
-            self._gravity_force = vertex_mass[:, None] * self._gravity
-            self._colours = self._vertex_colours(tets, volumes, rest_inverse, corner_gradient)
-            self._rest_stiffness = self._factorised_rest_stiffness() if self.movable_vertices.size else None
-        else:
-            inverse_mass = np.where(kinematic, 0.0, 1.0 / vertex_mass)
-            self._colours = self._element_colours(tets, volumes, rest_inverse, corner_gradient, inverse_mass)
-        self._first_pose: np.ndarray | None = None
-        self._previous_pose: np.ndarray | None = None
-        self._stuck: np.ndarray = np.zeros(0, dtype=np.int64)  # stuck at the end of the last prediction
+    def substep(self, state: np.ndarray, step: float, tool_centre: np.ndarray, held: np.ndarray) -> None:
+        raise NotImplementedError
 
-    @staticmethod
-    def _checked_grasp(grasped_vertices, rest_mesh: TetMesh, config: SimulatorConfig) -> np.ndarray:
-        if config.tool_mode == "sphere":
-            if grasped_vertices is not None and np.size(grasped_vertices):
-                raise SimulatorInputError('grasped_vertices are only used with tool_mode="grasp"')
-            return np.zeros(0, dtype=np.int64)
-        if grasped_vertices is None or np.size(grasped_vertices) == 0:
-            raise SimulatorInputError('tool_mode="grasp" needs a non-empty grasped_vertices set')
-        raw = np.asarray(grasped_vertices)
-        if not np.issubdtype(raw.dtype, np.integer):
-            raise SimulatorInputError(f"grasped_vertices must be integer indices, got dtype {raw.dtype}")
-        grasped = np.unique(raw.astype(np.int64).reshape(-1))
-        if grasped[0] < 0 or grasped[-1] >= rest_mesh.vertex_count:
-            raise SimulatorInputError(f"grasped_vertices out of range [0, {rest_mesh.vertex_count})")
-        if np.intersect1d(grasped, rest_mesh.fixed_vertices).size:
-            raise SimulatorInputError("grasped_vertices must not include fixed vertices")
-        return grasped
+
+class VertexBlockDescent(SimulatorSolver):
+    """solver "vbd": quasi-static vertex block descent with a global rest-Hessian step.
+
+    Each iteration is one coloured sweep of exact per-vertex energy minimisations, then a
+    quasi-Newton step with the rest Hessian K0 (see the module docstring). The fixed point is
+    the equilibrium whatever the iteration count; `step` (the sub-step's duration) is unused.
+    """
+
+    def __init__(self, body: _Body):
+        config = body.config
+        self.rest_mesh, self.config, self.movable_vertices = body.rest_mesh, config, body.movable_vertices
+        tets, volumes = body.rest_mesh.tetrahedra, body.volumes
+        self._volumetric_modulus = config.lame_lambda + config.shear_modulus  # lambda'
+        self._rest_volume_ratio = 1.0 + config.shear_modulus / self._volumetric_modulus  # gamma
+        self._volumes = volumes
+        self._corners_em = np.ascontiguousarray(tets.T)
+        self._rest_inverse_em = np.ascontiguousarray(body.rest_inverse.transpose(1, 2, 0))
+        self._corner_volume_gradient_em = np.ascontiguousarray(
+            (volumes[:, None, None] * body.corner_gradient).transpose(1, 2, 0)
+        )
+        self._gravity_force = body.vertex_mass[:, None] * body.gravity
+        self._colours = self._vertex_colours(tets, volumes, body.rest_inverse, body.corner_gradient)
+        self._rest_stiffness = self._factorised_rest_stiffness() if self.movable_vertices.size else None
 
     def _vertex_colours(self, tets, volumes, rest_inverse, corner_gradient) -> list[_VertexColour]:
-        """vbd set-up: colours of the movable vertices with their incident-element data."""
+        """Colours of the movable vertices with their incident-element data."""
         element_count = tets.shape[0]
         incidence_vertex = tets.reshape(-1)
         by_vertex = np.argsort(incidence_vertex, kind="stable")
@@ -394,146 +400,7 @@ class XpbdSimulator:
         """K0^-1 applied to a vector (3 n,) or to the columns (3 n, k) of a matrix on the movable dofs."""
         return self._rest_stiffness.solve(right_hand_side)
 
-    def _element_colours(self, tets, volumes, rest_inverse, corner_gradient, inverse_mass):
-        """xpbd set-up: tetrahedron colours with their constant metric and compliance data."""
-        corner_step = inverse_mass[tets][:, :, None] * corner_gradient  # (M, 4, 3)
-        weighted_metric = np.transpose(corner_gradient, (0, 2, 1)) @ corner_step
-        mu = self.config.shear_modulus
-        bulk_modulus = self.config.lame_lambda + 2.0 * mu / 3.0
-        compliance = np.stack([1.0 / (mu * volumes), 1.0 / (bulk_modulus * volumes)])
-        return [
-            _ElementColour(
-                corners=np.ascontiguousarray(tets[members].T),
-                rest_inverse=np.ascontiguousarray(rest_inverse[members].transpose(1, 2, 0)),
-                weighted_metric=np.ascontiguousarray(weighted_metric[members].transpose(1, 2, 0)),
-                corner_step=np.ascontiguousarray(corner_step[members].transpose(1, 2, 0)),
-                compliance=np.ascontiguousarray(compliance[:, members]),
-                multipliers=np.zeros((2, members.size)),
-            )
-            for members in colour_tetrahedra(tets, self.rest_mesh.vertex_count)
-        ]
-
-    @property
-    def colour_count(self) -> int:
-        """Number of colours: vectorised Gauss-Seidel batches per sweep."""
-        return len(self._colours)
-
-    @property
-    def previous_tool_pose(self) -> np.ndarray | None:
-        """Tool pose the next `predict` starts from (None before the first call)."""
-        return None if self._previous_pose is None else self._previous_pose.copy()
-
-    def reset(self, tool_pose=None) -> None:
-        """Set the tool's previous and first (grasp reference) pose and forget the stuck
-        vertices; None forgets both poses."""
-        self._stuck = np.zeros(0, dtype=np.int64)
-        if tool_pose is None:
-            self._first_pose = self._previous_pose = None
-            return
-        pose = _as_pose(tool_pose)
-        self._first_pose = pose
-        self._previous_pose = pose.copy()
-
-    def predict(self, previous_state, tool_pose, dt: float) -> np.ndarray:
-        """State (N, 3) after the tool moves from its previous pose to `tool_pose` over dt seconds.
-
-        vbd is quasi-static (dt only validated); xpbd integrates damped dynamics over dt.
-        Raises ElementInversionError if the result has a non-positive element volume.
-        """
-        state = np.array(previous_state, dtype=np.float64, copy=True)
-        if state.shape != (self.rest_mesh.vertex_count, 3) or not np.all(np.isfinite(state)):
-            raise SimulatorInputError(
-                f"previous_state must be finite with shape ({self.rest_mesh.vertex_count}, 3), "
-                f"got {state.shape}"
-            )
-        if not (np.isfinite(dt) and dt > 0.0):
-            raise SimulatorInputError(f"dt must be > 0, got {dt}")
-        pose = _as_pose(tool_pose)
-        if self._previous_pose is None:
-            self.reset(pose)
-        substeps = int(self.config.substeps)
-        fractions = np.arange(1, substeps + 1) / substeps
-        centres, rotations = self._interpolated_poses(self._previous_pose, pose, fractions)
-        velocity = np.zeros_like(state)
-        previous_centre = self._previous_pose[:3]
-        self._restore_stuck_vertices(state, previous_centre)
-        for substep in range(substeps):
-            if self.config.tool_mode == "grasp":
-                state[self.grasped_vertices] = self._grasp_targets(centres[substep], rotations[substep])
-            held = self._carry_stuck_vertices(state, previous_centre, centres[substep])
-            previous_centre = centres[substep]
-            if self.movable_vertices.size == 0:
-                continue
-            if self.config.solver == "vbd":
-                self._vbd_substep(state, centres[substep], held)
-            else:
-                velocity = self._xpbd_substep(state, velocity, dt / substeps, centres[substep], held)
-        self._previous_pose = pose
-        inverted = np.flatnonzero(~(signed_volumes(state, self.rest_mesh.tetrahedra) > 0.0))  # NaN too
-        if inverted.size:
-            raise ElementInversionError(inverted)
-        self._stuck = self._touching(state, pose[:3], _CONTACT_BAND)
-        return state
-
-    # ------------------------------------------------------------------------------ tool
-
-    @staticmethod
-    def _interpolated_poses(start_pose, end_pose, fractions):
-        """Tool centres (S, 3) (linear) and rotation matrices (S, 3, 3) (slerp) at the sub-steps."""
-        centres = start_pose[:3] + fractions[:, None] * (end_pose[:3] - start_pose[:3])
-        key_rotations = Rotation.from_quat(np.stack([start_pose[3:], end_pose[3:]]))
-        return centres, Slerp([0.0, 1.0], key_rotations)(fractions).as_matrix()
-
-    def _grasp_targets(self, centre: np.ndarray, rotation: np.ndarray) -> np.ndarray:
-        """Grasped vertex positions for a tool at (centre, rotation), rigid w.r.t. the first pose."""
-        first_rotation = Rotation.from_quat(self._first_pose[3:]).as_matrix()
-        anchors = self.rest_mesh.vertices[self.grasped_vertices] - self._first_pose[:3]
-        return anchors @ (rotation @ first_rotation.T).T + centre
-
-    def _touching(self, state: np.ndarray, centre, band: float) -> np.ndarray:
-        """Movable vertices within band * tool_radius of the tool centre (stick contact only)."""
-        if self.config.tool_mode != "sphere" or self.config.tool_contact != "stick":
-            return np.zeros(0, dtype=np.int64)
-        offsets = state[self.movable_vertices] - centre
-        inside = np.einsum("ij,ij->i", offsets, offsets) <= (self.config.tool_radius * band) ** 2
-        return self.movable_vertices[inside]
-
-    def _restore_stuck_vertices(self, state: np.ndarray, centre) -> None:
-        """Put the vertices stuck at the end of the last prediction back on the sphere, in
-        place, where `state` has them within _CONTACT_MEMORY_BAND radii of its surface."""
-        if self._stuck.size == 0:
-            return
-        offsets = state[self._stuck] - centre
-        distances = np.sqrt(np.einsum("ij,ij->i", offsets, offsets))
-        radius = self.config.tool_radius
-        near = (np.abs(distances - radius) <= _CONTACT_MEMORY_BAND * radius) & (distances > 0.0)
-        state[self._stuck[near]] = centre + radius * offsets[near] / distances[near, None]
-
-    def _carry_stuck_vertices(self, state: np.ndarray, previous_centre, centre) -> np.ndarray:
-        """Stick contact: move the vertices touching the tool with it, in place; returns them (sorted).
-
-        A vertex is released when the tool moves away from it (negative normal motion).
-        """
-        touching = self._touching(state, previous_centre, _CONTACT_BAND)
-        stuck = touching[(state[touching] - previous_centre) @ (centre - previous_centre) >= 0.0]
-        state[stuck] += centre - previous_centre
-        return stuck
-
-    def _outside_tool(self, points: np.ndarray, centre: np.ndarray) -> np.ndarray:
-        """`points` (k, 3) with those inside the tool sphere moved radially onto its surface."""
-        offsets = points - centre
-        distances = np.sqrt(np.einsum("ij,ij->i", offsets, offsets))
-        inside = np.flatnonzero(distances < self.config.tool_radius)
-        if inside.size == 0:
-            return points
-        pushed = points.copy()
-        directions = offsets[inside] / np.maximum(distances[inside], np.finfo(float).tiny)[:, None]
-        pushed[inside] = centre + self.config.tool_radius * directions
-        return pushed
-
-    # ------------------------------------------------------------------------------- vbd
-
-    def _vbd_substep(self, state: np.ndarray, tool_centre: np.ndarray, held: np.ndarray) -> None:
+    def substep(self, state, step, tool_centre, held) -> None:
         """Quasi-static iterations of one sub-step in place: a vertex sweep, then a global K0 step.
 
         `held` vertices (stuck to the tool) keep their positions during the sub-step.
@@ -637,7 +504,7 @@ class XpbdSimulator:
         positions = state[colour.vertices]
         targets = positions + (np.einsum("abn,bn->an", adjugate, force) / determinant).T
         if self.config.tool_mode == "sphere":
-            targets = self._outside_tool(targets, tool_centre)
+            targets = _outside_tool(targets, tool_centre, self.config.tool_radius)
         targets[held] = positions[held]
         moves = targets - positions
         # J is affine along a vertex move: keep every incident J above a fraction of its value.
@@ -648,7 +515,48 @@ class XpbdSimulator:
         scale = np.minimum(np.minimum.reduceat(limits, colour.segment_starts), 1.0)
         state[colour.vertices] = positions + scale[:, None] * moves
 
-    # ------------------------------------------------------------------------------ xpbd
+
+class ExtendedPositionBasedDynamics(SimulatorSolver):
+    """solver "xpbd": damped XPBD dynamics over per-element Neo-Hookean constraints.
+
+    Per sub-step: damp the velocity, move by it and by gravity, then Gauss-Seidel over the
+    coloured elements' coupled isochoric + volume constraints (see the module docstring). The
+    velocity carries over between the sub-steps of one prediction and starts at zero.
+    """
+
+    def __init__(self, body: _Body):
+        self.config, self.movable_vertices = body.config, body.movable_vertices
+        self._gravity = body.gravity
+        inverse_mass = np.where(body.kinematic, 0.0, 1.0 / body.vertex_mass)
+        self._colours = self._element_colours(body.rest_mesh, body.volumes, body.rest_inverse,
+                                              body.corner_gradient, inverse_mass)
+        self._velocity: np.ndarray | None = None
+
+    def begin(self, state):
+        self._velocity = np.zeros_like(state)
+
+    def substep(self, state, step, tool_centre, held) -> None:
+        self._velocity = self._xpbd_substep(state, self._velocity, step, tool_centre, held)
+
+    def _element_colours(self, rest_mesh: TetMesh, volumes, rest_inverse, corner_gradient, inverse_mass):
+        """Tetrahedron colours with their constant metric and compliance data."""
+        tets = rest_mesh.tetrahedra
+        corner_step = inverse_mass[tets][:, :, None] * corner_gradient  # (M, 4, 3)
+        weighted_metric = np.transpose(corner_gradient, (0, 2, 1)) @ corner_step
+        mu = self.config.shear_modulus
+        bulk_modulus = self.config.lame_lambda + 2.0 * mu / 3.0
+        compliance = np.stack([1.0 / (mu * volumes), 1.0 / (bulk_modulus * volumes)])
+        return [
+            _ElementColour(
+                corners=np.ascontiguousarray(tets[members].T),
+                rest_inverse=np.ascontiguousarray(rest_inverse[members].transpose(1, 2, 0)),
+                weighted_metric=np.ascontiguousarray(weighted_metric[members].transpose(1, 2, 0)),
+                corner_step=np.ascontiguousarray(corner_step[members].transpose(1, 2, 0)),
+                compliance=np.ascontiguousarray(compliance[:, members]),
+                multipliers=np.zeros((2, members.size)),
+            )
+            for members in colour_tetrahedra(tets, rest_mesh.vertex_count)
+        ]
 
     def _xpbd_substep(self, state: np.ndarray, velocity, step: float, tool_centre, held) -> np.ndarray:
         """One damped XPBD sub-step in place, `held` vertices kept in place; returns the new velocity."""
@@ -665,7 +573,7 @@ class XpbdSimulator:
             for colour in self._colours:
                 self._project_constraints(state, colour, inverse_step_squared)
             if self.config.tool_mode == "sphere":
-                state[movable] = self._outside_tool(state[movable], tool_centre)
+                state[movable] = _outside_tool(state[movable], tool_centre, self.config.tool_radius)
             state[held] = held_positions
         return (state - start) / step
 
@@ -702,3 +610,173 @@ class XpbdSimulator:
         colour.multipliers[1] += delta_volume
         gradient = delta_deviatoric * deviatoric_gradient + delta_volume * cofactor
         state.T[:, colour.corners] = positions + np.einsum("ajb,kjb->akb", gradient, colour.corner_step)
+
+
+# The strategy of each SimulatorConfig.solver name (SOLVERS).
+SOLVER_STRATEGIES = {"vbd": VertexBlockDescent, "xpbd": ExtendedPositionBasedDynamics}
+
+
+# ---------------------------------------------------------------------------- simulator
+
+
+class ElasticSimulator:
+    """Quasi-static prediction of an elastic tetrahedral mesh pushed or held by a tool.
+
+    The set-up, the tool and its contact belong to the simulator; each sub-step's motion is
+    `solver`, the strategy SimulatorConfig.solver names (VertexBlockDescent or
+    ExtendedPositionBasedDynamics, SOLVER_STRATEGIES).
+
+    Fixed vertices (`rest_mesh.fixed_vertices`) never move. In "sphere" mode movable vertices
+    inside the tool sphere (radius `tool_radius` about the tool position) are pushed onto its
+    surface. With tool_contact "stick", vertices touching the sphere when a sub-step starts
+    move with it for that sub-step unless it moves away from them: frictionless contact of a
+    single vertex on a sphere is an unstable equilibrium (the tissue slides off the pole,
+    differently for every iteration count), which sticking removes. Sticking persists across
+    predictions: a vertex stuck at the end of the last one is put back on the sphere and stays
+    stuck when the next starting state (an estimate) has it within _CONTACT_MEMORY_BAND tool
+    radii of the surface. Without that memory a 0.1 mm correction that lifts the vertex off the
+    tool releases it, it slides off the pole, the tool passes between the vertices of a coarse
+    mesh and the prediction jumps by centimetres (measured on the SOFA liver). In "grasp" mode
+    `grasped_vertices` follow the tool rigidly: at pose T they sit at T T0^-1 applied to their
+    rest positions, T0 being the first tool pose (set by `reset`, or by the first `predict`).
+    """
+
+    def __init__(self, rest_mesh: TetMesh, config: SimulatorConfig, grasped_vertices=None):
+        self.rest_mesh = rest_mesh
+        self.config = config
+        self.grasped_vertices = self._checked_grasp(grasped_vertices, rest_mesh, config)
+        vertex_count = rest_mesh.vertex_count
+        kinematic = np.zeros(vertex_count, dtype=bool)
+        kinematic[rest_mesh.fixed_vertices] = True
+        kinematic[self.grasped_vertices] = True
+        self.movable_vertices = np.flatnonzero(~kinematic)
+
+        tets = rest_mesh.tetrahedra
+        rest_edges = rest_mesh.vertices[tets[:, 1:]] - rest_mesh.vertices[tets[:, :1]]  # rows = edges
+        volumes = np.linalg.det(rest_edges) / 6.0
+        rest_inverse = np.linalg.inv(np.transpose(rest_edges, (0, 2, 1)))  # Dm^-1, Dm columns = edges
+        corner_gradient = _CORNER_FROM_EDGES @ rest_inverse  # (M, 4, 3) shape-function gradients
+        corner_volumes = np.repeat(volumes / 4.0, 4)
+        vertex_mass = config.density * np.bincount(tets.reshape(-1), corner_volumes, vertex_count)
+        body = _Body(rest_mesh, config, kinematic, self.movable_vertices, volumes, rest_inverse, corner_gradient,
+                     vertex_mass, np.asarray(config.gravity, dtype=np.float64))
+        self.solver: SimulatorSolver = SOLVER_STRATEGIES[config.solver](body)
+        self._first_pose: np.ndarray | None = None
+        self._previous_pose: np.ndarray | None = None
+        self._stuck: np.ndarray = np.zeros(0, dtype=np.int64)  # stuck at the end of the last prediction
+
+    @staticmethod
+    def _checked_grasp(grasped_vertices, rest_mesh: TetMesh, config: SimulatorConfig) -> np.ndarray:
+        if config.tool_mode == "sphere":
+            if grasped_vertices is not None and np.size(grasped_vertices):
+                raise SimulatorInputError('grasped_vertices are only used with tool_mode="grasp"')
+            return np.zeros(0, dtype=np.int64)
+        if grasped_vertices is None or np.size(grasped_vertices) == 0:
+            raise SimulatorInputError('tool_mode="grasp" needs a non-empty grasped_vertices set')
+        raw = np.asarray(grasped_vertices)
+        if not np.issubdtype(raw.dtype, np.integer):
+            raise SimulatorInputError(f"grasped_vertices must be integer indices, got dtype {raw.dtype}")
+        grasped = np.unique(raw.astype(np.int64).reshape(-1))
+        if grasped[0] < 0 or grasped[-1] >= rest_mesh.vertex_count:
+            raise SimulatorInputError(f"grasped_vertices out of range [0, {rest_mesh.vertex_count})")
+        if np.intersect1d(grasped, rest_mesh.fixed_vertices).size:
+            raise SimulatorInputError("grasped_vertices must not include fixed vertices")
+        return grasped
+
+    @property
+    def previous_tool_pose(self) -> np.ndarray | None:
+        """Tool pose the next `predict` starts from (None before the first call)."""
+        return None if self._previous_pose is None else self._previous_pose.copy()
+
+    def reset(self, tool_pose=None) -> None:
+        """Set the tool's previous and first (grasp reference) pose and forget the stuck
+        vertices; None forgets both poses."""
+        self._stuck = np.zeros(0, dtype=np.int64)
+        if tool_pose is None:
+            self._first_pose = self._previous_pose = None
+            return
+        pose = _as_pose(tool_pose)
+        self._first_pose = pose
+        self._previous_pose = pose.copy()
+
+    def predict(self, previous_state, tool_pose, dt: float) -> np.ndarray:
+        """State (N, 3) after the tool moves from its previous pose to `tool_pose` over dt seconds.
+
+        vbd is quasi-static (dt only validated); xpbd integrates damped dynamics over dt.
+        Raises ElementInversionError if the result has a non-positive element volume.
+        """
+        state = np.array(previous_state, dtype=np.float64, copy=True)
+        if state.shape != (self.rest_mesh.vertex_count, 3) or not np.all(np.isfinite(state)):
+            raise SimulatorInputError(
+                f"previous_state must be finite with shape ({self.rest_mesh.vertex_count}, 3), "
+                f"got {state.shape}"
+            )
+        if not (np.isfinite(dt) and dt > 0.0):
+            raise SimulatorInputError(f"dt must be > 0, got {dt}")
+        pose = _as_pose(tool_pose)
+        if self._previous_pose is None:
+            self.reset(pose)
+        substeps = int(self.config.substeps)
+        fractions = np.arange(1, substeps + 1) / substeps
+        centres, rotations = self._interpolated_poses(self._previous_pose, pose, fractions)
+        self.solver.begin(state)
+        previous_centre = self._previous_pose[:3]
+        self._restore_stuck_vertices(state, previous_centre)
+        for substep in range(substeps):
+            if self.config.tool_mode == "grasp":
+                state[self.grasped_vertices] = self._grasp_targets(centres[substep], rotations[substep])
+            held = self._carry_stuck_vertices(state, previous_centre, centres[substep])
+            previous_centre = centres[substep]
+            if self.movable_vertices.size == 0:
+                continue
+            self.solver.substep(state, dt / substeps, centres[substep], held)
+        self._previous_pose = pose
+        inverted = np.flatnonzero(~(signed_volumes(state, self.rest_mesh.tetrahedra) > 0.0))  # NaN too
+        if inverted.size:
+            raise ElementInversionError(inverted)
+        self._stuck = self._touching(state, pose[:3], _CONTACT_BAND)
+        return state
+
+    # ------------------------------------------------------------------------------ tool
+
+    @staticmethod
+    def _interpolated_poses(start_pose, end_pose, fractions):
+        """Tool centres (S, 3) (linear) and rotation matrices (S, 3, 3) (slerp) at the sub-steps."""
+        centres = start_pose[:3] + fractions[:, None] * (end_pose[:3] - start_pose[:3])
+        key_rotations = Rotation.from_quat(np.stack([start_pose[3:], end_pose[3:]]))
+        return centres, Slerp([0.0, 1.0], key_rotations)(fractions).as_matrix()
+
+    def _grasp_targets(self, centre: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+        """Grasped vertex positions for a tool at (centre, rotation), rigid w.r.t. the first pose."""
+        first_rotation = Rotation.from_quat(self._first_pose[3:]).as_matrix()
+        anchors = self.rest_mesh.vertices[self.grasped_vertices] - self._first_pose[:3]
+        return anchors @ (rotation @ first_rotation.T).T + centre
+
+    def _touching(self, state: np.ndarray, centre, band: float) -> np.ndarray:
+        """Movable vertices within band * tool_radius of the tool centre (stick contact only)."""
+        if self.config.tool_mode != "sphere" or self.config.tool_contact != "stick":
+            return np.zeros(0, dtype=np.int64)
+        offsets = state[self.movable_vertices] - centre
+        inside = np.einsum("ij,ij->i", offsets, offsets) <= (self.config.tool_radius * band) ** 2
+        return self.movable_vertices[inside]
+
+    def _restore_stuck_vertices(self, state: np.ndarray, centre) -> None:
+        """Put the vertices stuck at the end of the last prediction back on the sphere, in
+        place, where `state` has them within _CONTACT_MEMORY_BAND radii of its surface."""
+        if self._stuck.size == 0:
+            return
+        offsets = state[self._stuck] - centre
+        distances = np.sqrt(np.einsum("ij,ij->i", offsets, offsets))
+        radius = self.config.tool_radius
+        near = (np.abs(distances - radius) <= _CONTACT_MEMORY_BAND * radius) & (distances > 0.0)
+        state[self._stuck[near]] = centre + radius * offsets[near] / distances[near, None]
+
+    def _carry_stuck_vertices(self, state: np.ndarray, previous_centre, centre) -> np.ndarray:
+        """Stick contact: move the vertices touching the tool with it, in place; returns them (sorted).
+
+        A vertex is released when the tool moves away from it (negative normal motion).
+        """
+        touching = self._touching(state, previous_centre, _CONTACT_BAND)
+        stuck = touching[(state[touching] - previous_centre) @ (centre - previous_centre) >= 0.0]
+        state[stuck] += centre - previous_centre
+        return stuck

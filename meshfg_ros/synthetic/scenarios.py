@@ -21,7 +21,7 @@ from meshfg_ros.synthetic.camera import CaptureOptions, PinholeCamera, capture
 from meshfg_ros.core.mesh import TetMesh, load_mesh
 from meshfg_ros.synthetic.meshing import airway_phantom, cube_mesh
 from meshfg_ros.evaluation.metrics import sample_surface
-from meshfg_ros.core.simulator import SimulatorConfig, XpbdSimulator
+from meshfg_ros.core.simulator import ElasticSimulator, SimulatorConfig
 
 MISMATCH_SCENARIOS = ("slab-inclusion", "dome-tilted", "liver-gravity", "kidney-drag")
 SCENARIOS = ("cube-translate", "cube-shear-spd", "cube-shear-nonspd", "cao-push", "liver-push", *MISMATCH_SCENARIOS)
@@ -108,7 +108,7 @@ def _stamp(step: int) -> int:
 
 def _simulate_truth(mesh: TetMesh, config: SimulatorConfig, tool_poses, grasped=None) -> list[np.ndarray]:
     """Run the ground-truth simulator through the tool poses (one 1 s step each)."""
-    simulator = XpbdSimulator(mesh, config, grasped_vertices=grasped)
+    simulator = ElasticSimulator(mesh, config, grasped_vertices=grasped)
     simulator.reset(tool_poses[0])
     state, states = mesh.vertices.copy(), []
     for tool_pose in tool_poses[1:]:

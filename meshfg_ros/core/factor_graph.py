@@ -1,0 +1,513 @@
+"""The window's factor graph: states, factors and the normal equations LM solves.
+
+`FactorGraph` holds the states of a window (in time order), their factors and the fixed
+(boundary) vertices, and is the problem Levenberg-Marquardt solves: unknowns are the free
+vertex coordinates of every state; fixed vertices are eliminated (held at their known
+positions), which is exact and keeps the system well conditioned, unlike a stiff prior.
+It owns the block sparsity pattern, the per-state relinearisation cache, the linearised
+window system (linear_system.WindowSystem) and LM's inversion guard (`step_fraction`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse
+
+from meshfg_ros.core.factors import Factor, FactorError, FactorLinearization, checked_state
+from meshfg_ros.core.linear_system import WindowSystem, diagonal_positions
+
+__all__ = ["MIN_VOLUME_RATIO_PER_STEP", "FactorGraph"]
+
+# LM's inversion guard: one step may shrink a tetrahedron to no less than this fraction of its
+# volume (FactorGraph.step_fraction). A quarter leaves room for the real compression of tissue
+# (volume ratios near 1: nearly incompressible) while no step can flatten or invert an element.
+MIN_VOLUME_RATIO_PER_STEP = 0.25
+# step_fraction brackets a volume's first crossing of the margin on this many equal fractions
+# of the step, then bisects; the result is verified on exact volumes, halving if needed.
+_STEP_FRACTION_GRID = 16
+_STEP_FRACTION_BISECTIONS = 20
+_STEP_FRACTION_HALVINGS = 30
+
+
+@dataclass
+class _StateLinearization:
+    """Cached normal-equation terms of the single-state factors of one state at x_lin."""
+
+    x_lin: np.ndarray        # (N, 3) linearisation point
+    data: np.ndarray         # (nnz + 1,) block values on the pattern (last: sink)
+    gradient: np.ndarray     # (3N,)
+    cost: float
+    block: scipy.sparse.csr_matrix | None = None  # block over the free dofs (for the model)
+    revision: int = 0        # FactorGraph.relinearizations when it was made: names its values
+    rebased: bool = False    # FactorGraph.gradient moved x_lin, cost, gradient; data is older
+    model_at: tuple | None = None  # (state, cost, gradient) of the last model evaluation
+
+
+class FactorGraph:
+    """States of a window (time order), their factors and fixed vertices; the LM problem.
+
+    vertex_count N, tetrahedra (M, 4) (sparsity pattern and inversion checks), surface
+    triangles (F, 3), fixed vertices (held at fixed_positions). Unknown vector x: the free
+    vertex coordinates of every state, concatenated in window order.
+
+    Relinearisation (as iSAM2's): the single-state factors of a state (physics prior,
+    measurements) are re-linearised when it moved more than `relinearize_threshold` [m] (RMS
+    vertex displacement) from where they were last linearised; otherwise their cached
+    Gauss-Newton quadratic c + g.d + 0.5 d.H d (d = X - X_lin) stands in for them, in the
+    gradient and in the cost, until the next linearisation. States that are re-linearised are
+    "active": `cost` evaluates their factors exactly. Old window states, which get no new
+    measurements, thus cost nothing until they really move. threshold 0 re-linearises every
+    state at every iteration (exact Levenberg-Marquardt on the window). Factors with
+    identity_blocks (the temporal ones) are exact quadratics and always evaluated directly. States in `exact_keys` (the estimator's
+    newest state, the one its new measurements and prediction act on) ignore the threshold.
+    """
+
+    def __init__(self, vertex_count: int, tetrahedra, surface_triangles, fixed_vertices=(), fixed_positions=None,
+                 relinearize_threshold: float = 0.0):
+        self.vertex_count = int(vertex_count)
+        self.tetrahedra = np.asarray(tetrahedra, dtype=np.int64)
+        self.surface_triangles = np.asarray(surface_triangles, dtype=np.int64)
+        fixed = np.unique(np.asarray(fixed_vertices, dtype=np.int64))
+        self.fixed_vertices = fixed
+        is_free = np.ones(self.vertex_count, dtype=bool)
+        is_free[fixed] = False
+        self.free_vertices = np.flatnonzero(is_free)
+        self.fixed_positions = None if fixed_positions is None else checked_state(fixed_positions, self.vertex_count, "fixed positions")[fixed]
+        self.free_dofs = (3 * self.free_vertices[:, None] + np.arange(3)).reshape(-1)
+        self.dof_count = 3 * self.vertex_count
+        self.block_size = self.free_dofs.size
+        self._free_index = np.full(self.dof_count, -1, dtype=np.int64)
+        self._free_index[self.free_dofs] = np.arange(self.block_size)
+        self.relinearize_threshold = float(relinearize_threshold)
+        self._build_pattern()
+        self.keys: list = []
+        self.states: dict = {}
+        self.factors: list[Factor] = []
+        self._state_volumes: dict = {}  # key -> (state, its signed volumes): see _window_volumes
+        self._cache: dict = {}
+        self._active: set = set()
+        self.exact_keys: set = set()  # states re-linearised whenever they move at all
+        self.relinearizations = 0
+
+    # ------------------------------------------------------------------------ pattern
+    def _build_pattern(self) -> None:
+        """Block pattern over free dofs: every pair of dofs of vertices sharing a tetrahedron."""
+        tets = self.tetrahedra
+        vertex_rows = np.repeat(tets, 4, axis=1).reshape(-1)
+        vertex_cols = np.tile(tets, (1, 4)).reshape(-1)
+        rows = (3 * vertex_rows[:, None, None] + np.arange(3)[None, :, None]).repeat(3, axis=2).reshape(-1)
+        cols = (3 * vertex_cols[:, None, None] + np.arange(3)[None, None, :]).repeat(3, axis=1).reshape(-1)
+        free_rows, free_cols = self._free_index[rows], self._free_index[cols]
+        keep = (free_rows >= 0) & (free_cols >= 0)
+        n = self.block_size
+        keys = np.unique(free_rows[keep] * n + free_cols[keep])
+        keys = np.union1d(keys, np.arange(n) * (n + 1))
+        self._pattern_keys = keys
+        pattern_rows, pattern_cols = np.divmod(keys, n)
+        indptr = np.searchsorted(pattern_rows, np.arange(n + 1)).astype(np.int32)
+        self._pattern = scipy.sparse.csr_matrix(
+            (np.zeros(keys.size), pattern_cols.astype(np.int32), indptr), shape=(n, n)
+        )
+        self._diagonal_index = diagonal_positions(self._pattern)
+        # Positions of every triangle's 9x9 dof pairs (row major) in the pattern (or the sink).
+        triangle_dofs = (3 * self.surface_triangles[:, :, None] + np.arange(3)).reshape(-1, 9)
+        self._triangle_dofs = triangle_dofs
+        self._tetrahedron_dofs = (3 * self.tetrahedra[:, :, None] + np.arange(3)).reshape(-1, 12)
+        self._triangle_slots = self._slots(
+            np.repeat(triangle_dofs, 9, axis=1), np.tile(triangle_dofs, (1, 9))
+        ).reshape(-1, 81)
+        free_vertex_dofs = 3 * np.arange(n // 3)[:, None, None] + np.arange(3)
+        self._vertex_block_slots = np.searchsorted(
+            keys, (free_vertex_dofs * n + free_vertex_dofs.transpose(0, 2, 1)).reshape(-1)
+        ).reshape(-1, 3, 3)
+        self._csr_slot_cache: tuple | None = None
+        self._scattered_hessians: dict = {}  # factor -> (its Hessian matrix, values on the pattern)
+
+    def _slots(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Pattern data positions of full-dof pairs (rows, cols); nnz (a sink slot) where a dof
+        is fixed."""
+        free_rows, free_cols = self._free_index[rows], self._free_index[cols]
+        inside = (free_rows >= 0) & (free_cols >= 0)
+        keys = free_rows * self.block_size + free_cols
+        slots = np.searchsorted(self._pattern_keys, np.where(inside, keys, 0))
+        slots = np.where(inside, slots, self._pattern_keys.size)
+        hit = slots[inside]
+        if np.any(hit >= self._pattern_keys.size) or np.any(self._pattern_keys[hit] != keys[inside]):
+            raise FactorError("a factor couples dofs of vertices that share no tetrahedron")
+        return slots
+
+    def _csr_slots(self, matrix: scipy.sparse.csr_matrix) -> np.ndarray:
+        cache = self._csr_slot_cache
+        if cache is not None and np.array_equal(cache[0], matrix.indptr) and np.array_equal(cache[1], matrix.indices):
+            return cache[2]
+        rows = np.repeat(np.arange(matrix.shape[0]), np.diff(matrix.indptr))
+        slots = self._slots(rows, matrix.indices.astype(np.int64))
+        self._csr_slot_cache = (matrix.indptr.copy(), matrix.indices.copy(), slots)
+        return slots
+
+    def newest_vertex_information(self) -> np.ndarray:
+        """3x3 information blocks (free vertices, 3, 3) of the newest state: its single-state
+        factors at their last linearisation plus its temporal terms."""
+        key = self.keys[-1]
+        cached = self._cache.get(key) or self._relinearize(key, self.states[key])
+        blocks = cached.data[self._vertex_block_slots].copy()
+        temporal = 0.0
+        for factor in self._identity_factors():
+            temporal += factor.identity_terms().get((key, key), 0.0)
+        return blocks + temporal * np.eye(3)
+
+    # ------------------------------------------------------------------------ states
+    def add_state(self, key, initial) -> None:
+        """Append state `key` (newest) with initial positions (N, 3); fixed vertices are reset."""
+        if key in self.states:
+            raise FactorError(f"state {key!r} is already in the graph")
+        state = checked_state(initial, self.vertex_count, f"initial state {key!r}").copy()
+        if self.fixed_positions is not None:
+            state[self.fixed_vertices] = self.fixed_positions
+        self.keys.append(key)
+        self.states[key] = state
+
+    def remove_state(self, key) -> np.ndarray:
+        """Drop state `key` and every factor touching it; returns its positions."""
+        state = self.states.pop(key)
+        self.keys.remove(key)
+        self._state_volumes.pop(key, None)
+        self._cache.pop(key, None)
+        self._active.discard(key)
+        self.factors = [factor for factor in self.factors if key not in factor.keys]
+        return state
+
+    def add_factor(self, factor: Factor) -> None:
+        """Add `factor`; one without identity_blocks must act on one state (whose cached
+        linearisation it invalidates)."""
+        unknown = [key for key in factor.keys if key not in self.states]
+        if unknown:
+            raise FactorError(f"factor touches unknown state {unknown[0]!r}")
+        if not factor.identity_blocks and len(factor.keys) != 1:
+            raise FactorError("factors across states must give scaled-identity terms only (identity_blocks)")
+        self.factors.append(factor)
+        if not factor.identity_blocks:
+            self._cache.pop(factor.keys[0], None)
+
+    def get_x(self) -> np.ndarray:
+        return np.concatenate([self.states[key].reshape(-1)[self.free_dofs] for key in self.keys])
+
+    def states_from_x(self, x: np.ndarray) -> dict:
+        parts = np.asarray(x, dtype=np.float64).reshape(len(self.keys), self.block_size)
+        states = {}
+        for key, part in zip(self.keys, parts):
+            flat = self.states[key].reshape(-1).copy()
+            flat[self.free_dofs] = part
+            states[key] = flat.reshape(-1, 3)
+        return states
+
+    def set_x(self, x: np.ndarray) -> None:
+        self.states = self.states_from_x(x)
+
+    # ------------------------------------------------------------------------ problem
+    def state_factors(self, key) -> list:
+        """The factors linearised into state `key`'s block and cached with it: those on `key`
+        alone without identity_blocks (identity-block factors are exact quadratics, never cached)."""
+        return [factor for factor in self.factors if factor.keys == (key,) and not factor.identity_blocks]
+
+    def replace_state_factors(self, key, factors) -> None:
+        """Put `factors` in place of state `key`'s `state_factors` (the estimator re-weights its
+        newest state); the state's cached linearisation goes with the old ones."""
+        old = self.state_factors(key)
+        self.factors = [factor for factor in self.factors if not any(factor is o for o in old)]
+        for factor in old:
+            self._scattered_hessians.pop(factor, None)
+        self._cache.pop(key, None)
+        for factor in factors:
+            self.add_factor(factor)
+
+    def _relinearize(self, key, state: np.ndarray) -> _StateLinearization:
+        nnz = self._pattern_keys.size
+        data = np.zeros(nnz + 1)
+        gradient = np.zeros(self.dof_count)
+        cost = 0.0
+        states = {key: state}
+        for factor in self.state_factors(key):
+            terms = factor.linearize(states)
+            cost += terms.cost
+            self._accumulate(terms, factor, data, gradient)
+        self.relinearizations += 1
+        pattern = self._pattern
+        block = scipy.sparse.csr_matrix((data[:nnz], pattern.indices, pattern.indptr), shape=pattern.shape)
+        return _StateLinearization(state.copy(), data, gradient, cost, block, self.relinearizations)
+
+    def _scattered_hessian(self, factor, matrix) -> np.ndarray:
+        """A factor's sparse Hessian as values on the block pattern (nnz + 1,). Kept while the
+        factor hands back the same matrix object: the physics prior's information is one matrix
+        for a whole update (factors replace, never modify, a Hessian they returned)."""
+        cached = self._scattered_hessians.get(factor)
+        if cached is not None and cached[0] is matrix:
+            return cached[1]
+        csr = scipy.sparse.csr_matrix(matrix)
+        scattered = np.bincount(self._csr_slots(csr), weights=csr.data, minlength=self._pattern_keys.size + 1)
+        self._scattered_hessians[factor] = (matrix, scattered)
+        return scattered
+
+    def _accumulate(self, terms: FactorLinearization, factor, data: np.ndarray | None, gradient: np.ndarray) -> None:
+        """Add a factor's terms to a state's gradient and block values `data` (None: gradient only)."""
+        for values in terms.gradients.values():
+            gradient += values
+        for blocks in terms.point_blocks.values():
+            gradient += np.bincount(self._triangle_dofs[blocks.triangle].reshape(-1),
+                                    weights=blocks.gradient.reshape(-1), minlength=self.dof_count)
+        for blocks in terms.element_blocks.values():
+            gradient += np.bincount(self._tetrahedron_dofs[blocks.tetrahedron].reshape(-1),
+                                    weights=blocks.gradient.reshape(-1), minlength=self.dof_count)
+        if data is None:
+            return
+        for matrix in terms.hessians.values():
+            data += self._scattered_hessian(factor, matrix)
+        for value in terms.identity_terms.values():
+            data[self._diagonal_index] += value
+        for blocks in terms.point_blocks.values():
+            if blocks.hessian is not None:
+                slots = self._triangle_slots[blocks.triangle].reshape(-1)
+                data += np.bincount(slots, weights=blocks.hessian.reshape(-1), minlength=self._pattern_keys.size + 1)
+        for blocks in terms.element_blocks.values():
+            if blocks.hessian is not None:
+                dofs = self._tetrahedron_dofs[blocks.tetrahedron]
+                slots = self._slots(np.repeat(dofs, 12, axis=1), np.tile(dofs, (1, 12))).reshape(-1)
+                data += np.bincount(slots, weights=blocks.hessian.reshape(-1), minlength=self._pattern_keys.size + 1)
+
+    def _model(self, cached: _StateLinearization, state: np.ndarray):
+        """(cost, gradient (3N,)) of the cached quadratic at `state`; the last evaluation is
+        kept (LM's trial cost and its convergence test ask at one x)."""
+        if cached.model_at is not None and np.array_equal(cached.model_at[0], state):
+            return cached.model_at[1], cached.model_at[2]
+        delta = (state - cached.x_lin).reshape(-1)
+        free_delta = delta[self.free_dofs]
+        product = np.zeros(self.dof_count)
+        product[self.free_dofs] = cached.block @ free_delta
+        cost = cached.cost + float(cached.gradient @ delta) + 0.5 * float(free_delta @ product[self.free_dofs])
+        gradient = cached.gradient + product
+        cached.model_at = (state.copy(), cost, gradient)
+        return cost, gradient
+
+    def _moved(self, cached: _StateLinearization, state: np.ndarray) -> float:
+        """RMS vertex displacement since the linearisation (a max would let the few vertices at
+        sharp surface edges, where the closest triangle flips, re-linearise every state)."""
+        return float(np.sqrt(np.mean(np.sum((state - cached.x_lin) ** 2, axis=1))))
+
+    def _outdated(self, key, cached: _StateLinearization, state: np.ndarray) -> bool:
+        """Whether `linearize` must re-linearise state `key` (its cached quadratic stands in otherwise)."""
+        threshold = 0.0 if key in self.exact_keys else self.relinearize_threshold
+        return (cached.rebased and threshold == 0.0) or self._moved(cached, state) > threshold
+
+    def _window_geometry(self, states: dict) -> tuple[np.ndarray, np.ndarray]:
+        """Signed volumes and longest edges at corner 0, each (W, M), of the window's states.
+        Each state's last result is kept: LM asks at one x repeatedly (`step_fraction` at every
+        proposal from x), and a new update finds its older states where the last one left them."""
+        kept_values = [None] * len(self.keys)
+        missing = []
+        for t, key in enumerate(self.keys):
+            kept = self._state_volumes.get(key)
+            if kept is not None and np.array_equal(kept[0], states[key]):
+                kept_values[t] = kept[1]
+            else:
+                missing.append(t)
+        if missing:
+            volumes, edges = self._volumes_and_edges(np.stack([states[self.keys[t]] for t in missing]))
+            for t, values, longest in zip(missing, volumes, edges):
+                key = self.keys[t]
+                self._state_volumes[key] = (states[key].copy(), (values, longest))
+                kept_values[t] = (values, longest)
+        return np.stack([v[0] for v in kept_values]), np.stack([v[1] for v in kept_values])
+
+    def _window_volumes(self, states: dict) -> np.ndarray:
+        """Signed volumes (W, M) of the window's states (kept per state, see _window_geometry)."""
+        return self._window_geometry(states)[0]
+
+    def _identity_factors(self) -> list:
+        """The identity_blocks factors: evaluated directly, their terms go into the diagonal
+        shift and the couplings of the window system."""
+        return [factor for factor in self.factors if factor.identity_blocks]
+
+    def cost(self, x: np.ndarray) -> float:
+        """Total cost: exact for active states and identity-block factors, cached model for the rest."""
+        states = self.states_from_x(x)
+        total = 0.0
+        for key in self.keys:
+            cached = self._cache.get(key)
+            if key in self._active or cached is None:
+                total += sum(factor.cost(states) for factor in self.state_factors(key))
+            else:
+                total += self._model(cached, states[key])[0]
+        total += sum(factor.cost(states) for factor in self._identity_factors())
+        return float(total)
+
+    def gradient(self, x: np.ndarray):
+        """(gradient over the free dofs, cost) at x, as `linearize` gives them, without new
+        Hessians: a state `linearize` would re-linearise gets its exact cost and gradient and
+        its cached quadratic re-based at x (cost and gradient exact there, Hessian kept, same
+        revision). LM calls this after an accepted step to test for convergence before paying
+        for Hessians it may not need. A re-based state whose threshold is 0 (the estimator's
+        newest, or exact LM) is re-linearised by the next `linearize`; the others follow the
+        threshold rule from x, their quadratic exact to first order there (so the estimator's
+        next update does not re-linearise the state it just finished)."""
+        states = self.states_from_x(x)
+        gradient = np.zeros((len(self.keys), self.dof_count))
+        cost = 0.0
+        position = {key: t for t, key in enumerate(self.keys)}
+        for t, key in enumerate(self.keys):
+            cached = self._cache.get(key)
+            if cached is None:
+                cached = self._cache[key] = self._relinearize(key, states[key])
+                self._active.add(key)
+            elif self._outdated(key, cached, states[key]):
+                cached.cost, cached.gradient = 0.0, np.zeros(self.dof_count)
+                for factor in self.state_factors(key):  # cached.data (the Hessian) is kept
+                    terms = factor.linearize({key: states[key]}, hessian=False)
+                    cached.cost += terms.cost
+                    self._accumulate(terms, factor, None, cached.gradient)
+                cached.x_lin = states[key].copy()
+                cached.rebased = True
+                cached.model_at = None
+                self._active.add(key)
+            cost_t, gradient[t] = self._model(cached, states[key])
+            cost += cost_t
+        for factor in self._identity_factors():
+            terms = factor.linearize(states, hessian=False)
+            cost += terms.cost
+            for key, values in terms.gradients.items():
+                gradient[position[key]] += values
+        return gradient[:, self.free_dofs].reshape(-1), float(cost)
+
+    def linearize(self, x: np.ndarray):
+        """(WindowSystem of J^T W J, gradient J^T W r over the free dofs, cost) at x.
+
+        The system's blocks are the states' cached linearisations themselves (not copied: at
+        organ scale, W copies of 1.4M values cost ~60 ms an update); the identity-block
+        factors' terms go into its diagonal shift and its couplings."""
+        states = self.states_from_x(x)
+        window = len(self.keys)
+        gradient = np.zeros((window, self.dof_count))
+        couplings = np.zeros(max(window - 1, 0))
+        coupling_diagonal = np.zeros(window)
+        cost = 0.0
+        self._active = set()
+        blocks, revisions = [], []
+        for t, key in enumerate(self.keys):
+            cached = self._cache.get(key)
+            if cached is None or self._outdated(key, cached, states[key]):
+                cached = self._cache[key] = self._relinearize(key, states[key])
+                self._active.add(key)
+                cost += cached.cost
+                gradient[t] = cached.gradient
+            else:
+                model_cost, model_gradient = self._model(cached, states[key])
+                cost += model_cost
+                gradient[t] = model_gradient
+            blocks.append(cached.block)
+            revisions.append(cached.revision)
+        position = {key: t for t, key in enumerate(self.keys)}
+        for factor in self._identity_factors():
+            terms = factor.linearize(states)
+            cost += terms.cost
+            for key, values in terms.gradients.items():
+                gradient[position[key]] += values
+            for (key_i, key_j), value in terms.identity_terms.items():
+                t, s = position[key_i], position[key_j]
+                if t == s:
+                    coupling_diagonal[t] += value
+                elif abs(t - s) == 1:
+                    couplings[min(t, s)] += value
+                else:
+                    raise FactorError("identity terms may only couple consecutive states")
+            if terms.hessians or terms.point_blocks or terms.element_blocks:
+                raise FactorError(f"{type(factor).__name__} declares identity_blocks but gave other terms")
+        shift = np.repeat(coupling_diagonal[:, None], self.block_size, axis=1) if coupling_diagonal.any() else None
+        system = WindowSystem(blocks, couplings, list(self.keys), self._diagonal_index, coupling_diagonal,
+                              self._vertex_block_slots, revisions, shift)
+        # Scattered Hessians serve states that get re-linearised; keep only those of the states
+        # this linearisation re-linearised (memory stays bounded by the active states, also in
+        # growing mode).
+        self._scattered_hessians = {factor: kept for factor, kept in self._scattered_hessians.items()
+                                    if factor.keys[0] in self._active}
+        return system, gradient[:, self.free_dofs].reshape(-1), cost
+
+    def _volumes_and_edges(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Signed tetrahedron volumes and the longest of the three edges at corner 0, of a state
+        (N, 3) -> (M,) each, or of states (W, N, 3) -> (W, M) each."""
+        # Coordinate-major triple product: ~2x faster than np.cross + einsum on (W, M, 3, 3) corners.
+        x, y, z = np.moveaxis(state, -1, 0)
+        first = self.tetrahedra[:, 0]
+
+        def edge(coordinate, corner):
+            return coordinate[..., self.tetrahedra[:, corner]] - coordinate[..., first]
+
+        ux, uy, uz = edge(x, 1), edge(y, 1), edge(z, 1)
+        vx, vy, vz = edge(x, 2), edge(y, 2), edge(z, 2)
+        wx, wy, wz = edge(x, 3), edge(y, 3), edge(z, 3)
+        volumes = ((uy * vz - uz * vy) * wx + (uz * vx - ux * vz) * wy + (ux * vy - uy * vx) * wz) / 6.0
+        longest = np.sqrt(np.maximum.reduce([ux * ux + uy * uy + uz * uz, vx * vx + vy * vy + vz * vz,
+                                             wx * wx + wy * wy + wz * wz]))
+        return volumes, longest
+
+    def _signed_volumes(self, state: np.ndarray) -> np.ndarray:
+        """Signed tetrahedron volumes of a state (N, 3) -> (M,), or of states (W, N, 3) -> (W, M)."""
+        return self._volumes_and_edges(state)[0]
+
+    def step_fraction(self, x: np.ndarray, step: np.ndarray) -> float:
+        """The largest alpha in [0, 1] such that every tetrahedron with a positive volume at x
+        keeps at least MIN_VOLUME_RATIO_PER_STEP of it at x + alpha * step (LM's inversion guard).
+
+        Along the step a volume is the cubic 6 V(alpha) = (u + a du) x (v + a dv) . (w + a dw) in
+        the edge vectors at corner 0. With L the longest of u, v, w and delta the largest move of
+        the element's corners, |6 V(alpha) - 6 V(0)| <= (L + 2 delta)^3 - L^3, which clears most
+        elements at once; for the rest the cubic's first crossing of the margin is bracketed on a
+        grid of alpha and refined by bisection, and the result is checked on exact volumes."""
+        states = self.states_from_x(x)
+        volumes, longest = self._window_geometry(states)
+        moves = np.zeros((len(self.keys), self.dof_count))
+        moves[:, self.free_dofs] = np.asarray(step, dtype=np.float64).reshape(len(self.keys), self.block_size)
+        moves = moves.reshape(len(self.keys), -1, 3)
+        largest = np.sqrt(np.einsum("wni,wni->wn", moves, moves))[:, self.tetrahedra].max(axis=2)  # (W, M)
+        margin = MIN_VOLUME_RATIO_PER_STEP * 6.0 * volumes
+        candidates = (volumes > 0.0) & ((longest + 2.0 * largest) ** 3 - longest**3 >= 6.0 * volumes - margin)
+        if not candidates.any():
+            return 1.0
+        state_index, element = np.nonzero(candidates)
+        window = np.stack([states[key] for key in self.keys])
+        corners = window[state_index[:, None], self.tetrahedra[element]]      # (P, 4, 3)
+        corner_moves = moves[state_index[:, None], self.tetrahedra[element]]  # (P, 4, 3)
+        u, v, w = (corners[:, k] - corners[:, 0] for k in (1, 2, 3))
+        du, dv, dw = (corner_moves[:, k] - corner_moves[:, 0] for k in (1, 2, 3))
+
+        def triple(a, b, c):
+            return np.einsum("pi,pi->p", np.cross(a, b), c)
+
+        coefficients = np.stack([
+            triple(u, v, w),
+            triple(du, v, w) + triple(u, dv, w) + triple(u, v, dw),
+            triple(du, dv, w) + triple(du, v, dw) + triple(u, dv, dw),
+            triple(du, dv, dw),
+        ])  # (4, P): 6 V(alpha) = sum_k c_k alpha^k
+        bound = margin[candidates]
+        grid = np.linspace(0.0, 1.0, _STEP_FRACTION_GRID + 1)[1:]
+        crossed = np.polynomial.polynomial.polyval(grid[:, None], coefficients, tensor=False) < bound  # (G, P)
+        hit = crossed.any(axis=0)
+        if not hit.any():
+            return 1.0
+        first = np.argmax(crossed[:, hit], axis=0)
+        low, high = np.where(first > 0, grid[first - 1], 0.0), grid[first]
+        chosen, chosen_bound = coefficients[:, hit], bound[hit]
+        for _ in range(_STEP_FRACTION_BISECTIONS):
+            middle = 0.5 * (low + high)
+            bad = np.polynomial.polynomial.polyval(middle, chosen, tensor=False) < chosen_bound
+            high, low = np.where(bad, middle, high), np.where(bad, low, middle)
+        fraction = float(low.min())
+        positive = volumes > 0.0
+        for _ in range(_STEP_FRACTION_HALVINGS):
+            trial = x + fraction * np.asarray(step, dtype=np.float64)
+            trial_volumes = self._window_volumes(self.states_from_x(trial))
+            if not np.any(positive & (6.0 * trial_volumes < margin)):
+                return fraction
+            fraction *= 0.5
+        return 0.0
