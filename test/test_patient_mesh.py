@@ -236,3 +236,13 @@ def test_units_guess_from_organ_size():
     assert guess_units(190.0) == ("mm", 0.001)
     assert guess_units(0.15) == ("m", 1.0)
     assert guess_units(5000.0) is None
+
+
+def test_simulatable_check_names_inverted_elements_and_a_fully_fixed_mesh():
+    box = structured_box_mesh((0.1, 0.1, 0.1), (2, 2, 2))
+    held = box.with_fixed(np.flatnonzero(box.vertices[:, 2] == 0.0))
+    check_simulatable(held)
+    with pytest.raises(PatientMeshError, match="^48 of 48 tetrahedra are flat or inverted$"):
+        check_simulatable(held.with_vertices(box.vertices * [1.0, 1.0, -1.0]))
+    with pytest.raises(PatientMeshError, match="^all 27 vertices are fixed: nothing is left to deform$"):
+        check_simulatable(box.with_fixed(np.arange(27)))
