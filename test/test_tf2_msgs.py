@@ -7,11 +7,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rclpy
+from scipy.spatial.transform import Rotation
 from rclpy.serialization import deserialize_message, serialize_message
 
-from meshfg_ros.core.frames import StampedTransform
+from meshfg_ros.core.frames import StampedTransform, TransformBuffer
 from meshfg_ros.io.messages import RclpyMessageFactory, meshfg_typestore
-from meshfg_ros.io.tf_messages import TF_MESSAGE, tf_message_to_transforms, transforms_to_tf_message
+from meshfg_ros.io.recording import RecordingReader, RecordingWriter
+from meshfg_ros.io.tf_messages import (
+    TF_MESSAGE,
+    TF_STATIC_TOPIC,
+    TF_TOPIC,
+    tf_message_to_transforms,
+    transforms_to_tf_message,
+)
 
 TRANSFORMS = [
     StampedTransform("world", "ecm", 1_700_000_000_123_456_789, (0.1, -0.2, 0.3), (0.0, 0.0, np.sin(0.2), np.cos(0.2))),
@@ -59,6 +67,25 @@ def test_rclpy_and_rosbags_decode_each_others_bytes():
                            TRANSFORMS)
     assert_same_transforms(
         tf_message_to_transforms(deserialize_message(rosbags_bytes, factory.message_class(TF_MESSAGE))), TRANSFORMS)
+
+
+def test_tf_topics_recorded_and_read_back_feed_a_transform_buffer(tmp_path):
+    with RecordingWriter(tmp_path / "robot") as writer:
+        writer.write(TF_STATIC_TOPIC, transforms_to_tf_message(TRANSFORMS[1:]), stamp_ns=TRANSFORMS[0].stamp_ns)
+        writer.write(TF_TOPIC, transforms_to_tf_message(TRANSFORMS[:1]), stamp_ns=TRANSFORMS[0].stamp_ns)
+    buffer = TransformBuffer()
+    with RecordingReader(tmp_path / "robot") as reader:
+        assert reader.topics[TF_TOPIC].msgtype == TF_MESSAGE
+        for recorded in reader.messages([TF_STATIC_TOPIC, TF_TOPIC]):
+            buffer.set_transforms(tf_message_to_transforms(recorded.data), static=recorded.topic == TF_STATIC_TOPIC)
+    expected = np.eye(4)
+    for transform in TRANSFORMS:
+        step = np.eye(4)
+        step[:3, :3] = Rotation.from_quat(transform.rotation).as_matrix()
+        step[:3, 3] = transform.translation
+        expected = expected @ step
+    np.testing.assert_allclose(buffer.lookup("world", "endoscope_optical_frame", TRANSFORMS[0].stamp_ns), expected,
+                               atol=1e-15)
 
 
 @pytest.mark.slow  # DDS discovery
