@@ -1,5 +1,5 @@
 """The project's tf2_msgs package: the ROS 2 Jazzy interfaces (same names, fields and type hashes),
-over real DDS with rclpy, and byte-compatible with the rosbags typestore that reads recordings."""
+over real DDS with rclpy, and decoded and encoded alike by the rosbags typestore of recordings."""
 import json
 import time
 from pathlib import Path
@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rclpy
-from scipy.spatial.transform import Rotation
 from rclpy.serialization import deserialize_message, serialize_message
+from scipy.spatial.transform import Rotation
 
 from meshfg_ros.core.frames import StampedTransform, TransformBuffer
 from meshfg_ros.io.messages import RclpyMessageFactory, meshfg_typestore
