@@ -40,6 +40,7 @@ class Command:
 _USER_ERRORS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("meshfg_ros.io.recording", ("RecordingError",)),
     ("meshfg_ros.core.mesh", ("MeshFileError", "InvalidMeshError", "DegenerateMeshError")),
+    ("meshfg_ros.core.patient_mesh", ("PatientMeshError",)),
     ("meshfg_ros.parameters", ("ParameterError", "FrameError")),
     ("meshfg_ros.synthetic.scenarios", ("ScenarioError",)),
     ("meshfg_ros.core.simulator", ("SimulatorConfigError", "SimulatorInputError")),
@@ -354,6 +355,112 @@ def run_fuzz(args: argparse.Namespace) -> int:
     return 1 if any(counts.failures for counts in results) else 0
 
 
+# --------------------------------------------------------------------------- mesh
+def _mesh_arguments(parser: argparse.ArgumentParser) -> None:
+    actions = parser.add_subparsers(dest="mesh_action", required=True, metavar="ACTION")
+    info = actions.add_parser("info", help="size, units guess, element quality, fixed vertices and groups of a "
+                                           "mesh file", description="What a mesh file holds, before using it.")
+    info.add_argument("file", type=Path, help="tetrahedral mesh (.msh, .vtu, .vtk, ...)")
+    info.set_defaults(mesh_run=run_mesh_info)
+    export = actions.add_parser("export", help="write a recording's initial mesh to a mesh file",
+                                description="Write the first /meshfg/initial_mesh of a recording to a mesh file "
+                                            "(by extension: .msh, .vtu or .vtk), fixed vertices as point data "
+                                            "'fixed'.")
+    export.add_argument("bag", type=Path, help="recording (rosbag2 directory)")
+    export.add_argument("--out", required=True, type=Path, help="new mesh file (never overwritten)")
+    export.set_defaults(mesh_run=run_mesh_export)
+
+
+def run_mesh(args: argparse.Namespace) -> int:
+    return args.mesh_run(args)
+
+
+def run_mesh_info(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from meshfg_ros.core.patient_mesh import ORGAN_SIZE_RANGE_M, guess_units, read_patient_mesh
+    from meshfg_ros.synthetic.mismatch_scenes import radius_ratios
+
+    read = read_patient_mesh(args.file)
+    mesh = read.mesh
+    sides = mesh.vertices.max(axis=0) - mesh.vertices.min(axis=0)
+    units = guess_units(float(sides.max()))
+    low, high = ORGAN_SIZE_RANGE_M
+    if units is None:
+        units_text = f"none of m, cm, mm makes the largest side ({sides.max():.3g}) an organ's {low:g}-{high:g} m"
+    else:
+        unit, metres = units
+        units_text = (f"{unit}: the largest side is {sides.max() * metres:.3g} m at mesh_scale {metres:g} "
+                      f"(organs: {low:g}-{high:g} m)")
+    quality = radius_ratios(mesh.vertices, mesh.tetrahedra)
+    groups = ", ".join(f"{name} ({indices.size} vertices)" for name, indices in sorted(read.groups.items()))
+    rows = [
+        ("vertices", f"{mesh.vertex_count}"),
+        ("tetrahedra", f"{mesh.tetrahedron_count} (surface: {len(mesh.surface_triangles)} triangles)"),
+        ("bounding box", f"{sides[0]:.4g} x {sides[1]:.4g} x {sides[2]:.4g} (file units), "
+                         f"diagonal {np.linalg.norm(sides):.4g}"),
+        ("units (guess)", units_text),
+        ("element quality", f"radius ratio min {quality.min():.3f}, median {np.median(quality):.3f} "
+                            "(1: regular tetrahedron, 0: flat)"),
+        ("fixed vertices", f"{mesh.fixed_vertices.size} (point data 'fixed')"),
+        ("groups", groups or "none"),
+    ]
+    print(str(args.file))
+    for label, text in rows:
+        print(f"  {label + ':':<17}{text}")
+    return 0
+
+
+def run_mesh_export(args: argparse.Namespace) -> int:
+    from meshfg_ros.core.mesh import TetMesh, save_mesh
+    from meshfg_ros.io.messages import MeshState
+    from meshfg_ros.io.recording import RecordingReader, TopicNotFoundError
+    from meshfg_ros.topics import INITIAL_MESH_TOPIC
+
+    _refuse_existing(args.out)
+    with RecordingReader(args.bag) as reader:
+        state = next(iter(reader.records(INITIAL_MESH_TOPIC, MeshState)), None)
+    if state is None:
+        raise TopicNotFoundError(f"{INITIAL_MESH_TOPIC} in {args.bag} holds no mesh")
+    mesh = TetMesh(state.positions, state.tetrahedra, state.fixed_vertices, name=args.out.stem)
+    save_mesh(mesh, args.out)
+    print(f"wrote {args.out}: {mesh.vertex_count} vertices, {mesh.tetrahedron_count} tetrahedra, "
+          f"{mesh.fixed_vertices.size} fixed, in frame {state.frame_id!r}")
+    return 0
+
+
+# --------------------------------------------------------------------------- params
+def _params_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("bag", type=Path, help="recording (rosbag2 directory)")
+    parser.add_argument("--out", type=Path, help="new ROS 2 parameters file (default: print it)")
+
+
+def run_params(args: argparse.Namespace) -> int:
+    """The parameters the replay of the recording uses, as a ROS 2 parameters file (`/**`)."""
+    from meshfg_ros.io.messages import PoseRecord
+    from meshfg_ros.io.recording import RecordingReader
+    from meshfg_ros.io.scenario_metadata import read_metadata
+    from meshfg_ros.parameters import load_parameters, parameters_yaml
+    from meshfg_ros.replay import scenario_parameters
+    from meshfg_ros.topics import CAMERA_POSE_TOPIC
+
+    _refuse_existing(args.out)
+    with RecordingReader(args.bag) as reader:
+        metadata = read_metadata(reader)
+        camera_pose = None
+        if CAMERA_POSE_TOPIC in reader.topics:
+            camera_pose = next(iter(reader.records(CAMERA_POSE_TOPIC, PoseRecord)), None)
+    parameters = load_parameters(scenario_parameters(metadata, camera_pose))
+    text = (f"# meshfg params {args.bag.name}: the parameters of its replay, for the live nodes "
+            f"(--ros-args --params-file this file).\n" + parameters_yaml(parameters))
+    if args.out is None:
+        print(text, end="")
+    else:
+        args.out.write_text(text)
+        print(f"wrote {args.out}")
+    return 0
+
+
 def _refuse_existing(path: Path | None) -> None:
     if path is not None and (path.exists() or path.is_symlink()):
         raise FileExistsError(17, "File exists (never overwritten)", str(path))
@@ -373,6 +480,10 @@ COMMANDS: tuple[Command, ...] = (
     Command("bench", "latency and speed figures against targets and baselines", _bench_arguments, run_bench),
     Command("fuzz", "hostile input against the decoder, the estimator and the replay; recovery from faults",
             _fuzz_arguments, run_fuzz),
+    Command("mesh", "inspect a mesh file (info), or write a recording's initial mesh to one (export)",
+            _mesh_arguments, run_mesh),
+    Command("params", "the ROS 2 parameters file that makes the live nodes run as the replay of a recording",
+            _params_arguments, run_params),
 )
 
 

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Sets up the project environment in .venv: ROS 2 Jazzy wheels from PyPI, pinned numerics,
-# the meshfg_msgs interfaces generated and installed into the venv, and meshfg_ros itself.
+# the meshfg_msgs (and, unless a sourced ROS install has them, tf2_msgs) interfaces generated
+# and installed into the venv, and meshfg_ros itself.
 # Idempotent: a stamp (hash of every input) makes a second run return in well under a second.
 set -euo pipefail
 
@@ -11,7 +12,9 @@ cd "$ROOT"
 
 inputs_hash() {
   cat requirements.txt requirements-core.txt scripts/setup_env.sh setup.py setup.cfg package.xml \
-      meshfg_msgs/CMakeLists.txt meshfg_msgs/package.xml meshfg_msgs/msg/*.msg | sha256sum | cut -d' ' -f1
+      meshfg_msgs/CMakeLists.txt meshfg_msgs/package.xml meshfg_msgs/msg/*.msg \
+      tf2_msgs/CMakeLists.txt tf2_msgs/package.xml tf2_msgs/msg/*.msg tf2_msgs/srv/*.srv tf2_msgs/action/*.action \
+      | sha256sum | cut -d' ' -f1
 }
 
 if [[ -f "$STAMP" && "$(cat "$STAMP")" == "$(inputs_hash)" && -x "$VENV/bin/meshfg" ]]; then
@@ -52,21 +55,48 @@ NUMPY_INCLUDE="$("$PY" -c 'import numpy; print(numpy.get_include())')"
   -e "s#/opt/python/cp311-cp311/lib/python3.11/site-packages/numpy/_core/include#${NUMPY_INCLUDE}#g" \
   -e "s#/opt/python/cp311-cp311/include/python3.11#${PY_INCLUDE}#g"
 
-log "generating and installing meshfg_msgs into the venv"
-BUILD="$ROOT/build/venv/meshfg_msgs"
-mkdir -p "$BUILD"
-export AMENT_PREFIX_PATH="$VENV"
-cmake -S meshfg_msgs -B "$BUILD" -DCMAKE_BUILD_TYPE=Release \
-  -DCMAKE_PREFIX_PATH="$VENV" -DCMAKE_INSTALL_PREFIX="$VENV" \
-  -DPython3_EXECUTABLE="$PY" -DBUILD_TESTING=OFF >"$BUILD/configure.log" 2>&1 \
-  || { cat "$BUILD/configure.log" >&2; exit 1; }
-cmake --build "$BUILD" -j "$(nproc)" >"$BUILD/build.log" 2>&1 || { tail -50 "$BUILD/build.log" >&2; exit 1; }
-cmake --install "$BUILD" >"$BUILD/install.log" 2>&1 || { tail -50 "$BUILD/install.log" >&2; exit 1; }
+# A sourced ROS install (AMENT_PREFIX_PATH outside this venv) that has tf2_msgs provides it:
+# building a second copy would shadow the one its tf2 libraries were built against.
+ros_provides() {
+  local prefix prefixes
+  IFS=':' read -ra prefixes <<<"${AMENT_PREFIX_PATH:-}"
+  for prefix in "${prefixes[@]}"; do
+    if [[ -n "$prefix" && "$(realpath -m "$prefix")" != "$(realpath -m "$VENV")" \
+          && -f "$prefix/share/$1/package.xml" ]]; then
+      echo "$prefix"; return 0
+    fi
+  done
+  return 1
+}
+
+# Generate the interface package in folder $1 with rosidl and install it into the venv.
+install_interfaces() {
+  local package="$1" build="$ROOT/build/venv/$1"
+  log "generating and installing $package into the venv"
+  mkdir -p "$build"
+  AMENT_PREFIX_PATH="$VENV" cmake -S "$package" -B "$build" -DCMAKE_BUILD_TYPE=Release \
+    -DCMAKE_PREFIX_PATH="$VENV" -DCMAKE_INSTALL_PREFIX="$VENV" \
+    -DPython3_EXECUTABLE="$PY" -DBUILD_TESTING=OFF >"$build/configure.log" 2>&1 \
+    || { cat "$build/configure.log" >&2; exit 1; }
+  AMENT_PREFIX_PATH="$VENV" cmake --build "$build" -j "$(nproc)" >"$build/build.log" 2>&1 \
+    || { tail -50 "$build/build.log" >&2; exit 1; }
+  cmake --install "$build" >"$build/install.log" 2>&1 || { tail -50 "$build/install.log" >&2; exit 1; }
+}
+
+install_interfaces meshfg_msgs
+if TF2_PREFIX="$(ros_provides tf2_msgs)"; then
+  log "tf2_msgs comes from the ROS install at $TF2_PREFIX: not building the project's copy"
+else
+  install_interfaces tf2_msgs
+fi
 
 log "installing meshfg_ros (editable) into the venv"
 "$PY" -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e . \
-  >"$BUILD/pip-editable.log" 2>&1 || { cat "$BUILD/pip-editable.log" >&2; exit 1; }
+  >"$ROOT/build/venv/pip-editable.log" 2>&1 || { cat "$ROOT/build/venv/pip-editable.log" >&2; exit 1; }
 
 "$PY" -c 'import rclpy, meshfg_msgs.msg, meshfg_ros' || { echo "[setup] error: import check failed" >&2; exit 1; }
+if [[ -z "${TF2_PREFIX:-}" ]]; then
+  "$PY" -c 'import tf2_msgs.msg' || { echo "[setup] error: tf2_msgs import check failed" >&2; exit 1; }
+fi
 inputs_hash >"$STAMP"
 log "environment ready: $VENV"

@@ -1,4 +1,4 @@
-"""`colcon build` of both packages into an install space, as a user with ROS 2 Jazzy would.
+"""`colcon build` of the packages into an install space, as a user with ROS 2 Jazzy would.
 
 colcon comes from PyPI here, and the ROS prefix is the project venv instead of /opt/ros/jazzy.
 """
@@ -25,12 +25,12 @@ def install_space(tmp_path_factory) -> Path:
     env = dict(os.environ, AMENT_PREFIX_PATH=str(VENV_PREFIX), CMAKE_PREFIX_PATH=str(VENV_PREFIX))
     result = subprocess.run(
         [str(VENV_PREFIX / "bin" / "colcon"), "--log-base", str(work / "log"), "build",
-         "--base-paths", str(REPO), str(REPO / "meshfg_msgs"),
+         "--base-paths", str(REPO), str(REPO / "meshfg_msgs"), str(REPO / "tf2_msgs"),
          "--build-base", str(work / "build"), "--install-base", str(work / "install"),
          "--cmake-args", f"-DPython3_EXECUTABLE={sys.executable}", "-DBUILD_TESTING=OFF"],
         cwd=work, env=env, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
-    assert "2 packages finished" in result.stdout
+    assert "3 packages finished" in result.stdout
     return work / "install"
 
 
@@ -58,6 +58,21 @@ def test_built_messages_import_from_install_space(install_space):
     module_file, values = result.stdout.strip().splitlines()
     assert module_file.startswith(str(install_space / "meshfg_msgs"))
     assert values == "3 [1.0, 2.0, 3.0] 4 True"
+
+
+def test_built_tf2_msgs_import_from_install_space(install_space):
+    script = (
+        "import tf2_msgs.msg as m, tf2_msgs.srv, tf2_msgs.action\n"
+        "print(m.__file__)\n"
+        "print(len(m.TFMessage(transforms=[]).transforms), m.TF2Error.EXTRAPOLATION_ERROR)\n"
+    )
+    result = subprocess.run(
+        ["bash", "-c", f'source "{install_space}/setup.bash" && "{sys.executable}" -c "$0"', script],
+        capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    module_file, values = result.stdout.strip().splitlines()
+    assert module_file.startswith(str(install_space / "tf2_msgs"))
+    assert values == "0 3"
 
 
 @pytest.fixture(scope="module")

@@ -42,7 +42,8 @@ from meshfg_ros.core.estimator import (
 from meshfg_ros.core.input_checks import INVALID, JUMP_BACK, STALE, check_initial_mesh, stamp_order
 from meshfg_ros.core.mesh import TetMesh
 from meshfg_ros.core.simulator import SimulatorConfig, ElasticSimulator
-from meshfg_ros.core.tool_poses import ToolPoseBuffer, ToolPoseUnavailable
+from meshfg_ros.core.tool_poses import DEFAULT_EXTRAPOLATION_HORIZON_S as TOOL_POSE_HORIZON_S
+from meshfg_ros.core.tool_poses import PoseUnavailable, ToolPoseBuffer
 
 NS_PER_S = 1_000_000_000
 # Bounds on what a scheduler holds while it waits: beyond them the oldest entry goes.
@@ -92,14 +93,14 @@ class PredictionScheduler:
     """The simulator's timeline over tool poses and prediction requests (module docstring)."""
 
     def __init__(self, mesh: TetMesh, model: SimulatorConfig, grasped_vertices: np.ndarray | None = None, *,
-                 clock_jump_threshold: float = 1.0, tool_pose_extrapolation: float = 0.1,
+                 clock_jump_threshold: float = 1.0, tool_pose_extrapolation: float = TOOL_POSE_HORIZON_S,
                  timeouts: SchedulingTimeouts = SchedulingTimeouts()) -> None:
         self.mesh = mesh
         self.scene = check_initial_mesh(mesh.vertices)
         self.simulator = ElasticSimulator(mesh, model, grasped_vertices)
         self.timeouts = timeouts
         self._jump_ns = _jump_ns(clock_jump_threshold)
-        self._poses = ToolPoseBuffer(extrapolation_s=tool_pose_extrapolation)
+        self._poses = ToolPoseBuffer(extrapolation_horizon_s=tool_pose_extrapolation)
         self._requests: deque[_Request] = deque()
         self.restarted = False  # whether the last tool pose restarted the timeline
         self._restart_timeline()
@@ -139,7 +140,7 @@ class PredictionScheduler:
             self._restart_timeline()
             self.restarted = True
         self._newest_pose_ns = stamp_ns
-        self._poses.add(stamp_ns, pose)
+        self._poses.insert(stamp_ns, pose)
         if self._start_ns is None:
             self._start_ns = self._previous_ns = stamp_ns
             self.simulator.reset(pose)
@@ -197,7 +198,7 @@ class PredictionScheduler:
             return None
         try:
             pose = self._poses.pose_at(stamp)
-        except ToolPoseUnavailable as error:
+        except PoseUnavailable as error:
             return self._finish(Prediction(stamp, None, str(error)), now_s)
         dt = (stamp - self._previous_ns) / NS_PER_S
         try:
@@ -247,13 +248,13 @@ class EstimationScheduler:
     """
 
     def __init__(self, mesh: TetMesh, config: EstimatorConfig, *, clock_jump_threshold: float = 1.0,
-                 tool_pose_extrapolation: float = 0.1, timeouts: SchedulingTimeouts = SchedulingTimeouts()) -> None:
+                 tool_pose_extrapolation: float = TOOL_POSE_HORIZON_S, timeouts: SchedulingTimeouts = SchedulingTimeouts()) -> None:
         self.mesh = mesh
         self.config = config
         self.timeouts = timeouts
         self.estimator = SlidingWindowEstimator(mesh, config)
         self._jump_ns = _jump_ns(clock_jump_threshold)
-        self._poses = ToolPoseBuffer(extrapolation_s=tool_pose_extrapolation)
+        self._poses = ToolPoseBuffer(extrapolation_horizon_s=tool_pose_extrapolation)
         self._clouds: deque[tuple[int, np.ndarray, float, bool]] = deque()  # stamp, points, arrival, restart
         self._answers: dict[int, Prediction] = {}
         self._newest_cloud_ns: int | None = None
@@ -300,7 +301,7 @@ class EstimationScheduler:
         if order == JUMP_BACK:
             self._poses.clear()
         self._newest_pose_ns = stamp_ns
-        self._poses.add(stamp_ns, pose)
+        self._poses.insert(stamp_ns, pose)
 
     def add_prediction(self, answer: Prediction) -> Rejection | None:
         """Take the simulator's answer for a stamp (a prediction or a failure)."""
@@ -345,7 +346,7 @@ class EstimationScheduler:
     def _tool_pose(self, stamp_ns: int) -> np.ndarray | None:
         try:
             return self._poses.pose_at(stamp_ns)
-        except ToolPoseUnavailable:
+        except PoseUnavailable:
             return None
 
     def run(self, step: CloudStep, now: Callable[[], float] | None = None) -> StepOutcome:
@@ -395,7 +396,7 @@ class OfflinePipeline:
 
     def __init__(self, mesh: TetMesh, model: SimulatorConfig, config: EstimatorConfig,
                  grasped_vertices: np.ndarray | None = None, *, clock_jump_threshold: float = 1.0,
-                 tool_pose_extrapolation: float = 0.1,
+                 tool_pose_extrapolation: float = TOOL_POSE_HORIZON_S,
                  alter_prediction: Callable[[int, np.ndarray], np.ndarray] | None = None) -> None:
         shared = dict(clock_jump_threshold=clock_jump_threshold, tool_pose_extrapolation=tool_pose_extrapolation)
         self.simulation = PredictionScheduler(mesh, model, grasped_vertices, **shared)

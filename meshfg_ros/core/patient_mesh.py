@@ -1,0 +1,341 @@
+"""A user's own tetrahedral mesh (a CT segmentation, say) made ready for the simulator. ROS-free.
+
+Such a mesh rarely carries the `fixed` point data of the project's meshes, is often in
+millimetres, and lives in the CT's frame. `prepare_mesh(path, fixed, scale, pose)` reads it,
+scales it to metres and places it in the world frame (world = R (scale x) + t, the CT-to-world
+registration as [x, y, z, qx, qy, qz, qw]), marks the fixed vertices and checks that the
+simulator can use it; the nodes call it with their parameters.
+
+Fixed vertices are the union of the file's `fixed` point data and a `FixedSelection`: vertex
+indices (of the mesh as loaded: tetrahedra's vertices in file order), vertices within a distance
+of planes, vertices inside axis-aligned boxes (planes and boxes in the world frame, metres, after
+scale and pose), and the vertices of named groups of the file (gmsh physical groups, meshio cell
+and point sets).
+
+`check_simulatable` turns what would fail deep inside the simulator ("Cholesky failed: pivot
+... not positive", a singular stiffness) into one line naming the cause: no fixed vertex, a
+connected part of the mesh held by fewer than three non-collinear fixed vertices, or elements
+that are flat or inverted. `check_against_clouds` compares the placed mesh with the first
+clouds (world frame): sizes orders of magnitude apart (a mesh in millimetres) or boxes that do
+not meet (a missing registration) fail in one line that says which parameter to set.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse
+from scipy.sparse.csgraph import connected_components
+
+from meshfg_ros.core.mesh import (
+    DegenerateMeshError,
+    InvalidMeshError,
+    MeshFileError,
+    TetMesh,
+    _is_gmsh_v1,  # the legacy format meshio cannot read, which load_mesh reads itself
+    load_mesh,
+)
+from meshfg_ros.core.pose_history import InvalidPoseError, as_pose, pose_matrix
+
+__all__ = [
+    "Box",
+    "FixedSelection",
+    "PatientMeshError",
+    "PatientMeshFile",
+    "Plane",
+    "UNITS",
+    "check_against_clouds",
+    "check_simulatable",
+    "guess_units",
+    "place_mesh",
+    "prepare_mesh",
+    "read_patient_mesh",
+    "select_fixed",
+]
+
+# Candidate units of a mesh file, metres per unit, and the size range of the organs meshed
+# (largest bounding-box side: a kidney ~0.1 m, an adult liver ~0.2-0.3 m, a tumour ~0.02 m).
+UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}
+ORGAN_SIZE_RANGE_M = (0.02, 0.3)
+# Mesh and clouds whose sizes (bounding-box diagonals) differ by more than this factor disagree
+# on units. A partial view shows a part of the organ, down to a few centimetres of a liver
+# (a factor ~10), and a wide one some background; a unit error is a factor of 100 or 1000.
+SCALE_MISMATCH_FACTOR = 30.0
+# The clouds' box may miss the mesh's by this fraction of the mesh's diagonal (deformation,
+# noise, calibration) before they count as not overlapping.
+OVERLAP_TOLERANCE = 0.1
+# Percentiles of the clouds' coordinates that bound them: stray points do not stretch the box.
+CLOUD_PERCENTILES = (0.5, 99.5)
+# Fixed vertices spread less than this fraction of the mesh's size across a second axis lie on a line.
+_SINGULAR_SPREAD = 1e-6
+
+
+class PatientMeshError(ValueError):
+    """A mesh the simulator cannot use, or that disagrees with the clouds; the message is one
+    line and says what to change."""
+
+
+@dataclass(frozen=True)
+class Plane:
+    """Vertices within `distance` (m) of the plane through `point` with `normal` (world frame)."""
+
+    point: tuple[float, float, float]
+    normal: tuple[float, float, float]
+    distance: float
+
+    def contains(self, vertices: np.ndarray) -> np.ndarray:
+        normal = np.asarray(self.normal, dtype=np.float64)
+        length = np.linalg.norm(normal)
+        if not length > 0.0 or not self.distance >= 0.0:
+            raise PatientMeshError(f"a fixed plane needs a non-zero normal and a distance >= 0, got {self}")
+        return np.abs((vertices - np.asarray(self.point, dtype=np.float64)) @ (normal / length)) <= self.distance
+
+
+@dataclass(frozen=True)
+class Box:
+    """Vertices inside the axis-aligned box [minimum, maximum] (world frame, m), faces included."""
+
+    minimum: tuple[float, float, float]
+    maximum: tuple[float, float, float]
+
+    def contains(self, vertices: np.ndarray) -> np.ndarray:
+        low, high = np.asarray(self.minimum, dtype=np.float64), np.asarray(self.maximum, dtype=np.float64)
+        if np.any(low > high):
+            raise PatientMeshError(f"a fixed box needs minimum <= maximum on every axis, got {self}")
+        return np.all((vertices >= low) & (vertices <= high), axis=1)
+
+
+@dataclass(frozen=True)
+class FixedSelection:
+    """Vertices held fixed: the union of every criterion given (module doc)."""
+
+    indices: tuple[int, ...] = ()
+    planes: tuple[Plane, ...] = ()
+    boxes: tuple[Box, ...] = ()
+    groups: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class PatientMeshFile:
+    """A mesh as read (file units and frame) and the vertex indices (of `mesh`) of its named groups."""
+
+    mesh: TetMesh
+    groups: Mapping[str, np.ndarray] = field(default_factory=dict)
+
+
+def read_patient_mesh(path: str | Path) -> PatientMeshFile:
+    """Read a tetrahedral mesh with meshio (.msh, .vtu, .vtk, ... ; legacy Gmsh v1 through
+    core.mesh.load_mesh, without groups). Only tetrahedra are kept, vertices of no tetrahedron
+    are dropped; the `fixed` point data and the named groups follow the kept vertices."""
+    path = Path(path)
+    if not path.is_file():
+        raise MeshFileError(f"{path} does not exist")
+    if _is_gmsh_v1(path):
+        return PatientMeshFile(load_mesh(path))
+    data = _meshio_read(path)
+    tetrahedra = [block.data for block in data.cells if block.type == "tetra"]
+    if not tetrahedra:
+        raise MeshFileError(f"{path} is not a tetrahedral mesh (no tetra cells)")
+    tetrahedra = np.concatenate(tetrahedra).astype(np.int64)
+    used = np.unique(tetrahedra)
+    new_index = np.full(len(data.points), -1, dtype=np.int64)
+    new_index[used] = np.arange(used.size)
+    fixed = ()
+    if "fixed" in data.point_data:
+        fixed = np.flatnonzero(np.asarray(data.point_data["fixed"]).reshape(-1)[used] != 0)
+    try:
+        mesh = TetMesh(np.asarray(data.points, dtype=np.float64)[used, :3], new_index[tetrahedra], fixed,
+                       name=path.stem)
+    except (InvalidMeshError, DegenerateMeshError) as error:
+        raise PatientMeshError(f"{path}: {error}") from None
+    if 0 < mesh.flipped_count < mesh.tetrahedron_count:
+        raise PatientMeshError(
+            f"{path}: {mesh.flipped_count} of {mesh.tetrahedron_count} tetrahedra are inverted against the others "
+            "(a tangled mesh, or mixed vertex orders): repair it in the mesher")
+    groups = {}
+    for name, vertex_indices in _named_vertex_sets(data).items():
+        kept = new_index[vertex_indices]
+        groups[name] = np.unique(kept[kept >= 0])
+    return PatientMeshFile(mesh, groups)
+
+
+def _meshio_read(path: Path):
+    """meshio.read with every failure as MeshFileError. For a file that no reader of its
+    extension accepts, meshio prints each reader's complaint and calls sys.exit: both are caught."""
+    import meshio
+
+    complaints = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(complaints), contextlib.redirect_stderr(complaints):
+            return meshio.read(path)
+    except (Exception, SystemExit) as error:  # meshio raises many unrelated types for bad files
+        reason = " ".join(complaints.getvalue().split()) or str(error)
+        raise MeshFileError(f"{path} could not be read by meshio: {reason}") from None
+
+
+def _named_vertex_sets(data) -> dict[str, np.ndarray]:
+    """File point indices of each named cell set (gmsh physical groups) and point set."""
+    sets = {}
+    for name, per_block in data.cell_sets.items():
+        if name.startswith("gmsh:"):  # meshio's bookkeeping of gmsh entities, not a user's group
+            continue
+        vertices = [np.asarray(block.data)[np.asarray(cells, dtype=np.int64)].reshape(-1)
+                    for block, cells in zip(data.cells, per_block) if cells is not None and len(cells)]
+        sets[name] = np.unique(np.concatenate(vertices)) if vertices else np.zeros(0, dtype=np.int64)
+    for name, indices in data.point_sets.items():
+        sets[name] = np.unique(np.asarray(indices, dtype=np.int64).reshape(-1))
+    return sets
+
+
+def place_mesh(mesh: TetMesh, scale: float = 1.0, pose: Sequence[float] = (0, 0, 0, 0, 0, 0, 1)) -> TetMesh:
+    """The mesh in the world frame: vertices R (scale x) + t, with pose = [x, y, z, qx, qy, qz, qw]."""
+    if not (np.isfinite(scale) and scale > 0.0):
+        raise PatientMeshError(f"mesh_scale must be a positive number, got {scale}")
+    try:
+        matrix = pose_matrix(as_pose(pose))
+    except InvalidPoseError as error:
+        raise PatientMeshError(f"mesh_pose: {error}") from None
+    return mesh.with_vertices(scale * mesh.vertices @ matrix[:3, :3].T + matrix[:3, 3])
+
+
+def select_fixed(mesh: TetMesh, groups: Mapping[str, np.ndarray], selection: FixedSelection) -> np.ndarray:
+    """Sorted vertex indices the selection picks (planes and boxes tested on `mesh`'s vertices)."""
+    chosen = np.zeros(mesh.vertex_count, dtype=bool)
+    indices = np.asarray(selection.indices, dtype=np.int64).reshape(-1)
+    if indices.size and (indices.min() < 0 or indices.max() >= mesh.vertex_count):
+        raise PatientMeshError(f"fixed vertex index out of range [0, {mesh.vertex_count}): "
+                               f"min {indices.min()}, max {indices.max()}")
+    chosen[indices] = True
+    for region in (*selection.planes, *selection.boxes):
+        chosen |= region.contains(mesh.vertices)
+    for name in selection.groups:
+        if name not in groups:
+            found = ", ".join(sorted(groups)) or "none"
+            raise PatientMeshError(f"the mesh has no group {name!r} (groups: {found})")
+        chosen[groups[name]] = True
+    return np.flatnonzero(chosen)
+
+
+def check_simulatable(mesh: TetMesh) -> None:
+    """PatientMeshError unless every connected part of the mesh is held by at least three
+    non-collinear fixed vertices (else the stiffness is singular) and no element is flat or
+    inverted."""
+    if mesh.fixed_vertices.size == 0:
+        raise PatientMeshError(
+            "the mesh has no fixed vertices, so the simulator's stiffness is singular: select some "
+            "(fixed vertex indices, a plane, a box or a group of the mesh file)")
+    if mesh.fixed_vertices.size == mesh.vertex_count:
+        raise PatientMeshError(f"all {mesh.vertex_count} vertices are fixed: nothing is left to deform")
+    volumes = mesh.signed_volumes()
+    bad = np.count_nonzero(~(volumes > 0.0))
+    if bad:
+        raise PatientMeshError(f"{bad} of {mesh.tetrahedron_count} tetrahedra are flat or inverted")
+    part_count, part = _connected_parts(mesh)
+    loose = np.flatnonzero(~_held_parts(mesh, part_count, part))
+    if loose.size:
+        sizes = np.bincount(part, minlength=part_count)[loose]
+        shown = ", ".join(str(size) for size in sizes[:5]) + (", ..." if loose.size > 5 else "")
+        raise PatientMeshError(
+            f"{loose.size} of {part_count} connected parts of the mesh ({shown} vertices) are held by fewer than "
+            "three non-collinear fixed vertices, so the simulator's stiffness is singular: fix more vertices "
+            "there or remove those parts")
+
+
+def check_against_clouds(mesh: TetMesh, clouds: Sequence[np.ndarray]) -> None:
+    """PatientMeshError when the placed mesh and the first clouds (points (K, 3), world frame)
+    differ in size by more than SCALE_MISMATCH_FACTOR or their bounding boxes do not meet.
+
+    Partial views pass: a cloud that sees one side of the organ lies inside the mesh's box and is
+    smaller, within the factor.
+    """
+    points = np.concatenate([np.asarray(cloud, dtype=np.float64).reshape(-1, 3) for cloud in clouds])
+    points = points[np.isfinite(points).all(axis=1)]
+    if not len(points):
+        raise PatientMeshError("no finite cloud points to compare the mesh with")
+    mesh_low, mesh_high = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
+    cloud_low, cloud_high = np.percentile(points, CLOUD_PERCENTILES, axis=0)
+    mesh_size = float(np.linalg.norm(mesh_high - mesh_low))
+    cloud_size = float(np.linalg.norm(cloud_high - cloud_low))
+    sizes = f"bounding-box diagonals {mesh_size:.3g} m and {cloud_size:.3g} m"
+    if mesh_size > SCALE_MISMATCH_FACTOR * cloud_size:
+        ratio = mesh_size / max(cloud_size, np.finfo(float).tiny)
+        raise PatientMeshError(f"the mesh is ~{_rounded(ratio)}x larger than the clouds ({sizes}): "
+                               f"{_unit_hint(ratio)}")
+    if cloud_size > SCALE_MISMATCH_FACTOR * mesh_size:
+        ratio = cloud_size / mesh_size
+        raise PatientMeshError(f"the mesh is ~{_rounded(ratio)}x smaller than the clouds ({sizes}): "
+                               "is mesh_scale too small, or are the clouds not in metres?")
+    gap = float(np.linalg.norm(np.maximum(0.0, np.maximum(cloud_low - mesh_high, mesh_low - cloud_high))))
+    if gap > OVERLAP_TOLERANCE * mesh_size:
+        offset = 0.5 * (cloud_low + cloud_high) - 0.5 * (mesh_low + mesh_high)
+        raise PatientMeshError(
+            f"the clouds do not overlap the mesh: their bounding boxes are {gap:.3g} m apart (clouds' centre "
+            f"minus mesh's: [{offset[0]:.3g}, {offset[1]:.3g}, {offset[2]:.3g}] m): set mesh_pose to the "
+            "registration of the mesh's frame to the world frame")
+
+
+def _rounded(ratio: float) -> str:
+    return f"{float(f'{ratio:.2g}'):g}"
+
+
+def _unit_hint(ratio: float) -> str:
+    """What a mesh `ratio` times larger than the clouds suggests about its unit."""
+    for unit, name in (("mm", "millimetres"), ("cm", "centimetres")):
+        if abs(np.log10(ratio * UNITS[unit])) < 0.5:
+            return f"is it in {name}? set mesh_scale {UNITS[unit]:g}"
+    return f"set mesh_scale to the mesh file's metres per unit (about {1.0 / ratio:.2g})"
+
+
+def guess_units(largest_side: float) -> tuple[str, float] | None:
+    """(unit, metres per unit) of UNITS that makes a mesh's largest bounding-box side an organ's
+    size (ORGAN_SIZE_RANGE_M), the one nearest the range's middle (log scale); None if none does."""
+    low, high = ORGAN_SIZE_RANGE_M
+    fitting = [(abs(np.log(largest_side * scale / np.sqrt(low * high))), unit, scale)
+               for unit, scale in UNITS.items() if low <= largest_side * scale <= high]
+    return min(fitting)[1:] if fitting else None
+
+
+def prepare_mesh(path: str | Path, fixed: FixedSelection = FixedSelection(), scale: float = 1.0,
+                 pose: Sequence[float] = (0, 0, 0, 0, 0, 0, 1)) -> TetMesh:
+    """The mesh file at `path`, scaled and placed in the world frame, with the file's fixed
+    vertices and those `fixed` selects, checked for the simulator (module doc)."""
+    read = read_patient_mesh(path)
+    placed = place_mesh(read.mesh, scale, pose)
+    chosen = np.union1d(read.mesh.fixed_vertices, select_fixed(placed, read.groups, fixed))
+    mesh = placed.with_fixed(chosen)
+    try:
+        check_simulatable(mesh)
+    except PatientMeshError as error:
+        raise PatientMeshError(f"{path}: {error}") from None
+    return mesh
+
+
+def _connected_parts(mesh: TetMesh) -> tuple[int, np.ndarray]:
+    edges = mesh.edges
+    adjacency = scipy.sparse.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])),
+                                        shape=(mesh.vertex_count,) * 2)
+    return connected_components(adjacency, directed=False)
+
+
+def _held_parts(mesh: TetMesh, part_count: int, part: np.ndarray) -> np.ndarray:
+    """(parts,) whether each part's fixed vertices spread along two axes: the covariance of
+    their positions has a second eigenvalue above rounding (one vertex, or a line of them,
+    leaves a rotation free)."""
+    fixed = mesh.fixed_vertices
+    labels = part[fixed]
+    positions = mesh.vertices[fixed] - mesh.vertices.mean(axis=0)
+    counts = np.bincount(labels, minlength=part_count).astype(np.float64)
+    means = np.stack([np.bincount(labels, positions[:, axis], part_count) for axis in range(3)], axis=1)
+    means /= np.maximum(counts, 1.0)[:, None]
+    products = (positions[:, :, None] * positions[:, None, :]).reshape(-1, 9)
+    second_moments = np.stack([np.bincount(labels, products[:, k], part_count) for k in range(9)], axis=1)
+    covariances = second_moments.reshape(-1, 3, 3) / np.maximum(counts, 1.0)[:, None, None]
+    covariances -= means[:, :, None] * means[:, None, :]
+    second_variance = np.linalg.eigvalsh(covariances)[:, 1]
+    diagonal = np.linalg.norm(np.ptp(mesh.vertices, axis=0))
+    return (counts >= 3) & (second_variance > (_SINGULAR_SPREAD * diagonal) ** 2)
