@@ -40,3 +40,17 @@ def test_machine_is_what_the_blas_configuration_reports():
     backend = blas.configure()  # this session's choice (conftest)
     assert machine() == {"cpu": blas.cpu_model(), "blas": backend.name, "blas_threads": backend.threads,
                          "blas_detail": backend.detail}
+
+
+def test_benchmark_updates_run_the_estimator_node_step_loop_and_beat_the_prediction():
+    import numpy as np
+
+    from meshfg_ros.benchmarks.baselines import benchmark_update, mismatch_sequence
+    from meshfg_ros.core.estimator import EstimatorConfig
+
+    mesh, sequence = mismatch_sequence(target_vertices=150, points_per_step=800, steps=6)
+    result = benchmark_update(mesh, sequence, EstimatorConfig(measurement_sigma=1e-3))
+    assert len(result["latencies_ms"]) == 6 - (EstimatorConfig().window_size - 1)
+    assert result["converged_share"] == 1.0 and result["mean_iterations"] >= 1.0
+    prediction_rmse = [float(np.sqrt(np.mean(np.sum((s.predicted - s.truth) ** 2, axis=1)))) for s in sequence]
+    assert result["rmse_m"][-1] < 0.8 * prediction_rmse[-1]

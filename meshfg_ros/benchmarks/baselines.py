@@ -15,7 +15,7 @@ points, BetweenFactorPoint3 / PriorFactorPoint3 for time and ridge) and runs its
 LevenbergMarquardtOptimizer. Both are cross-checks and latency baselines, not estimator paths.
 
 `synthetic_sequence` makes a deforming box with a partial-view point cloud per step and an
-imperfect prediction, and `benchmark_update` times `SlidingWindowEstimator.update` on it
+imperfect prediction, and `benchmark_update` times the estimator node's step loop on it
 (median / p95 latency, LM iterations, time of one linear solve) for `meshfg bench`.
 """
 
@@ -427,22 +427,29 @@ def mismatch_sequence(target_vertices: int = 500, points_per_step: int = 2000, s
 
 
 def benchmark_update(mesh: TetMesh, sequence, config, warmup: int | None = None) -> dict:
-    """Run SlidingWindowEstimator over `sequence`; latency statistics after `warmup` updates
-    (default: the window filling, window_size - 1 updates).
+    """Run the estimator node's step loop (core.scheduler.EstimationScheduler: each cloud paired
+    with its prediction, given as the simulation node would) over `sequence`; latency statistics
+    of the updates after `warmup` of them (default: the window filling, window_size - 1 updates).
 
     Returns latencies_ms, median_ms, p95_ms, mean_iterations, linear_solve_ms (median time of
-    one linear solve over all updates, from StepResult.linear_solve_ms), final_costs, rmse_m (vertex RMSE of each update against the truth),
-    converged_share (of the timed updates) and the last measurement sigma estimate.
+    one linear solve over all updates, from StepResult.linear_solve_ms), final_costs, rmse_m
+    (vertex RMSE of each update against the truth), converged_share (of the timed updates) and
+    the last measurement sigma estimate.
     """
-    from meshfg_ros.core.estimator import SlidingWindowEstimator  # avoids an import cycle (estimator uses factors)
+    from meshfg_ros.core.scheduler import EstimationScheduler, Prediction  # the scheduler imports the estimator
 
-    estimator = SlidingWindowEstimator(mesh, config)
+    scheduler = EstimationScheduler(mesh, config)
     warmup = config.window_size - 1 if warmup is None else warmup
     latencies, iterations, solves, costs, rmse, converged = [], [], [], [], [], []
     for index, step in enumerate(sequence):
+        scheduler.add_cloud(step.stamp_ns, step.points)
+        scheduler.add_prediction(Prediction(step.stamp_ns, step.predicted))
         start = time.perf_counter()
-        result = estimator.update(step.stamp_ns, step.points, step.predicted)
+        outcome = scheduler.run(scheduler.next_step())
         elapsed = 1e3 * (time.perf_counter() - start)
+        if outcome.result is None:
+            raise RuntimeError(f"benchmark update {index} failed: {outcome.error}")
+        result = outcome.result
         solves.extend(result.linear_solve_ms)
         if index >= warmup:
             latencies.append(elapsed)
