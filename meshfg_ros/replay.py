@@ -33,11 +33,13 @@ from rosbags.highlevel import AnyReader
 
 from meshfg_ros.core.estimator import StepResult
 from meshfg_ros.core.input_checks import SceneError, check_initial_mesh
+from meshfg_ros.core.frames import StampedTransform
+from meshfg_ros.core.pose_history import pose_matrix
 from meshfg_ros.core.scheduler import OfflinePipeline, run_offline
+from meshfg_ros.core.world_frame import CLOUD, POSE, FramedInput, WorldFrameInputs
+from meshfg_ros.io.tf_messages import TF_STATIC_TOPIC, TF_TOPIC, tf_message_to_transforms
 from meshfg_ros.core.mesh import TetMesh, load_mesh
 from meshfg_ros.parameters import (
-    FrameError,
-    cloud_to_world,
     estimator_config,
     load_parameters,
     read_parameters_file,
@@ -90,7 +92,7 @@ SIMULATOR_PARAMETERS = {
 # initial mesh is written as used: the recording's or the --mesh file's).
 COPIED_TOPICS = (SCENARIO_TOPIC, CAMERA_POSE_TOPIC, TOOL_POSE_TOPIC, POINTS_TOPIC)
 _NS_PER_S = 1e9
-_POSE, _CLOUD = 0, 1  # event kinds: a pose sorts before a cloud logged at the same time
+_TF, _POSE, _CLOUD = 0, 1, 2  # event kinds: at equal log times transforms first, then poses, then clouds
 
 
 class ReplayError(ValueError):
@@ -110,15 +112,19 @@ class ReplayInputs:
     camera_pose: PoseRecord | None
     pose_log_ns: tuple[int, ...] = ()
     cloud_log_ns: tuple[int, ...] = ()
+    transforms: tuple[tuple[int, bool, tuple[StampedTransform, ...]], ...] = ()  # (log time, static, /tf content)
 
-    def events(self) -> list[tuple[int, int, PoseRecord | PointCloudRecord]]:
-        """(log time, kind, record) of every pose and cloud in arrival order: by log time, a pose
-        before a cloud logged at the same time, each topic in its logged order."""
+    def events(self) -> list[tuple[int, int, Any]]:
+        """(log time, kind, record) of every transform message, pose and cloud in arrival order:
+        by log time, at equal log times transforms, then poses, then clouds, each topic in its
+        logged order. A transform message's record is (static, transforms)."""
         poses = self.pose_log_ns or [pose.stamp_ns for pose in self.poses]
         clouds = self.cloud_log_ns or [cloud.stamp_ns for cloud in self.clouds]
-        events = [(log_ns, _POSE, index) for index, log_ns in enumerate(poses)]
+        events = [(log_ns, _TF, index) for index, (log_ns, _, _) in enumerate(self.transforms)]
+        events += [(log_ns, _POSE, index) for index, log_ns in enumerate(poses)]
         events += [(log_ns, _CLOUD, index) for index, log_ns in enumerate(clouds)]
-        return [(log_ns, kind, (self.poses, self.clouds)[kind][index]) for log_ns, kind, index in sorted(events)]
+        records = ([(static, transforms) for _, static, transforms in self.transforms], self.poses, self.clouds)
+        return [(log_ns, kind, records[kind][index]) for log_ns, kind, index in sorted(events)]
 
 
 @dataclass(frozen=True)
@@ -159,6 +165,9 @@ def load_inputs(path: str | Path, mesh_path: str | Path | None = None) -> Replay
             initial_state = next(iter(reader.records(INITIAL_MESH_TOPIC, MeshState)))
         logged_poses = [(m.log_time_ns, m.data) for m in reader.messages([TOOL_POSE_TOPIC])]
         logged_clouds = [(m.log_time_ns, m.data) for m in reader.messages([POINTS_TOPIC])]
+        tf_topics = [topic for topic in (TF_TOPIC, TF_STATIC_TOPIC) if topic in reader.topics]
+        transforms = tuple((m.log_time_ns, m.topic == TF_STATIC_TOPIC, tuple(tf_message_to_transforms(m.data)))
+                           for m in reader.messages(tf_topics)) if tf_topics else ()
     poses = tuple(pose for _, pose in logged_poses)
     clouds = tuple(cloud for _, cloud in logged_clouds)
     if mesh_path is None:
@@ -174,7 +183,8 @@ def load_inputs(path: str | Path, mesh_path: str | Path | None = None) -> Replay
     except SceneError as error:
         raise ReplayError(str(error)) from None
     return ReplayInputs(mesh, initial_state, poses, clouds, metadata, camera_pose,
-                        tuple(log_ns for log_ns, _ in logged_poses), tuple(log_ns for log_ns, _ in logged_clouds))
+                        tuple(log_ns for log_ns, _ in logged_poses), tuple(log_ns for log_ns, _ in logged_clouds),
+                        transforms)
 
 
 def scenario_parameters(metadata: ScenarioMetadata | None, camera_pose: PoseRecord | None = None) -> dict[str, Any]:
@@ -237,18 +247,33 @@ def iterate_replay(inputs: ReplayInputs, params: Mapping[str, Any],
 
 
 def _world_frame_events(inputs: ReplayInputs, params: Mapping[str, Any]) -> Iterator[tuple[str, int, np.ndarray]]:
-    """("pose" | "cloud", stamp, world-frame array) of the inputs the nodes would take, in arrival order."""
-    for _, kind, record in inputs.events():
-        if kind == _POSE:
-            if record.frame_id == params["world_frame"]:
-                yield "pose", record.stamp_ns, record.pose
-            continue
-        if len(record.points) == 0:
-            continue
-        try:
-            yield "cloud", record.stamp_ns, cloud_to_world(record.points, record.frame_id, params)
-        except FrameError:
-            continue
+    """("pose" | "cloud", stamp, world-frame array) of the inputs the nodes would take, in arrival
+    order: moved into world_frame through the recorded /tf and /tf_static (or camera_pose) as
+    the nodes do (core/world_frame.py, with the log time as the clock); clouds without points and
+    inputs that cannot be placed are dropped."""
+    placer = world_frame_inputs(params)
+    for log_ns, kind, record in inputs.events():
+        now_s = log_ns / _NS_PER_S
+        if kind == _TF:
+            static, transforms = record
+            placer.transforms.set_transforms(transforms, static=static)
+            placed, _ = placer.release(now_s)
+        elif kind == _POSE:
+            placed, _ = placer.add(FramedInput(POSE, record.stamp_ns, record.frame_id, record.pose, now_s), now_s)
+        elif len(record.points):
+            placed, _ = placer.add(FramedInput(CLOUD, record.stamp_ns, record.frame_id, record.points, now_s), now_s)
+        else:
+            placed = []
+        yield from ((item.kind, item.stamp_ns, item.data) for item in placed)
+    placed, _ = placer.release(flush=True)
+    yield from ((item.kind, item.stamp_ns, item.data) for item in placed)
+
+
+def world_frame_inputs(params: Mapping[str, Any]) -> WorldFrameInputs:
+    """The nodes' and the replay's placement of inputs into world_frame: /tf and /tf_static, with
+    the static camera_pose as the fallback for camera_frame."""
+    fallback = {params["camera_frame"]: pose_matrix(np.asarray(params["camera_pose"], dtype=np.float64))}
+    return WorldFrameInputs(params["world_frame"], fallback=fallback, wait_s=params["prediction_timeout"])
 
 
 def replay_recording(

@@ -1,0 +1,99 @@
+"""Clouds and tool poses in any frame, moved into world_frame at their own stamps, without ROS.
+
+A camera on a moving arm (an endoscope) gives clouds in its optical frame and a robot gives tool
+poses in its base frame; /tf and /tf_static say where those frames are over time
+(core/frames.py). `WorldFrameInputs` keeps the inputs in arrival order and releases each one
+moved into world_frame as soon as the transform buffer can place it at its stamp. An input whose
+frame is not known yet, or whose stamp lies beyond the newest transform of a moving frame,
+waits (at most `wait_s` of the caller's clock, or until `flush`); after that it is set aside
+with the lookup's reason. Inputs already in world_frame pass at once (behind older waiting
+ones: the order of each stream is kept). Frames with a static fallback pose (the camera_pose
+parameter) are used when the buffer knows nothing of them.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from meshfg_ros.core.frames import FrameLookupError, TransformBuffer, transform_points
+
+CLOUD, POSE = "cloud", "pose"
+
+
+@dataclass(frozen=True, eq=False)
+class FramedInput:
+    """A cloud (K, 3) or a tool pose (7,) in `frame_id` at `stamp_ns`, received at `arrival_s`."""
+
+    kind: str
+    stamp_ns: int
+    frame_id: str
+    data: np.ndarray
+    arrival_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class Unplaceable:
+    """An input that could not be moved into world_frame, and why (one line)."""
+
+    item: FramedInput
+    reason: str
+
+
+def pose_in(matrix: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """The pose (7,: xyz, quaternion xyzw) given in a frame, expressed through `matrix` (4x4, that
+    frame's points into the target frame)."""
+    rotation = Rotation.from_matrix(matrix[:3, :3]) * Rotation.from_quat(pose[3:])
+    return np.concatenate([matrix[:3, :3] @ pose[:3] + matrix[:3, 3], rotation.as_quat()])
+
+
+class WorldFrameInputs:
+    """The FIFO of inputs waiting for their frame (module docstring)."""
+
+    def __init__(self, world_frame: str, transforms: TransformBuffer | None = None,
+                 fallback: dict[str, np.ndarray] | None = None, wait_s: float = 0.5) -> None:
+        self.world_frame = world_frame
+        self.transforms = transforms if transforms is not None else TransformBuffer()
+        self.fallback = dict(fallback or {})  # frame -> 4x4 (its points into world_frame)
+        self.wait_s = wait_s
+        self._waiting: deque[FramedInput] = deque()
+
+    @property
+    def waiting(self) -> int:
+        """Inputs held for a transform."""
+        return len(self._waiting)
+
+    def add(self, item: FramedInput, now_s: float = 0.0) -> tuple[list[FramedInput], list[Unplaceable]]:
+        """Queue an input; returns the inputs now placed in world_frame (in arrival order) and
+        those set aside."""
+        self._waiting.append(item)
+        return self.release(now_s)
+
+    def release(self, now_s: float = 0.0, flush: bool = False) -> tuple[list[FramedInput], list[Unplaceable]]:
+        """Place what the buffer can now place (call after new transforms and periodically)."""
+        placed, set_aside = [], []
+        while self._waiting:
+            item = self._waiting[0]
+            try:
+                placed.append(self._placed(item))
+            except FrameLookupError as error:
+                if not flush and now_s - item.arrival_s < self.wait_s and error.reason != FrameLookupError.TOO_OLD:
+                    break
+                set_aside.append(Unplaceable(item, str(error)))
+            self._waiting.popleft()
+        return placed, set_aside
+
+    def _placed(self, item: FramedInput) -> FramedInput:
+        if item.frame_id == self.world_frame:
+            return item
+        try:
+            matrix = self.transforms.lookup(self.world_frame, item.frame_id, item.stamp_ns)
+        except FrameLookupError as error:
+            if item.frame_id not in self.fallback or error.reason != FrameLookupError.UNKNOWN_FRAME:
+                raise
+            matrix = self.fallback[item.frame_id]
+        data = transform_points(matrix, item.data) if item.kind == CLOUD else pose_in(matrix, item.data)
+        return FramedInput(item.kind, item.stamp_ns, self.world_frame, data, item.arrival_s)
