@@ -41,7 +41,9 @@ from meshfg_ros.core.estimator import (
 )
 from meshfg_ros.core.input_checks import INVALID, JUMP_BACK, STALE, check_initial_mesh, stamp_order
 from meshfg_ros.core.mesh import TetMesh
+from meshfg_ros.core.patient_mesh import PatientMeshError, check_against_clouds
 from meshfg_ros.core.simulator import SimulatorConfig, ElasticSimulator
+from meshfg_ros.core.weights import MIN_POINTS
 from meshfg_ros.core.tool_poses import DEFAULT_EXTRAPOLATION_HORIZON_S as TOOL_POSE_HORIZON_S
 from meshfg_ros.core.tool_poses import PoseUnavailable, ToolPoseBuffer
 
@@ -262,6 +264,7 @@ class EstimationScheduler:
         self._newest_answer_ns: int | None = None
         self._last_step_ns: int | None = None
         self._solver_free_s = 0.0
+        self._registered = False  # whether a cloud has confirmed the mesh's size and place
 
     @property
     def queued(self) -> int:
@@ -276,6 +279,10 @@ class EstimationScheduler:
         if order in (STALE, INVALID):
             reason = "is negative" if order == INVALID else f"is not newer than {self._newest_cloud_ns} ns"
             return [Rejection("clouds_rejected_stamp", f"cloud stamp {stamp_ns} ns {reason}: dropped")]
+        if not self._registered:
+            rejection = self._registration(stamp_ns, points)
+            if rejection is not None:
+                return [rejection]
         notes = []
         restart = order == JUMP_BACK
         if restart:
@@ -289,6 +296,19 @@ class EstimationScheduler:
             notes.append(Rejection("clouds_dropped_backlog", f"cloud at {dropped[0]} ns dropped: "
                                    f"{MAX_QUEUED_CLOUDS} clouds wait for the solver"))
         return notes
+
+    def _registration(self, stamp_ns: int, points: np.ndarray) -> Rejection | None:
+        """Until a cloud of MIN_POINTS points or more has agreed with the mesh in size and place
+        (core/patient_mesh.py), each cloud is compared with it; one that disagrees is rejected
+        with the reason (a mesh in millimetres, a missing registration)."""
+        if len(points) < MIN_POINTS:
+            return None
+        try:
+            check_against_clouds(self.mesh, [points])
+        except PatientMeshError as error:
+            return Rejection("clouds_rejected_registration", f"cloud at {stamp_ns} ns rejected: {error}")
+        self._registered = True
+        return None
 
     def add_tool_pose(self, stamp_ns: int, pose: np.ndarray) -> None:
         """Buffer a tool pose (world frame) for the tool gate; a jump back empties the buffer."""

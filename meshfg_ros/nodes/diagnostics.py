@@ -31,6 +31,7 @@ class EstimatorCounters:
     clouds_rejected_empty: int = 0
     clouds_rejected_frame: int = 0
     clouds_rejected_stamp: int = 0  # out of order, repeated or invalid (negative) stamps
+    clouds_rejected_registration: int = 0  # the mesh and the cloud differ in size or place
     clouds_dropped_backlog: int = 0
     nan_points_dropped: int = 0
     clock_jumps_back: int = 0
@@ -61,7 +62,7 @@ class EstimatorCounters:
     def clouds_rejected(self) -> int:
         """Clouds that did not become a step, whatever the reason."""
         return (self.clouds_rejected_malformed + self.clouds_rejected_empty + self.clouds_rejected_frame
-                + self.clouds_rejected_stamp + self.clouds_dropped_backlog)
+                + self.clouds_rejected_stamp + self.clouds_rejected_registration + self.clouds_dropped_backlog)
 
     def values(self) -> dict[str, str]:
         """Counter name -> text value (the rejected total included)."""
@@ -136,8 +137,10 @@ class EstimatorHealth:
         """One step's outcome."""
         self._recent.append((degraded, converged, points_used, points_set_aside))
 
-    def assess(self, counters: EstimatorCounters, waiting_for_mesh: bool, unanswered_s: float) -> tuple[bytes, str]:
-        """(level, reason). unanswered_s: how long clouds have arrived without an estimate (0: none)."""
+    def assess(self, counters: EstimatorCounters, waiting_for_mesh: bool, unanswered_s: float,
+               last_rejection: str = "") -> tuple[bytes, str]:
+        """(level, reason). unanswered_s: how long clouds have arrived without an estimate (0: none);
+        last_rejection: why the newest cloud set aside was (its log line)."""
         new_failures, self._failed_seen = counters.failed_steps - self._failed_seen, counters.failed_steps
         new_rejections, self._rejected_seen = counters.clouds_rejected - self._rejected_seen, counters.clouds_rejected
         if waiting_for_mesh:
@@ -146,8 +149,11 @@ class EstimatorHealth:
                                "or publish initial_mesh")
             return WARN, "waiting for initial_mesh"
         if unanswered_s > self.stalled_after_s:
-            why = "every cloud is rejected" if new_rejections or counters.steps == 0 and counters.clouds_rejected else (
-                "the solver is stuck or every update fails")
+            if new_rejections or counters.steps == 0 and counters.clouds_rejected:
+                why = f"every cloud is rejected; the last: {last_rejection}" if last_rejection else (
+                    "every cloud is rejected")
+            else:
+                why = "the solver is stuck or every update fails"
             return ERROR, f"no estimate for the clouds of the last {unanswered_s:.0f} s: {why}"
         if new_failures:
             return WARN, f"{new_failures} updates failed since the last report"

@@ -77,6 +77,7 @@ class EstimatorNode(Node):
         self._messages: MeshMessages | None = None
         self._latencies: deque[float] = deque(maxlen=_LATENCY_HISTORY)
         self._unanswered_since_s: float | None = None
+        self._last_rejection = ""
         self._markers_job = None
         self._estimate_publisher = self.create_publisher(TetraMesh, "estimated_mesh", LATCHED_QOS)
         self._status_publisher = self.create_publisher(EstimatorStatus, "status", STREAM_QOS)
@@ -181,6 +182,7 @@ class EstimatorNode(Node):
         for rejection in rejections:
             with self._lock:
                 setattr(self.counters, rejection.counter, getattr(self.counters, rejection.counter) + 1)
+                self._last_rejection = rejection.reason
             self.get_logger().warning(rejection.reason, throttle_duration_sec=1.0)
         if rejections:
             self._wake_reports.trigger()
@@ -244,9 +246,9 @@ class EstimatorNode(Node):
             self.counters.queued_clouds = 0 if self._scheduler is None else self._scheduler.queued
             counters, job, self._markers_job = replace(self.counters), self._markers_job, None
             waiting = self._scheduler is None
-            since = self._unanswered_since_s
+            since, last_rejection = self._unanswered_since_s, self._last_rejection
         unanswered_s = 0.0 if since is None else time.monotonic() - since
-        level, message = self.health.assess(counters, waiting, unanswered_s)
+        level, message = self.health.assess(counters, waiting, unanswered_s, last_rejection)
         self._diagnostics_publisher.publish(diagnostic_array(f"{self.get_fully_qualified_name()}: estimation", level,
                                                              message, counters, self.get_clock().now().nanoseconds))
         if job is not None and self._markers_publisher.get_subscription_count() > 0:
