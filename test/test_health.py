@@ -1,0 +1,69 @@
+"""The estimator node's health (nodes/diagnostics.py): OK only while recent steps are estimated
+from most of their points, with a prediction, converged and in time; otherwise the reason."""
+from diagnostic_msgs.msg import DiagnosticStatus
+
+from meshfg_ros.nodes.diagnostics import HEALTH_WINDOW, EstimatorCounters, EstimatorHealth
+
+OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
+
+
+def healthy_steps(health: EstimatorHealth, count: int = HEALTH_WINDOW) -> EstimatorCounters:
+    for _ in range(count):
+        health.record(degraded=False, converged=True, points_used=900, points_set_aside=100)
+    return EstimatorCounters(clouds_received=count, steps=count)
+
+
+def test_healthy_steps_are_ok_and_waiting_for_the_mesh_is_a_warning_then_an_error():
+    health = EstimatorHealth(stalled_after_s=2.0)
+    assert health.assess(EstimatorCounters(), waiting_for_mesh=True, unanswered_s=0.0) == (
+        WARN, "waiting for initial_mesh")
+    level, message = health.assess(EstimatorCounters(clouds_received=30), True, 3.0)
+    assert level == ERROR and "there is no mesh" in message
+    assert health.assess(healthy_steps(health), False, 0.0) == (OK, "estimating")
+
+
+def test_every_cloud_rejected_is_an_error_that_names_the_reason():
+    health = EstimatorHealth(stalled_after_s=2.0)
+    counters = EstimatorCounters(clouds_received=20, clouds_rejected_registration=20)
+    reason = "the mesh is ~1000x larger than the clouds: is it in millimetres? set mesh_scale 0.001"
+    assert health.assess(counters, False, 1.0, reason)[0] == WARN  # not yet stalled: rejections so far
+    level, message = health.assess(counters, False, 2.5, reason)
+    assert level == ERROR and message.endswith(reason) and "every cloud is rejected" in message
+
+
+def test_degraded_gated_unconverged_and_lagging_steps_are_warnings():
+    health = EstimatorHealth(stalled_after_s=2.0)
+    counters = healthy_steps(health, HEALTH_WINDOW // 2 - 1)
+    for _ in range(HEALTH_WINDOW // 2 + 1):
+        health.record(degraded=True, converged=True, points_used=900, points_set_aside=100)
+    level, message = health.assess(counters, False, 0.0)
+    assert level == WARN and message.startswith(f"{HEALTH_WINDOW // 2 + 1} of the last {HEALTH_WINDOW} steps ran "
+                                                "without a simulator prediction")
+
+    health = EstimatorHealth(stalled_after_s=2.0)
+    for _ in range(HEALTH_WINDOW):
+        health.record(degraded=False, converged=True, points_used=100, points_set_aside=900)
+    level, message = health.assess(counters, False, 0.0)
+    assert level == WARN and "9000 of 10000 points" in message and "check units" in message
+
+    health = EstimatorHealth(stalled_after_s=2.0)
+    for _ in range(HEALTH_WINDOW):
+        health.record(degraded=False, converged=False, points_used=900, points_set_aside=100)
+    assert health.assess(counters, False, 0.0) == (WARN, f"{HEALTH_WINDOW} of the last {HEALTH_WINDOW} updates "
+                                                         "did not converge")
+
+    health = EstimatorHealth(stalled_after_s=2.0)
+    lagging = healthy_steps(health)
+    lagging.queued_clouds, lagging.median_latency_ms = 7, 2400.0
+    level, message = health.assess(lagging, False, 0.0)
+    assert level == WARN and message.startswith("lagging: 7 clouds wait (median latency 2400 ms)")
+
+
+def test_new_failures_and_rejections_warn_once_per_report():
+    health = EstimatorHealth(stalled_after_s=2.0)
+    counters = healthy_steps(health)
+    counters.failed_steps = 2
+    assert health.assess(counters, False, 0.0) == (WARN, "2 updates failed since the last report")
+    counters.clouds_rejected_frame = 3
+    assert health.assess(counters, False, 0.0) == (WARN, "3 clouds rejected since the last report")
+    assert health.assess(counters, False, 0.0) == (OK, "estimating")

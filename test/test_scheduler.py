@@ -1,0 +1,117 @@
+"""The one step loop (core/scheduler.py) with an injected clock: pairing, waits, timeouts,
+failures, the stamp rule and the registration check, as the nodes and the replay run it."""
+import numpy as np
+import pytest
+from offline_helpers import NOISE_SIGMA, TOOL_RADIUS, tiny_scenario
+
+from meshfg_ros.core.estimator import EstimatorConfig
+from meshfg_ros.core.scheduler import (
+    EstimationScheduler,
+    Prediction,
+    PredictionScheduler,
+    SchedulingTimeouts,
+)
+from meshfg_ros.core.simulator import SimulatorConfig
+from meshfg_ros.synthetic.scenarios import FIRST_STAMP_NS
+
+S = 1_000_000_000
+TIMEOUTS = SchedulingTimeouts(prediction_timeout=0.5, estimate_timeout=2.0, tool_pose_timeout=0.2)
+
+
+@pytest.fixture(scope="module")
+def scenario():
+    return tiny_scenario(steps=3)
+
+
+def estimation(scenario) -> EstimationScheduler:
+    config = EstimatorConfig(measurement_sigma=NOISE_SIGMA, tool_radius=TOOL_RADIUS, max_iterations=3)
+    return EstimationScheduler(scenario.initial_mesh, config, timeouts=TIMEOUTS)
+
+
+def prediction(scenario) -> PredictionScheduler:
+    model = SimulatorConfig(**{**scenario.simulator_config.__dict__, "tool_radius": TOOL_RADIUS})
+    return PredictionScheduler(scenario.initial_mesh, model, timeouts=TIMEOUTS)
+
+
+def test_a_cloud_waits_for_its_prediction_until_the_timeout(scenario):
+    scheduler = estimation(scenario)
+    step = scenario.steps[0]
+    assert scheduler.add_cloud(step.stamp_ns, step.points, now_s=10.0) == []
+    assert scheduler.next_step(now_s=10.4) is None  # waits for the prediction
+    ready = scheduler.next_step(now_s=10.5)
+    assert ready is not None and ready.predicted is None and ready.stamp_ns == step.stamp_ns
+    outcome = scheduler.run(ready)
+    assert outcome.result is not None and outcome.result.degraded
+
+
+def test_an_answer_or_a_later_answer_releases_a_cloud_at_once(scenario):
+    scheduler = estimation(scenario)
+    first, second = scenario.steps[:2]
+    scheduler.add_cloud(first.stamp_ns, first.points, now_s=0.0)
+    scheduler.add_cloud(second.stamp_ns, second.points, now_s=0.0)
+    assert scheduler.add_prediction(Prediction(second.stamp_ns, second.truth)) is None
+    released = scheduler.next_step(now_s=0.0)  # a later answer came: the first cloud will get none
+    assert released.stamp_ns == first.stamp_ns and released.predicted is None
+    paired = scheduler.next_step(now_s=0.0)
+    assert paired.stamp_ns == second.stamp_ns and np.array_equal(paired.predicted, second.truth)
+    failed = estimation(scenario)
+    failed.add_cloud(first.stamp_ns, first.points, now_s=0.0)
+    failed.add_prediction(Prediction(first.stamp_ns, None, "inverted elements"))
+    assert failed.next_step(now_s=0.0).predicted is None  # the simulator said it cannot: no wait
+
+
+def test_stale_stamps_are_rejected_and_a_jump_back_restarts(scenario):
+    scheduler = estimation(scenario)
+    step = scenario.steps[1]
+    assert scheduler.add_cloud(step.stamp_ns, step.points) == []
+    [stale] = scheduler.add_cloud(step.stamp_ns, step.points)
+    assert stale.counter == "clouds_rejected_stamp" and "is not newer than" in stale.reason
+    assert scheduler.add_cloud(step.stamp_ns + 10 * S, step.points) == []
+    [jump] = scheduler.add_cloud(step.stamp_ns, step.points)  # a looped recording
+    assert jump.counter == "clock_jumps_back" and "restarting from the initial mesh" in jump.reason
+    assert [scheduler.next_step(flush=True).restart for _ in range(3)] == [False, False, True]
+
+
+def test_a_mesh_in_millimetres_rejects_the_clouds_with_the_reason(scenario):
+    scheduler = EstimationScheduler(scenario.initial_mesh.with_vertices(1e3 * scenario.initial_mesh.vertices),
+                                    EstimatorConfig(measurement_sigma=NOISE_SIGMA))
+    step = scenario.steps[0]
+    [rejection] = scheduler.add_cloud(step.stamp_ns, step.points)
+    assert rejection.counter == "clouds_rejected_registration"
+    assert "larger than the clouds" in rejection.reason and "mesh_scale 0.001" in rejection.reason
+    assert scheduler.queued == 0
+
+
+def test_predictions_wait_for_the_previous_estimate_and_a_covering_tool_pose(scenario):
+    simulation = prediction(scenario)
+    first, second = scenario.steps[:2]
+    assert simulation.add_tool_pose(FIRST_STAMP_NS, scenario.initial_tool_pose) is None
+    simulation.request(first.stamp_ns, now_s=0.0)
+    assert simulation.poll(now_s=0.0) == []  # no tool pose at or after the cloud's stamp yet
+    simulation.add_tool_pose(first.stamp_ns, first.tool_pose)
+    [answer] = simulation.poll(now_s=0.0)
+    assert answer.stamp_ns == first.stamp_ns and answer.positions is not None and answer.failure == ""
+    simulation.add_tool_pose(second.stamp_ns, second.tool_pose)
+    simulation.request(second.stamp_ns, now_s=1.0)
+    assert simulation.poll(now_s=2.9) == []  # waits for the estimate of the first cloud
+    estimate = answer.positions + 1e-5
+    assert simulation.add_estimate(first.stamp_ns, estimate) is None
+    [later] = simulation.poll(now_s=2.9)
+    simulation_again = prediction(scenario)
+    simulation_again.add_tool_pose(FIRST_STAMP_NS, scenario.initial_tool_pose)
+    simulation_again.add_tool_pose(first.stamp_ns, first.tool_pose)
+    simulation_again.request(first.stamp_ns)
+    simulation_again.poll()
+    simulation_again.add_tool_pose(second.stamp_ns, second.tool_pose)
+    simulation_again.request(second.stamp_ns, now_s=1.0)
+    [from_old_state] = simulation_again.poll(now_s=3.0)  # estimate_timeout: from the newest state
+    assert not np.allclose(later.positions, from_old_state.positions, atol=1e-7)
+
+
+def test_a_request_beyond_the_tool_pose_horizon_is_answered_with_the_reason(scenario):
+    simulation = prediction(scenario)
+    simulation.add_tool_pose(FIRST_STAMP_NS, scenario.initial_tool_pose)
+    simulation.request(FIRST_STAMP_NS + S, now_s=0.0)
+    assert simulation.poll(now_s=0.1) == []
+    [answer] = simulation.poll(now_s=0.2)  # tool_pose_timeout: extrapolation is not allowed that far
+    assert answer.positions is None and "beyond the newest" in answer.failure
