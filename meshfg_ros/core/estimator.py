@@ -59,13 +59,17 @@ Design decisions (see also factors.py, levenberg_marquardt.py, linear_solvers.py
   (dense); beyond that vertex-conditional: each vertex's 3x3 covariance given all other
   unknowns, inv(H_ii), a cheap lower bound of the marginal that shows where measurements and
   priors constrain the mesh.
+- Dynamic settings (`reconfigure`: the sigmas, the robust kernel's scale, the gate) apply from
+  the next update on: the factors it adds use them, the factors already in the window keep
+  theirs (as they keep the weights estimated when they were added).
 - Never NaN: a failed optimisation keeps the best finite state and says so in `message`.
 """
 
 from __future__ import annotations
 
+import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 import scipy.linalg
@@ -94,7 +98,7 @@ from meshfg_ros.core.linear_solvers import LINEAR_SOLVERS, LinearSolveError, Not
 from meshfg_ros.core.mesh import TetMesh, signed_volumes
 from meshfg_ros.core.noise import IsotropicNoise
 from meshfg_ros.core.robust import ROBUST_KERNELS, make_robust_kernel
-from meshfg_ros.core.settings import setting
+from meshfg_ros.core.settings import dynamic_fields, setting
 from meshfg_ros.core.simulator import (
     POISSON_RATIO_SETTING,
     TOOL_MODE_SETTING,
@@ -220,7 +224,8 @@ _LENGTH_RANGE = (1e-9, 10.0)  # metres: from a nanometre to a room-sized workspa
 @dataclass(frozen=True)
 class EstimatorConfig:
     """Estimator settings (SI units). See the module doc for the modelling choices. Every field is
-    a parameter of the estimator node and the replay (core/settings.py)."""
+    a parameter of the estimator node and the replay (core/settings.py); the dynamic ones may
+    change while it runs (`SlidingWindowEstimator.reconfigure`)."""
 
     factors: str = setting("full", "Factor configuration of the estimator, by name.",
                            choices=tuple(FACTOR_CONFIGURATIONS))
@@ -331,6 +336,24 @@ class PendingStep:
     prediction: np.ndarray | None = None  # (N, 3) the prior's mean, fixed vertices reset
 
 
+class _PendingChanges:
+    """Dynamic settings `reconfigure` changed since the last update began. A node's parameter
+    callback adds to them while its solver thread may be updating, hence the lock."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._changes: dict = {}
+
+    def add(self, changes: dict) -> None:
+        with self._lock:
+            self._changes.update(changes)
+
+    def take(self) -> dict:
+        with self._lock:
+            changes, self._changes = self._changes, {}
+        return changes
+
+
 class SlidingWindowEstimator:
     """Sliding-window factor-graph estimator over states of `initial_mesh`."""
 
@@ -362,6 +385,40 @@ class SlidingWindowEstimator:
         self.scene = Scene.of(initial_mesh.vertices)  # what is far (core/input_checks.py)
         self.last_stamp_ns: int | None = None
         self.deadline: float | None = None  # perf_counter() at which the update's time budget ends
+        self._pending_changes = _PendingChanges()
+
+    # ----------------------------------------------------------------------------- settings
+    def reconfigure(self, **changes) -> None:
+        """Change dynamic settings (EstimatorConfig fields marked dynamic: the sigmas, the robust
+        kernel's scale, the gate); they apply from the next update on (see the module doc).
+
+        Safe to call from another thread while an update runs. Raises EstimatorConfigError, and
+        changes nothing, for a field that is unknown or not dynamic or a value the config refuses.
+        """
+        dynamic = dynamic_fields(EstimatorConfig)
+        for name in changes:
+            if name not in {item.name for item in fields(EstimatorConfig)}:
+                raise EstimatorConfigError(f"unknown setting {name}")
+            if name not in dynamic:
+                raise EstimatorConfigError(f"{name} cannot change while the estimator runs "
+                                           f"(dynamic: {', '.join(sorted(dynamic))})")
+        replace(self.config, **changes)  # validates the values
+        self._pending_changes.add(changes)
+
+    def _apply_pending_changes(self) -> None:
+        """Start using the settings `reconfigure` changed: a new nominal measurement sigma restarts
+        the noise estimate and the re-linearisation threshold from it; a new simulation sigma
+        rescales the prior's weight."""
+        changes = self._pending_changes.take()
+        if not changes:
+            return
+        old, self.config = self.config, replace(self.config, **changes)
+        if self.config.measurement_sigma != old.measurement_sigma:
+            self.noise = MeasurementNoise(self.config.measurement_sigma)
+            self.graph.relinearize_threshold = self.config.measurement_sigma
+        if self.model is not None and self.config.simulation_sigma != old.simulation_sigma:
+            self.prior_scale *= (old.simulation_sigma / self.config.simulation_sigma) ** 2
+            self.prior_ridge = PRIOR_RIDGE / self.config.simulation_sigma**2
 
     # ----------------------------------------------------------------------------- input
     def _check_inputs(self, stamp_ns, points, predicted, tool_pose):
@@ -437,7 +494,9 @@ class SlidingWindowEstimator:
         the window, the step count and the last estimate are as they were before the call, so a
         bad input never poisons the next updates. Input that is well formed but implausible is
         not an error: far points are dropped, a far, inverted or contradicted prediction is set
-        aside (the step runs degraded on the copy-forward), each said in the result's message."""
+        aside (the step runs degraded on the copy-forward), each said in the result's message.
+        Settings changed by `reconfigure` apply from here on, also when the update fails."""
+        self._apply_pending_changes()
         saved = (_saved(self), _saved(self.graph), _saved(self.noise))
         try:
             result = self.solve(self.prepare(stamp_ns, points, predicted, tool_pose))
@@ -461,6 +520,7 @@ class SlidingWindowEstimator:
         slide the window, without optimising (benchmarks hand the same problem to other solvers).
         Input errors are raised before anything changes; `update` undoes a later failure."""
         start = time.perf_counter()
+        self._apply_pending_changes()
         cfg = self.config
         stamp_ns, points, predicted, tool_pose, dropped = self._check_inputs(stamp_ns, points, predicted, tool_pose)
         messages = [f"{dropped} non-finite point(s) dropped"] if dropped else []
