@@ -69,7 +69,7 @@ __all__ = [
 # ROS parameter type names (rcl_interfaces/ParameterType without the PARAMETER_ prefix).
 PARAMETER_TYPES = ("double", "integer", "string", "bool", "double_array", "integer_array")
 # Parameters every rclpy node declares itself: accepted in a parameters file and ignored.
-ROS_OWN_PARAMETERS = frozenset({"use_sim_time"})
+ROS_OWN_PARAMETERS = frozenset({"use_sim_time", "start_type_description_service"})
 _PARAMS_KEY = "ros__parameters"
 
 

@@ -32,7 +32,7 @@ from meshfg_ros.parameters import (
     simulator_config,
 )
 from meshfg_ros.core.simulator import SimulatorConfig
-from meshfg_ros.nodes.ros_conversions import parameter_descriptor
+from meshfg_ros.nodes.ros_parameters import parameter_descriptor
 
 CONFIG = Path(__file__).resolve().parents[1] / "config" / "meshfg.yaml"
 PYTHON_TYPES = {"double": float, "integer": int, "string": str, "bool": bool}
@@ -79,6 +79,8 @@ def test_descriptors_carry_type_range_and_choices():
     assert by_name["grasped_vertices"].type == ParameterType.PARAMETER_INTEGER_ARRAY
     assert by_name["camera_pose"].additional_constraints == "exactly 7 values"
     assert all(descriptor.read_only and descriptor.description for descriptor in by_name.values())
+    sigma = next(parameter for parameter in PARAMETERS if parameter.name == "measurement_sigma")
+    assert not parameter_descriptor(sigma, read_only=False).read_only
 
 
 @pytest.mark.parametrize("mapping, message", [

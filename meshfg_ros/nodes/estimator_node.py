@@ -46,8 +46,8 @@ from meshfg_msgs.msg import EstimatorStatus, PredictionFailure, TetraMesh
 from meshfg_ros import blas
 from meshfg_ros.core.estimator import SlidingWindowEstimator, StepResult
 from meshfg_ros.core.input_checks import INVALID, JUMP_BACK, STALE, check_initial_mesh, rejections_in, stamp_order
-from meshfg_ros.core.mesh import TetMesh, load_mesh
-from meshfg_ros.parameters import PARAMETERS, FrameError, cloud_to_world, estimator_config
+from meshfg_ros.core.mesh import TetMesh
+from meshfg_ros.parameters import FrameError, cloud_to_world, estimator_changes, estimator_config, load_mesh_file
 from meshfg_ros.io.messages import (
     MeshState,
     MessageValidationError,
@@ -62,17 +62,13 @@ from meshfg_ros.nodes.diagnostics import EstimatorCounters, diagnostic_array
 from meshfg_ros.nodes.ros_conversions import (
     RCLPY_FACTORY,
     MeshMessages,
-    declare_parameters,
     same_mesh,
     tet_mesh_from_state,
 )
+from meshfg_ros.nodes.ros_parameters import declare_parameters
 from meshfg_ros.nodes.runtime import run_nodes
 from meshfg_ros.replay import status_record
 
-# The simulator's own settings are the simulation node's; the estimator reads the rest.
-_SIMULATOR_ONLY = {"tool_contact", "density", "simulator", "simulator_substeps",
-                   "simulator_iterations", "estimate_timeout"}
-PARAMETER_NAMES = tuple(p.name for p in PARAMETERS if p.name not in _SIMULATOR_ONLY)
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 STREAM_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 # Predictions and failure reports keep their last ten for a reader that matches late (DDS
@@ -110,7 +106,7 @@ class EstimatorNode(Node):
 
     def __init__(self, **kwargs) -> None:
         super().__init__("estimator_node", **kwargs)
-        self.params = declare_parameters(self, PARAMETER_NAMES)
+        self.params = declare_parameters(self, "estimator_node", on_change=self._reconfigure)
         self._config = estimator_config(self.params)
         self._frame = self.params["world_frame"]
         self._jump_ns = int(self.params["clock_jump_threshold"] * _NS_PER_S)
@@ -178,13 +174,15 @@ class EstimatorNode(Node):
             self.get_logger().warning(f"an update still runs after {_STOP_WAIT_S:g} s: left behind at shutdown")
         super().destroy_node()
 
+    def _reconfigure(self, changes: dict) -> None:
+        """Dynamic parameters set while running: the estimator uses them from its next update on."""
+        self._config = estimator_config(self.params)
+        if self._estimator is not None:
+            self._estimator.reconfigure(**estimator_changes(changes))
+
     # ------------------------------------------------------------------ input thread
     def _load_mesh_file(self, path: str) -> None:
-        try:
-            mesh = load_mesh(path)
-        except (OSError, ValueError) as error:
-            self.get_logger().error(f"cannot load mesh_file {path}: {error}; waiting for initial_mesh")
-            return
+        mesh = load_mesh_file(path)  # ParameterError: the node stops at start-up
         self._received_initial = MeshState(0, self._frame, 0, mesh.vertices, mesh.tetrahedra,
                                            mesh.surface_triangles, mesh.fixed_vertices)
 

@@ -36,8 +36,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from meshfg_msgs.msg import PredictionFailure, TetraMesh
 from meshfg_ros.core.input_checks import INVALID, JUMP_BACK, STALE, Scene, check_initial_mesh, stamp_order
-from meshfg_ros.core.mesh import load_mesh
-from meshfg_ros.parameters import simulator_config
+from meshfg_ros.parameters import load_mesh_file, simulator_config
 from meshfg_ros.core.simulator import XpbdSimulator
 from meshfg_ros.io.messages import (
     MeshState,
@@ -51,18 +50,13 @@ from meshfg_ros.nodes.diagnostics import SimulatorCounters, diagnostic_array
 from meshfg_ros.nodes.ros_conversions import (
     RCLPY_FACTORY,
     MeshMessages,
-    declare_parameters,
     positions_from_msg,
     same_mesh,
     tet_mesh_from_state,
 )
+from meshfg_ros.nodes.ros_parameters import declare_parameters
 from meshfg_ros.nodes.runtime import run_nodes
 
-PARAMETER_NAMES = (
-    "tool_mode", "tool_contact", "tool_radius", "grasped_vertices", "youngs_modulus", "poisson_ratio", "density",
-    "simulator", "simulator_substeps", "simulator_iterations", "world_frame", "mesh_file", "estimate_timeout",
-    "clock_jump_threshold",
-)
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 STREAM_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 # Predictions and failure reports keep their last ten for a reader that matches late (DDS
@@ -87,7 +81,7 @@ class SimulationNode(Node):
 
     def __init__(self, **kwargs) -> None:
         super().__init__("simulation_node", **kwargs)
-        self.params = declare_parameters(self, PARAMETER_NAMES)
+        self.params = declare_parameters(self, "simulation_node")
         self._config = simulator_config(self.params)
         self._frame = self.params["world_frame"]
         self._jump_ns = int(self.params["clock_jump_threshold"] * _NS_PER_S)
@@ -126,11 +120,7 @@ class SimulationNode(Node):
         self._step = 0
 
     def _load_mesh_file(self, path: str) -> None:
-        try:
-            mesh = load_mesh(path)
-        except (OSError, ValueError) as error:
-            self.get_logger().error(f"cannot load mesh_file {path}: {error}; waiting for initial_mesh")
-            return
+        mesh = load_mesh_file(path)  # ParameterError: the node stops at start-up
         self._set_initial(MeshState(0, self._frame, 0, mesh.vertices, mesh.tetrahedra,
                                     mesh.surface_triangles, mesh.fixed_vertices))
 
