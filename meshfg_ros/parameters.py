@@ -69,7 +69,7 @@ __all__ = [
 # ROS parameter type names (rcl_interfaces/ParameterType without the PARAMETER_ prefix).
 PARAMETER_TYPES = ("double", "integer", "string", "bool", "double_array", "integer_array")
 # Parameters every rclpy node declares itself: accepted in a parameters file and ignored.
-ROS_OWN_PARAMETERS = frozenset({"use_sim_time", "start_type_description_service"})
+_ROS_OWN_PARAMETERS = frozenset({"use_sim_time", "start_type_description_service"})
 _PARAMS_KEY = "ros__parameters"
 
 
@@ -285,7 +285,7 @@ def _merged(configurations: Iterable[type]) -> tuple[Parameter, ...]:
 PARAMETERS: tuple[Parameter, ...] = _merged(_PIPELINE_CONFIGURATIONS)
 _NODE_PARAMETERS = {node: _merged(configurations) for node, configurations in NODE_CONFIGURATIONS.items()}
 _PACKAGE_PARAMETER_NAMES = frozenset(parameter.name for parameters in _NODE_PARAMETERS.values()
-                                     for parameter in parameters) | ROS_OWN_PARAMETERS
+                                     for parameter in parameters) | _ROS_OWN_PARAMETERS
 
 
 def node_parameters(node: str | None = None) -> tuple[Parameter, ...]:
@@ -303,7 +303,8 @@ def check_parameter_names(names: Iterable[str], node: str) -> None:
     a `/**` section of a parameters file sets them for every node."""
     for name in names:
         if name not in _PACKAGE_PARAMETER_NAMES:
-            raise ParameterError(_unknown(name, [parameter.name for parameter in node_parameters(node)]))
+            known = [parameter.name for parameter in node_parameters(node)] + sorted(_ROS_OWN_PARAMETERS)
+            raise ParameterError(_unknown(name, known))
 
 
 def _unknown(name: str, known: list[str]) -> str:
@@ -369,7 +370,7 @@ def read_parameters_file(path: str | Path, node_name: str | None = None) -> dict
             if key in sections:
                 merged.update(sections[key][_PARAMS_KEY] or {})
         document = merged
-    return load_parameters({key: value for key, value in document.items() if key not in ROS_OWN_PARAMETERS})
+    return load_parameters({key: value for key, value in document.items() if key not in _ROS_OWN_PARAMETERS})
 
 
 def parameters_yaml(params: Mapping[str, Any]) -> str:

@@ -229,6 +229,8 @@ def test_node_scoped_validation_and_unknown_names():
     check_parameter_names(["density", "rate", "use_sim_time", "measurement_sigma"], "estimator_node")
     with pytest.raises(ParameterError, match=r"^unknown parameter tool_radiuss \(did you mean tool_radius\?\)$"):
         check_parameter_names(["world_frame", "tool_radiuss"], "estimator_node")
+    with pytest.raises(ParameterError, match=r"^unknown parameter use_sim_tim \(did you mean use_sim_time\?\)$"):
+        check_parameter_names(["use_sim_tim"], "simulation_node")
     with pytest.raises(ParameterError, match=r"^unknown parameter xyz \(known: rate, wait_for_subscribers, "):
         check_parameter_names(["xyz"], "bag_player")
 

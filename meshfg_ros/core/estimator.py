@@ -132,6 +132,7 @@ FACTOR_CONFIGURATIONS = {
 }
 # LM stops when the cost could fall by less than this (chi^2 / 2 units, see the module doc).
 ABSOLUTE_COST_TOLERANCE = 0.25
+# Levenberg-Marquardt's settings; each update sets max_iterations and the time budget from the config.
 LM_CONFIG = LevenbergMarquardtConfig(cost_tolerance=1e-9, absolute_cost_tolerance=ABSOLUTE_COST_TOLERANCE)
 # PCG's relative residual in each LM step (inexact Newton, see the module doc).
 LINEAR_TOLERANCE = 1e-3
@@ -395,9 +396,9 @@ class SlidingWindowEstimator:
         Safe to call from another thread while an update runs. Raises EstimatorConfigError, and
         changes nothing, for a field that is unknown or not dynamic or a value the config refuses.
         """
-        dynamic = dynamic_fields(EstimatorConfig)
+        dynamic, known = dynamic_fields(EstimatorConfig), {item.name for item in fields(EstimatorConfig)}
         for name in changes:
-            if name not in {item.name for item in fields(EstimatorConfig)}:
+            if name not in known:
                 raise EstimatorConfigError(f"unknown setting {name}")
             if name not in dynamic:
                 raise EstimatorConfigError(f"{name} cannot change while the estimator runs "
