@@ -1,11 +1,18 @@
-"""The parameters of meshfg_ros: one table shared by the ROS nodes and the offline replay.
+"""The parameters of meshfg_ros, derived from the configuration dataclasses' fields.
 
-Each `Parameter` carries its default, a description, a ROS-style type name and its valid
-range, so the nodes declare ROS parameters (with ParameterDescriptors) from it and the replay
-validates its --config YAML against it. `load_parameters` checks a mapping (unknown key,
-wrong type, out of range -> ParameterError naming the key) and fills in defaults;
-`simulator_config` / `estimator_config` turn the result into the core configurations.
-config/meshfg.yaml lists every parameter with its default (a test keeps the two in sync).
+A field made with core.settings.setting is a parameter: its default, description, range,
+choices, name and whether it is dynamic are written once, on the field. The core's
+SimulatorConfig and EstimatorConfig hold the model's settings; the small dataclasses below hold
+the nodes' own (frames, the initial mesh file, timeouts, markers, playback). Each node declares
+the parameters of the configurations it reads (NODE_CONFIGURATIONS): simulator settings go to
+the simulation node, estimator settings to the estimator node, and a parameter of both (the
+tissue model, the tool) to both. `simulator_config` / `estimator_config` build the core
+configurations from parameter values by the same fields.
+
+`load_parameters` checks a mapping (unknown key, wrong type, out of range -> ParameterError
+naming the key) and fills in defaults, for the whole pipeline (the offline replay's --config) or
+for one node. config/meshfg.yaml lists every parameter of the pipeline with its default (a test
+keeps the two in sync).
 
 Clouds may come in `world_frame` or in `camera_frame`; `cloud_to_world` moves the latter into
 the world frame with the static transform `camera_pose` and rejects every other frame.
@@ -13,7 +20,10 @@ the world frame with the static transform `camera_pose` and rejects every other 
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import difflib
+import functools
+import textwrap
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -22,32 +32,44 @@ import numpy as np
 import yaml
 from scipy.spatial.transform import Rotation
 
-from meshfg_ros.core.estimator import FACTOR_CONFIGURATIONS, EstimatorConfig
-from meshfg_ros.core.fem import STIFFNESS_KINDS
-from meshfg_ros.core.linear_solvers import LINEAR_SOLVERS
-from meshfg_ros.core.robust import ROBUST_KERNELS
-from meshfg_ros.core.simulator import SOLVERS as SIMULATOR_SOLVERS
-from meshfg_ros.core.simulator import TOOL_CONTACTS, TOOL_MODES, SimulatorConfig
+from meshfg_ros.core.estimator import EstimatorConfig
+from meshfg_ros.core.mesh import TetMesh, load_mesh
+from meshfg_ros.core.settings import setting, settings_of
+from meshfg_ros.core.simulator import SimulatorConfig
 
 __all__ = [
+    "NODE_CONFIGURATIONS",
     "PARAMETERS",
     "PARAMETER_TYPES",
+    "EstimatorNodeConfig",
     "FrameError",
     "Parameter",
     "ParameterError",
+    "PlaybackConfig",
+    "SharedNodeConfig",
+    "SimulationNodeConfig",
+    "check_parameter_names",
     "cloud_to_world",
+    "config_changes",
+    "config_from_parameters",
     "default_parameters",
+    "estimator_changes",
     "estimator_config",
+    "load_mesh_file",
     "load_parameters",
+    "node_parameters",
+    "parameter_names",
+    "parameters_help",
     "parameters_yaml",
     "read_parameters_file",
+    "shared_settings",
     "simulator_config",
 ]
 
 # ROS parameter type names (rcl_interfaces/ParameterType without the PARAMETER_ prefix).
 PARAMETER_TYPES = ("double", "integer", "string", "bool", "double_array", "integer_array")
 # Parameters every rclpy node declares itself: accepted in a parameters file and ignored.
-_ROS_OWN_PARAMETERS = frozenset({"use_sim_time"})
+_ROS_OWN_PARAMETERS = frozenset({"use_sim_time", "start_type_description_service"})
 _PARAMS_KEY = "ros__parameters"
 
 
@@ -65,6 +87,7 @@ class Parameter:
 
     range: inclusive (low, high) of the value (of each element for arrays); None = unbounded
     (either bound may be None). choices: the allowed strings. length: required array length.
+    dynamic: may change while the node runs (else read once at start-up).
     """
 
     name: str
@@ -74,16 +97,34 @@ class Parameter:
     range: tuple[float | None, float | None] | None = None
     choices: tuple[str, ...] | None = None
     length: int | None = None
+    dynamic: bool = False
 
     def __post_init__(self) -> None:
         if self.type not in PARAMETER_TYPES:
             raise ParameterError(f"{self.name}: unknown parameter type {self.type!r}")
 
     def validate(self, value: Any) -> Any:
-        """`value` converted to this parameter's canonical Python type, or ParameterError."""
+        """`value` converted to this parameter's canonical Python type, or ParameterError.
+
+        An integer is accepted for a double (also in arrays): `-p measurement_sigma:=1` means 1.0.
+        """
         if self.type.endswith("_array"):
             return self._validate_array(value)
         return self._validate_scalar(value, self.type, self.name)
+
+    def summary(self) -> str:
+        """Type, default, range or choices, and whether dynamic, for --help."""
+        default = list(self.default) if isinstance(self.default, tuple) else self.default
+        parts = [self.type, f"default {default!r}" if self.type == "string" else f"default {default}"]
+        if self.range is not None:
+            low, high = self.range
+            parts.append(f"range [{_bound(low, '-inf')}, {_bound(high, 'inf')}]")
+        if self.choices is not None:
+            parts.append(f"one of: {', '.join(self.choices)}")
+        if self.length is not None:
+            parts.append(f"{self.length} values")
+        parts.append("dynamic" if self.dynamic else "read-only")
+        return ", ".join(parts)
 
     def _validate_scalar(self, value: Any, kind: str, label: str) -> Any:
         if kind == "bool":
@@ -129,140 +170,187 @@ def _bound(value: float | None, unbounded: str) -> str:
     return unbounded if value is None else f"{value:g}"
 
 
-_POSITIVE_LENGTH = (1e-9, 10.0)  # metres: from a nanometre to a room-sized workspace
-# The core's own defaults are the parameters' defaults (config/meshfg.yaml repeats them).
-_SIMULATOR = SimulatorConfig()
-_ESTIMATOR = EstimatorConfig()
+# ------------------------------------------------------------------ the nodes' own settings
+@dataclass(frozen=True)
+class SimulationNodeConfig:
+    """Settings of the simulation node beyond the simulator's."""
 
-PARAMETERS: tuple[Parameter, ...] = (
-    # Simulator (the physics prior's predictor).
-    Parameter("tool_mode", _SIMULATOR.tool_mode,
-              "How the tool drives the tissue: 'sphere' pushes it with a rigid sphere, 'grasp' moves "
-              "grasped_vertices rigidly with the tool.", "string", choices=TOOL_MODES),
-    Parameter("tool_contact", _SIMULATOR.tool_contact,
-              "Sphere contact: 'stick' (the tissue does not slip while pushed) or 'slide' (frictionless).",
-              "string", choices=TOOL_CONTACTS),
-    Parameter("tool_radius", _SIMULATOR.tool_radius,
-              "Radius of the tool sphere in metres (sphere mode).", "double", (1e-6, 1.0)),
-    Parameter("grasped_vertices", (),
-              "Mesh vertex indices held by the tool (grasp mode only).", "integer_array", (0, None)),
-    Parameter("youngs_modulus", _SIMULATOR.youngs_modulus,
-              "Young's modulus of the tissue model in pascals.", "double", (1.0, 1e9)),
-    Parameter("poisson_ratio", _SIMULATOR.poisson_ratio,
-              "Poisson's ratio of the tissue model.", "double", (0.001, 0.499)),
-    Parameter("density", _SIMULATOR.density,
-              "Tissue density in kg/m^3.", "double", (1.0, 1e5)),
-    Parameter("simulator", _SIMULATOR.solver,
-              "Simulator solver: 'vbd' (vertex block descent) or 'xpbd'.", "string", choices=SIMULATOR_SOLVERS),
-    Parameter("simulator_substeps", _SIMULATOR.substeps,
-              "Tool increments per prediction.", "integer", (1, 1000)),
-    Parameter("simulator_iterations", _SIMULATOR.solver_iterations,
-              "Solver iterations per sub-step.", "integer", (1, 1000)),
-    # Factor graph.
-    Parameter("factors", _ESTIMATOR.factors,
-              "Factor configuration of the estimator, by name.", "string", choices=tuple(FACTOR_CONFIGURATIONS)),
-    Parameter("measurement_sigma", _ESTIMATOR.measurement_sigma,
-              "Nominal standard deviation of a depth point along the surface normal, metres (the sensor's "
-              "datasheet value; with estimate_weights the estimator starts from it and estimates the real spread "
-              "from the residuals).",
-              "double", _POSITIVE_LENGTH),
-    Parameter("simulation_sigma", _ESTIMATOR.simulation_sigma,
-              "Expected simulator error per vertex in metres; scales the FEM-stiffness information of the "
-              "physics prior. Used with estimate_weights false; with estimate_weights the prior follows the "
-              "estimated measurement sigma (a tenth of it, core/weights.py).", "double", _POSITIVE_LENGTH),
-    Parameter("estimate_weights", _ESTIMATOR.estimate_weights,
-              "Estimate the measurement noise online from the residuals and weight the physics prior with a "
-              "tenth of it (core/weights.py); false: use measurement_sigma and simulation_sigma as given.",
-              "bool"),
-    Parameter("temporal_sigma", _ESTIMATOR.temporal_sigma,
-              "Standard deviation of a vertex's motion between two steps beyond the simulator's prediction, "
-              "metres.", "double", _POSITIVE_LENGTH),
-    Parameter("window_size", _ESTIMATOR.window_size,
-              "Number of states in the sliding window.", "integer", (1, 100)),
-    Parameter("stiffness_kind", _ESTIMATOR.stiffness_kind,
-              "FEM stiffness used as the prior's information matrix.", "string", choices=STIFFNESS_KINDS),
-    Parameter("spd_projection", _ESTIMATOR.spd_projection,
-              "Clamp negative eigenvalues of the element stiffness matrices.", "bool"),
-    Parameter("robust_kernel", _ESTIMATOR.robust_kernel or "none",
-              "Robust kernel on the point-to-surface residuals.", "string", choices=tuple(ROBUST_KERNELS)),
-    Parameter("robust_scale", _ESTIMATOR.robust_scale,
-              "Scale of the robust kernel in metres; 0: 2.4 times the (estimated) measurement sigma.", "double",
-              (0.0, 10.0)),
-    Parameter("gating_distance", _ESTIMATOR.gating_distance,
-              "Points farther than this from the predicted surface are rejected (metres); 0: five times the "
-              "cloud's robust spread about the predicted surface (at least the measurement sigma).", "double",
-              (0.0, 10.0)),
-    Parameter("max_iterations", _ESTIMATOR.max_iterations,
-              "Levenberg-Marquardt iterations per step (at most).", "integer", (1, 1000)),
-    Parameter("update_time_budget", _ESTIMATOR.update_time_budget,
-              "Seconds (wall time) Levenberg-Marquardt may take per update: it then stops between iterations "
-              "and returns its best state, 'time budget' in the status message.", "double", (1e-3, 3600.0)),
-    Parameter("linear_solver", _ESTIMATOR.linear_solver,
-              "Sparse solver of the normal equations.", "string", choices=tuple(LINEAR_SOLVERS)),
-    # Frames and the live pipeline.
-    Parameter("world_frame", "world",
-              "Frame of meshes, tool poses and estimates.", "string"),
-    Parameter("camera_frame", "camera",
-              "Frame of clouds that are moved to world_frame with camera_pose; clouds in any other frame are "
-              "rejected.", "string"),
-    Parameter("camera_pose", (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0),
-              "Static pose of camera_frame in world_frame: [x, y, z, qx, qy, qz, qw].", "double_array",
-              (-1e3, 1e3), length=7),
-    Parameter("mesh_file", "",
-              "Initial mesh file (.msh, .vtu, .vtk) used when no initial_mesh message arrives; empty: wait for "
-              "initial_mesh.", "string"),
-    Parameter("points_reliable", False,
-              "Subscribe to points with reliable QoS (depth 100): for recordings played back by bag_player, where "
-              "every cloud counts; false: the sensor-data profile of live cameras (best effort, depth 5), which "
-              "drops clouds the transport loses when the CPU is saturated.", "bool"),
-    Parameter("prediction_timeout", 0.5,
-              "Seconds (wall time) a cloud waits for its simulator prediction before the step runs degraded "
-              "without it.", "double", (0.0, 60.0)),
-    Parameter("estimate_timeout", 2.0,
-              "Seconds (wall time) a tool pose waits for the estimate of the previous tool pose before it is "
-              "predicted from an older state (tool poses and clouds share stamps, as in the recordings); 0 when "
-              "tool poses come faster than clouds.", "double", (0.0, 60.0)),
-    Parameter("clock_jump_threshold", 1.0,
-              "A stamp this many seconds older than the newest one (a looped recording) restarts from the "
-              "initial mesh; smaller steps back are dropped.", "double", (0.0, 1e6)),
-    Parameter("marker_std_max", 0.0,
-              "Posterior std (metres) drawn in full red in the markers; 0: the largest std of each estimate.",
-              "double", (0.0, 10.0)),
-)
-
-_BY_NAME: dict[str, Parameter] = {parameter.name: parameter for parameter in PARAMETERS}
+    grasped_vertices: tuple[int, ...] = setting(
+        (), "Mesh vertex indices held by the tool (grasp mode only).", type="integer_array", range=(0, None))
+    estimate_timeout: float = setting(
+        2.0, "Seconds (wall time) a tool pose waits for the estimate of the previous tool pose before it is "
+        "predicted from an older state (tool poses and clouds share stamps, as in the recordings); 0 when "
+        "tool poses come faster than clouds.", range=(0.0, 60.0))
 
 
-def default_parameters() -> dict[str, Any]:
-    """Every parameter at its default."""
-    return {parameter.name: parameter.default for parameter in PARAMETERS}
+@dataclass(frozen=True)
+class EstimatorNodeConfig:
+    """Settings of the estimator node beyond the estimator's: the camera, input QoS and timing, markers."""
+
+    camera_frame: str = setting(
+        "camera", "Frame of clouds that are moved to world_frame with camera_pose; clouds in any other frame "
+        "are rejected.")
+    camera_pose: tuple[float, ...] = setting(
+        (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0), "Static pose of camera_frame in world_frame: [x, y, z, qx, qy, qz, qw].",
+        range=(-1e3, 1e3), length=7)
+    points_reliable: bool = setting(
+        False, "Subscribe to points with reliable QoS (depth 100): for recordings played back by bag_player, "
+        "where every cloud counts; false: the sensor-data profile of live cameras (best effort, depth 5), which "
+        "drops clouds the transport loses when the CPU is saturated.")
+    prediction_timeout: float = setting(
+        0.5, "Seconds (wall time) a cloud waits for its simulator prediction before the step runs degraded "
+        "without it.", range=(0.0, 60.0))
+    marker_std_max: float = setting(
+        0.0, "Posterior std (metres) drawn in full red in the markers; 0: the largest std of each estimate.",
+        range=(0.0, 10.0), dynamic=True)
+
+    def __post_init__(self) -> None:
+        if np.linalg.norm(self.camera_pose[3:]) < 1e-9:
+            raise ParameterError("camera_pose quaternion has zero norm")
 
 
-def load_parameters(mapping: Mapping[str, Any] | None = None) -> dict[str, Any]:
-    """Validated parameters: `mapping` (name -> value) over the defaults.
+@dataclass(frozen=True)
+class SharedNodeConfig:
+    """Settings of both pipeline nodes: the world frame, the initial mesh file, the stamp rule."""
 
-    Values are converted to float / int / str / bool / tuple; grasped_vertices must suit tool_mode.
+    world_frame: str = setting("world", "Frame of meshes, tool poses and estimates.")
+    mesh_file: str = setting(
+        "", "Initial mesh file (.msh, .vtu, .vtk) used when no initial_mesh message arrives; empty: wait for "
+        "initial_mesh. A file that cannot be read stops the node at start-up.")
+    clock_jump_threshold: float = setting(
+        1.0, "A stamp this many seconds older than the newest one (a looped recording) restarts from the "
+        "initial mesh; smaller steps back are dropped.", range=(0.0, 1e6))
+
+
+@dataclass(frozen=True)
+class PlaybackConfig:
+    """Settings of bag_player (its command-line options override rate, wait_for_subscribers and loop)."""
+
+    rate: float = setting(1.0, "Playback speed: 1 is the recorded rate, 2 twice as fast.", range=(1e-3, 1e3))
+    wait_for_subscribers: float = setting(
+        10.0, "Seconds to wait for a subscriber on every played topic before playing.", range=(0.0, 3600.0))
+    clock_frequency: float = setting(100.0, "Rate of /clock messages between recorded ones (Hz).", range=(1.0, 1e4))
+    delay: float = setting(
+        0.5, "Seconds between finding the subscribers and playing: best-effort readers drop messages of a "
+        "writer they have not matched yet.", range=(0.0, 3600.0))
+    loop: bool = setting(False, "Start again at the end of the recording.")
+
+
+# The configurations each node reads: it declares the parameters of their fields.
+NODE_CONFIGURATIONS: dict[str, tuple[type, ...]] = {
+    "simulation_node": (SimulatorConfig, SimulationNodeConfig, SharedNodeConfig),
+    "estimator_node": (EstimatorConfig, EstimatorNodeConfig, SharedNodeConfig),
+    "bag_player": (PlaybackConfig,),
+}
+# The pipeline (both nodes, and the offline replay that reproduces them), in the order of config/meshfg.yaml.
+_PIPELINE_CONFIGURATIONS = (SimulatorConfig, SimulationNodeConfig, EstimatorConfig, EstimatorNodeConfig,
+                            SharedNodeConfig)
+
+_PYTHON_TYPES = ((bool, "bool"), (int, "integer"), (float, "double"), (str, "string"))
+
+
+def _parameter_type(name: str, default: Any, declared: str | None) -> str:
+    if declared is not None:
+        return declared
+    if isinstance(default, tuple) and default:
+        return f"{_parameter_type(name, default[0], None)}_array"
+    for python_type, parameter_type in _PYTHON_TYPES:
+        if isinstance(default, python_type):
+            return parameter_type
+    raise ParameterError(f"{name}: give the parameter type of default {default!r}")
+
+
+@functools.cache
+def _fields_and_parameters(config_class: type) -> tuple[tuple[str, Parameter], ...]:
+    """(field name, parameter) of each field of `config_class` that is a parameter."""
+    return tuple(
+        (field_name, Parameter(
+            name=spec.parameter or field_name, default=default, description=spec.description,
+            type=_parameter_type(field_name, default, spec.type), range=spec.range, choices=spec.choices,
+            length=spec.length, dynamic=spec.dynamic))
+        for field_name, default, spec in settings_of(config_class))
+
+
+def _merged(configurations: Iterable[type]) -> tuple[Parameter, ...]:
+    """The parameters of `configurations`, each once; a parameter of several must be described alike."""
+    by_name: dict[str, Parameter] = {}
+    for config_class in configurations:
+        for _, parameter in _fields_and_parameters(config_class):
+            known = by_name.setdefault(parameter.name, parameter)
+            if known != parameter:
+                raise ParameterError(f"parameter {parameter.name} is described differently in {config_class.__name__}")
+    return tuple(by_name.values())
+
+
+PARAMETERS: tuple[Parameter, ...] = _merged(_PIPELINE_CONFIGURATIONS)
+_NODE_PARAMETERS = {node: _merged(configurations) for node, configurations in NODE_CONFIGURATIONS.items()}
+_PACKAGE_PARAMETER_NAMES = frozenset(parameter.name for parameters in _NODE_PARAMETERS.values()
+                                     for parameter in parameters) | _ROS_OWN_PARAMETERS
+
+
+def node_parameters(node: str | None = None) -> tuple[Parameter, ...]:
+    """The parameters `node` declares (None: the whole pipeline's, PARAMETERS)."""
+    if node is None:
+        return PARAMETERS
+    if node not in _NODE_PARAMETERS:
+        raise ParameterError(f"unknown node {node!r} (known: {', '.join(_NODE_PARAMETERS)})")
+    return _NODE_PARAMETERS[node]
+
+
+def check_parameter_names(names: Iterable[str], node: str) -> None:
+    """ParameterError for the first of `names` that no node of the package knows, with the closest
+    of `node`'s parameters. The parameters of the other nodes are accepted (and ignored by `node`):
+    a `/**` section of a parameters file sets them for every node."""
+    for name in names:
+        if name not in _PACKAGE_PARAMETER_NAMES:
+            known = [parameter.name for parameter in node_parameters(node)] + sorted(_ROS_OWN_PARAMETERS)
+            raise ParameterError(_unknown(name, known))
+
+
+def _unknown(name: str, known: list[str]) -> str:
+    closest = difflib.get_close_matches(name, known, n=1)
+    if closest:
+        return f"unknown parameter {name} (did you mean {closest[0]}?)"
+    return f"unknown parameter {name} (known: {', '.join(known)})"
+
+
+def default_parameters(node: str | None = None) -> dict[str, Any]:
+    """Every parameter of `node` (None: of the pipeline) at its default."""
+    return {parameter.name: parameter.default for parameter in node_parameters(node)}
+
+
+def load_parameters(mapping: Mapping[str, Any] | None = None, node: str | None = None) -> dict[str, Any]:
+    """Validated parameters of `node` (None: of the whole pipeline): `mapping` (name -> value) over
+    the defaults.
+
+    Values are converted to float / int / str / bool / tuple; the configurations they make must
+    accept them, and grasped_vertices must suit tool_mode.
     """
     mapping = {} if mapping is None else mapping
     if not isinstance(mapping, Mapping):
         raise ParameterError(f"parameters must be a mapping of name to value, got {type(mapping).__name__}")
-    unknown = sorted(set(mapping) - set(_BY_NAME))
-    if unknown:
-        raise ParameterError(f"unknown parameter {unknown[0]!r} (known: {', '.join(_BY_NAME)})")
-    values = default_parameters()
+    by_name = {parameter.name: parameter for parameter in node_parameters(node)}
+    for name in mapping:
+        if name not in by_name:
+            raise ParameterError(_unknown(name, list(by_name)))
+    values = default_parameters(node)
     for name, value in mapping.items():
-        values[name] = _BY_NAME[name].validate(value)
-    if values["grasped_vertices"] and values["tool_mode"] != "grasp":
-        raise ParameterError("grasped_vertices is set but tool_mode is not 'grasp'")
-    if values["tool_mode"] == "grasp" and not values["grasped_vertices"]:
-        raise ParameterError("tool_mode 'grasp' needs grasped_vertices")
-    if np.linalg.norm(values["camera_pose"][3:]) < 1e-9:
-        raise ParameterError("camera_pose quaternion has zero norm")
+        values[name] = by_name[name].validate(value)
+    if {"tool_mode", "grasped_vertices"} <= values.keys():
+        if values["grasped_vertices"] and values["tool_mode"] != "grasp":
+            raise ParameterError("grasped_vertices is set but tool_mode is not 'grasp'")
+        if values["tool_mode"] == "grasp" and not values["grasped_vertices"]:
+            raise ParameterError("tool_mode 'grasp' needs grasped_vertices")
+    for config_class in _PIPELINE_CONFIGURATIONS if node is None else NODE_CONFIGURATIONS[node]:
+        try:
+            config_from_parameters(config_class, values)
+        except ValueError as error:
+            raise ParameterError(str(error)) from None
     return values
 
 
 def read_parameters_file(path: str | Path, node_name: str | None = None) -> dict[str, Any]:
-    """Validated parameters from a YAML file: a flat mapping or a ROS 2 parameters file.
+    """Validated parameters of the pipeline from a YAML file: a flat mapping or a ROS 2 parameters file.
 
     In a ROS 2 parameters file (`<node>: {ros__parameters: {...}}`) the `/**` section applies,
     then the section of `node_name` (if given) on top; use_sim_time is ignored.
@@ -292,42 +380,65 @@ def parameters_yaml(params: Mapping[str, Any]) -> str:
     return yaml.safe_dump({"/**": {_PARAMS_KEY: values}}, sort_keys=False, default_flow_style=None)
 
 
+# ------------------------------------------------------------------ configurations <-> parameters
+def parameter_names(config_class: type) -> dict[str, str]:
+    """Field name -> parameter name of each field of `config_class` that is a parameter."""
+    return {field_name: parameter.name for field_name, parameter in _fields_and_parameters(config_class)}
+
+
+def config_from_parameters(config_class: type, params: Mapping[str, Any]):
+    """`config_class` with its parameter fields from validated parameters (the others at their defaults)."""
+    return config_class(**{field_name: params[name] for field_name, name in parameter_names(config_class).items()})
+
+
+def config_changes(config_class: type, changes: Mapping[str, Any]) -> dict[str, Any]:
+    """Field name -> value of the fields of `config_class` that the parameter `changes` set."""
+    return {field_name: changes[name] for field_name, name in parameter_names(config_class).items() if name in changes}
+
+
 def simulator_config(params: Mapping[str, Any]) -> SimulatorConfig:
     """The simulator settings of validated parameters (grasped_vertices go to ElasticSimulator)."""
-    return SimulatorConfig(
-        youngs_modulus=params["youngs_modulus"],
-        poisson_ratio=params["poisson_ratio"],
-        density=params["density"],
-        tool_radius=params["tool_radius"],
-        tool_mode=params["tool_mode"],
-        tool_contact=params["tool_contact"],
-        solver=params["simulator"],
-        substeps=params["simulator_substeps"],
-        solver_iterations=params["simulator_iterations"],
-    )
+    return config_from_parameters(SimulatorConfig, params)
 
 
 def estimator_config(params: Mapping[str, Any]) -> EstimatorConfig:
     """The estimator settings of validated parameters."""
-    return EstimatorConfig(
-        factors=params["factors"],
-        measurement_sigma=params["measurement_sigma"],
-        simulation_sigma=params["simulation_sigma"],
-        temporal_sigma=params["temporal_sigma"],
-        window_size=params["window_size"],
-        stiffness_kind=params["stiffness_kind"],
-        spd_projection=params["spd_projection"],
-        robust_kernel=None if params["robust_kernel"] == "none" else params["robust_kernel"],
-        robust_scale=params["robust_scale"],
-        gating_distance=params["gating_distance"],
-        estimate_weights=params["estimate_weights"],
-        tool_radius=params["tool_radius"] if params["tool_mode"] == "sphere" else 0.0,
-        max_iterations=params["max_iterations"],
-        update_time_budget=params["update_time_budget"],
-        linear_solver=params["linear_solver"],
-        youngs_modulus=params["youngs_modulus"],
-        poisson_ratio=params["poisson_ratio"],
-    )
+    return config_from_parameters(EstimatorConfig, params)
+
+
+def estimator_changes(changes: Mapping[str, Any]) -> dict[str, Any]:
+    """The estimator's settings among parameter `changes`: the arguments of SlidingWindowEstimator.reconfigure."""
+    return config_changes(EstimatorConfig, changes)
+
+
+def shared_settings(config, config_class: type) -> dict[str, Any]:
+    """Field name -> value of the parameter fields `config` shares with `config_class` (the same
+    parameter in both, e.g. the tissue model of a SimulatorConfig for an EstimatorConfig)."""
+    own = parameter_names(type(config))
+    wanted = {name: field_name for field_name, name in parameter_names(config_class).items()}
+    return {wanted[name]: getattr(config, field_name) for field_name, name in own.items() if name in wanted}
+
+
+# ------------------------------------------------------------------ the nodes' inputs and help
+def load_mesh_file(path: str) -> TetMesh:
+    """The initial mesh of parameter mesh_file, or ParameterError (one line) when it cannot be read."""
+    try:
+        return load_mesh(path)
+    except (OSError, ValueError) as error:
+        raise ParameterError(f"cannot load mesh_file {path}: {' '.join(str(error).split())}") from None
+
+
+def parameters_help(nodes: Iterable[str]) -> str:
+    """The parameters of `nodes`, each with its type, default, range or choices and description."""
+    lines = []
+    for node in nodes:
+        lines += ["", f"Parameters of {node} (--ros-args -p NAME:=VALUE or --params-file FILE; "
+                      "dynamic ones also while it runs):"]
+        for parameter in node_parameters(node):
+            lines.append(f"  {parameter.name} ({parameter.summary()})")
+            lines += textwrap.wrap(parameter.description, width=96, initial_indent=" " * 6,
+                                   subsequent_indent=" " * 6)
+    return "\n".join(lines[1:])
 
 
 def cloud_to_world(points: np.ndarray, frame_id: str, params: Mapping[str, Any]) -> np.ndarray:

@@ -42,6 +42,7 @@ from meshfg_ros.core.mesh import TetMesh, load_mesh
 from meshfg_ros.parameters import (
     estimator_config,
     load_parameters,
+    parameter_names,
     read_parameters_file,
     simulator_config,
 )
@@ -77,17 +78,8 @@ from meshfg_ros.topics import (
 )
 
 FLOAT64_MULTI_ARRAY = "std_msgs/msg/Float64MultiArray"
-# SimulatorConfig fields that are parameters of the nodes, by parameter name.
-SIMULATOR_PARAMETERS = {
-    "youngs_modulus": "youngs_modulus",
-    "poisson_ratio": "poisson_ratio",
-    "density": "density",
-    "tool_radius": "tool_radius",
-    "tool_mode": "tool_mode",
-    "substeps": "simulator_substeps",
-    "solver_iterations": "simulator_iterations",
-    "solver": "simulator",
-}
+# SimulatorConfig fields that are parameters of the nodes -> their parameter names.
+SIMULATOR_PARAMETERS = parameter_names(SimulatorConfig)
 # Input topics copied verbatim into a replay's output, so that it is self-contained (the
 # initial mesh is written as used: the recording's or the --mesh file's).
 COPIED_TOPICS = (SCENARIO_TOPIC, CAMERA_POSE_TOPIC, TOOL_POSE_TOPIC, POINTS_TOPIC)

@@ -82,7 +82,7 @@ def test_replay_rejects_a_mesh_that_is_not_tetrahedral(recordings):
 def test_replay_rejects_unknown_parameters(recordings):
     completed = meshfg("replay", recordings / "truth", "--out", recordings / "out_config",
                        "--config", recordings / "bad.yaml")
-    assert_one_line_error(completed, "replay", "unknown parameter 'measurment_sigma'")
+    assert_one_line_error(completed, "replay", "unknown parameter measurment_sigma (did you mean measurement_sigma?)")
     completed = meshfg("replay", recordings / "truth", "--out", recordings / "out_factors", "--factors", "magic")
     assert_one_line_error(completed, "replay", "factors", "magic")
 

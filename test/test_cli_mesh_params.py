@@ -9,8 +9,8 @@ from meshfg_ros import cli
 from meshfg_ros.core.mesh import load_mesh
 from meshfg_ros.io.messages import MeshState
 from meshfg_ros.io.recording import RecordingReader
-from meshfg_ros.parameters import PARAMETERS, read_parameters_file
-from meshfg_ros.replay import load_inputs, replay_parameters
+from meshfg_ros.parameters import read_parameters_file
+from meshfg_ros.replay import load_inputs, replay_parameters, scenario_parameters
 from meshfg_ros.synthetic.meshing import gmsh_model, structured_box_mesh
 from meshfg_ros.topics import INITIAL_MESH_TOPIC
 
@@ -129,16 +129,21 @@ def test_params_file_through_rcl_as_the_nodes_read_it(capsys, tmp_path, recordin
     import rclpy
     from rclpy.context import Context
 
-    from meshfg_ros.nodes.ros_conversions import declare_parameters
+    from meshfg_ros.nodes.ros_parameters import declare_parameters
 
     out = tmp_path / "params.yaml"
     run(capsys, "params", str(REPOSITORY / "bags" / recording), "--out", str(out))
     context = Context()
     rclpy.init(args=["--ros-args", "--params-file", str(out)], context=context)
+    values = {}
     try:
-        node = rclpy.create_node("estimator_node", context=context)
-        values = declare_parameters(node, [parameter.name for parameter in PARAMETERS])
-        node.destroy_node()
+        for name in ("simulation_node", "estimator_node"):
+            node = rclpy.create_node(name, context=context)
+            values.update(declare_parameters(node, name))
+            node.destroy_node()
     finally:
         rclpy.shutdown(context=context)
-    assert values == replay_parameters(load_inputs(REPOSITORY / "bags" / recording))
+    inputs = load_inputs(REPOSITORY / "bags" / recording)
+    replayed = replay_parameters(inputs)
+    assert set(scenario_parameters(inputs.metadata, inputs.camera_pose)) <= set(values)
+    assert values == {name: replayed[name] for name in values}

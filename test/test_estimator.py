@@ -1,10 +1,11 @@
 """Sliding-window estimator: factor configurations, degraded steps, window handling, the
-conditioning choice against the growing full batch, posterior std, and bad input."""
+conditioning choice against the full batch, posterior std, and bad input."""
 
 import numpy as np
 import pytest
 
 from meshfg_ros.benchmarks.baselines import WhitenedProblem, freeze_associations, synthetic_sequence
+from meshfg_ros.core import estimator as estimator_module
 from meshfg_ros.core.estimator import (
     FACTOR_CONFIGURATIONS,
     EstimatorConfig,
@@ -24,8 +25,11 @@ def rmse(a, b):
     return float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1))))
 
 
-def run(mesh, sequence, steps=None, **config):
+def run(mesh, sequence, steps=None, exact_lm=False, **config):
+    """exact_lm: every state re-linearised at every iteration (the graph's threshold 0), as the cross-checks."""
     estimator = SlidingWindowEstimator(mesh, EstimatorConfig(**config))
+    if exact_lm:
+        estimator.graph.relinearize_threshold = 0.0
     results = [estimator.update(step.stamp_ns, step.points, step.predicted) for step in sequence[:steps]]
     return estimator, results
 
@@ -75,21 +79,15 @@ def test_missing_prediction_degrades_to_copy_forward(scene):
     assert not no_sim.update(1, sequence[0].points, None).degraded
 
 
-def test_growing_graph_keeps_every_state(scene):
-    mesh, sequence = scene
-    estimator, results = run(mesh, sequence, 5, factors="full", window_size=2, growing=True)
-    assert [r.window_size for r in results] == [1, 2, 3, 4, 5]
-    assert len(estimator.graph.keys) == 5
-
-
 def test_conditioning_window_against_growing_full_batch(scene):
     """The design choice: states leaving the window are conditioned on. Measured against the
-    paper's growing graph (all states re-optimised jointly every step)."""
+    paper's growing graph (all states re-optimised jointly every step): a window as long as the
+    sequence."""
     mesh, sequence = scene
-    common = dict(factors="full", measurement_sigma=5e-4, relinearize_threshold=0.0, covariance="none",
-                  lm=EstimatorConfig().lm.__class__(max_iterations=30, cost_tolerance=1e-9))
-    _, window = run(mesh, sequence, 6, window_size=3, max_iterations=30, **common)
-    _, batch = run(mesh, sequence, 6, window_size=3, growing=True, max_iterations=30, **common)
+    common = dict(factors="full", measurement_sigma=5e-4, exact_lm=True, max_iterations=30)
+    _, window = run(mesh, sequence, 6, window_size=3, **common)
+    _, batch = run(mesh, sequence, 6, window_size=6, **common)
+    assert [result.window_size for result in batch] == [1, 2, 3, 4, 5, 6]
     differences = [rmse(w.positions, b.positions) for w, b in zip(window, batch)]
     errors_window = [rmse(w.positions, s.truth) for w, s in zip(window, sequence)]
     errors_batch = [rmse(b.positions, s.truth) for b, s in zip(batch, sequence)]
@@ -101,10 +99,11 @@ def test_conditioning_window_against_growing_full_batch(scene):
     assert abs(np.mean(errors_window) - np.mean(errors_batch)) < 0.1 * np.mean(errors_batch)
 
 
-def test_exact_position_std_equals_dense_marginal(scene):
+def test_exact_position_std_equals_dense_marginal(scene, monkeypatch):
     mesh, sequence = scene
-    estimator, results = run(mesh, sequence, 2, factors="full", window_size=2, covariance="exact",
-                             relinearize_threshold=0.0, stiffness_kind="linear", robust_kernel=None)
+    estimator, results = run(mesh, sequence, 2, factors="full", window_size=2, exact_lm=True,
+                             stiffness_kind="linear", robust_kernel=None)
+    assert 2 * estimator.graph.block_size <= estimator_module.EXACT_COVARIANCE_MAX_DOFS  # the exact marginal
     graph = estimator.graph
     freeze_associations(graph)
     jacobian = WhitenedProblem(graph).jacobian(graph.get_x()).toarray()
@@ -112,8 +111,9 @@ def test_exact_position_std_equals_dense_marginal(scene):
     newest = covariance[-graph.block_size:, -graph.block_size:]
     expected = np.sqrt(np.einsum("vivi->v", newest.reshape(graph.block_size // 3, 3, graph.block_size // 3, 3)) / 3.0)
     np.testing.assert_allclose(results[-1].position_std[graph.free_vertices], expected, rtol=1e-6)
+    monkeypatch.setattr(estimator_module, "EXACT_COVARIANCE_MAX_DOFS", 0)  # the vertex-conditional bound
     conditional = SlidingWindowEstimator(mesh, EstimatorConfig(factors="full", window_size=2, stiffness_kind="linear",
-                                                               covariance="vertex-conditional", robust_kernel=None))
+                                                               robust_kernel=None))
     for step in sequence[:2]:
         approximate = conditional.update(step.stamp_ns, step.points, step.predicted).position_std
     free = graph.free_vertices
@@ -165,8 +165,7 @@ def test_bad_input_and_nan_points(scene):
 
 @pytest.mark.parametrize("field, value", [("factors", "all"), ("window_size", 0), ("measurement_sigma", -1.0),
                                           ("robust_kernel", "tukey"), ("linear_solver", "qr"),
-                                          ("stiffness_kind", "stvk"), ("covariance", "full"),
-                                          ("stiffness_update", "iteration")])
+                                          ("stiffness_kind", "stvk"), ("tool_mode", "scalpel")])
 def test_config_validation(field, value):
     with pytest.raises(EstimatorConfigError, match=field):
         EstimatorConfig(**{field: value})

@@ -1,4 +1,7 @@
-"""The parameter table: config/meshfg.yaml matches it, validation names the key, core configs follow."""
+"""The parameters, derived from the configurations' fields: config/meshfg.yaml matches them,
+each node declares those of the configurations it reads, validation names the key, core configs
+follow, --help describes them."""
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -7,19 +10,29 @@ import yaml
 from rcl_interfaces.msg import ParameterType
 
 from meshfg_ros.core.estimator import EstimatorConfig
+from meshfg_ros.core.settings import setting, settings_of
 from meshfg_ros.parameters import (
+    NODE_CONFIGURATIONS,
     PARAMETERS,
     FrameError,
     ParameterError,
+    check_parameter_names,
     cloud_to_world,
+    config_changes,
     default_parameters,
+    estimator_changes,
     estimator_config,
+    load_mesh_file,
     load_parameters,
+    node_parameters,
+    parameter_names,
+    parameters_help,
     read_parameters_file,
+    shared_settings,
     simulator_config,
 )
 from meshfg_ros.core.simulator import SimulatorConfig
-from meshfg_ros.nodes.ros_conversions import parameter_descriptor
+from meshfg_ros.nodes.ros_parameters import parameter_descriptor
 
 CONFIG = Path(__file__).resolve().parents[1] / "config" / "meshfg.yaml"
 PYTHON_TYPES = {"double": float, "integer": int, "string": str, "bool": bool}
@@ -66,11 +79,12 @@ def test_descriptors_carry_type_range_and_choices():
     assert by_name["grasped_vertices"].type == ParameterType.PARAMETER_INTEGER_ARRAY
     assert by_name["camera_pose"].additional_constraints == "exactly 7 values"
     assert all(descriptor.read_only and descriptor.description for descriptor in by_name.values())
-    assert by_name["grasped_vertices"].type == ParameterType.PARAMETER_INTEGER_ARRAY
+    sigma = next(parameter for parameter in PARAMETERS if parameter.name == "measurement_sigma")
+    assert not parameter_descriptor(sigma, read_only=False).read_only
 
 
 @pytest.mark.parametrize("mapping, message", [
-    ({"youngs_modulus_pa": 1.0}, "unknown parameter 'youngs_modulus_pa'"),
+    ({"youngs_modulus_pa": 1.0}, r"unknown parameter youngs_modulus_pa \(did you mean youngs_modulus\?\)"),
     ({"youngs_modulus": "soft"}, "youngs_modulus must be a number"),
     ({"youngs_modulus": True}, "youngs_modulus must be a number"),
     ({"youngs_modulus": float("nan")}, "youngs_modulus must be finite"),
@@ -137,7 +151,7 @@ def test_parameters_file_formats(tmp_path):
         read_parameters_file(bad)
     unknown = tmp_path / "unknown.yaml"
     unknown.write_text("max_iteration: 12\n")
-    with pytest.raises(ParameterError, match="unknown parameter 'max_iteration'"):
+    with pytest.raises(ParameterError, match=r"unknown parameter max_iteration \(did you mean max_iterations\?\)"):
         read_parameters_file(unknown)
     with pytest.raises(ParameterError, match="cannot read parameters file"):
         read_parameters_file(tmp_path / "missing.yaml")
@@ -153,3 +167,103 @@ def test_clouds_move_from_the_camera_frame_to_the_world_frame():
     message = "cloud frame 'map' is neither world_frame 'world' nor camera_frame 'endoscope'"
     with pytest.raises(FrameError, match=message):
         cloud_to_world(points, "map", params)
+
+
+# ---------------------------------------------------------------------------- derived from the fields
+def test_the_parameters_are_the_setting_fields_of_the_configurations():
+    # Renamed fields keep their user-visible parameter names.
+    assert parameter_names(SimulatorConfig) == {
+        "youngs_modulus": "youngs_modulus", "poisson_ratio": "poisson_ratio", "density": "density",
+        "tool_radius": "tool_radius", "tool_mode": "tool_mode", "tool_contact": "tool_contact",
+        "substeps": "simulator_substeps", "solver_iterations": "simulator_iterations", "solver": "simulator"}
+    # Internal fields are no parameters; every estimator setting is one (no knob the nodes cannot set).
+    internal = {item.name for item in fields(SimulatorConfig)} - set(parameter_names(SimulatorConfig))
+    assert internal == {"damping", "gravity", "deterministic"}
+    assert set(parameter_names(EstimatorConfig)) == {item.name for item in fields(EstimatorConfig)}
+    by_name = {parameter.name: parameter for parameter in PARAMETERS}
+    for config_class in {c for configurations in NODE_CONFIGURATIONS.values() for c in configurations}:
+        for field_name, default, spec in settings_of(config_class):
+            parameter = node_parameters("bag_player" if config_class.__name__ == "PlaybackConfig" else None)
+            parameter = {p.name: p for p in parameter}[spec.parameter or field_name]
+            assert (parameter.default, parameter.description, parameter.range) == (default, spec.description,
+                                                                                   spec.range), field_name
+    assert by_name["camera_pose"].type == "double_array" and by_name["grasped_vertices"].type == "integer_array"
+    assert {name for name, parameter in by_name.items() if parameter.dynamic} == {
+        "measurement_sigma", "simulation_sigma", "temporal_sigma", "robust_scale", "gating_distance", "marker_std_max"}
+
+
+def test_each_node_declares_the_parameters_of_the_configurations_it_reads():
+    simulation = {parameter.name for parameter in node_parameters("simulation_node")}
+    estimator = {parameter.name for parameter in node_parameters("estimator_node")}
+    assert {"density", "simulator", "simulator_substeps", "grasped_vertices", "estimate_timeout"} <= simulation - estimator
+    assert {"measurement_sigma", "window_size", "camera_pose", "prediction_timeout", "marker_std_max"} <= \
+        estimator - simulation
+    # The tissue model and the tool are both configurations' fields; frames and mesh are both nodes'.
+    assert simulation & estimator == {"youngs_modulus", "poisson_ratio", "tool_radius", "tool_mode", "world_frame",
+                                      "mesh_file", "clock_jump_threshold"}
+    assert simulation | estimator == {parameter.name for parameter in PARAMETERS}
+    assert [parameter.name for parameter in node_parameters("bag_player")] == [
+        "rate", "wait_for_subscribers", "clock_frequency", "delay", "loop"]
+
+
+def test_a_parameter_of_two_configurations_must_be_described_alike():
+    from meshfg_ros import parameters
+
+    @dataclass(frozen=True)
+    class Other:
+        youngs_modulus: float = setting(3e3, "Another description of the same parameter.")
+
+    with pytest.raises(ParameterError, match="youngs_modulus is described differently in Other"):
+        parameters._merged((SimulatorConfig, Other))
+
+
+def test_node_scoped_validation_and_unknown_names():
+    # The grasp rule needs both parameters: the estimator node has no grasped_vertices.
+    assert load_parameters({"tool_mode": "grasp"}, node="estimator_node")["tool_mode"] == "grasp"
+    with pytest.raises(ParameterError, match="tool_mode 'grasp' needs grasped_vertices"):
+        load_parameters({"tool_mode": "grasp"}, node="simulation_node")
+    with pytest.raises(ParameterError, match="camera_pose quaternion has zero norm"):
+        load_parameters({"camera_pose": [0] * 7}, node="estimator_node")
+    assert set(load_parameters(node="simulation_node")) == {p.name for p in node_parameters("simulation_node")}
+    # A node accepts (and ignores) the other nodes' parameters and use_sim_time, not a typo.
+    check_parameter_names(["density", "rate", "use_sim_time", "measurement_sigma"], "estimator_node")
+    with pytest.raises(ParameterError, match=r"^unknown parameter tool_radiuss \(did you mean tool_radius\?\)$"):
+        check_parameter_names(["world_frame", "tool_radiuss"], "estimator_node")
+    with pytest.raises(ParameterError, match=r"^unknown parameter use_sim_tim \(did you mean use_sim_time\?\)$"):
+        check_parameter_names(["use_sim_tim"], "simulation_node")
+    with pytest.raises(ParameterError, match=r"^unknown parameter xyz \(known: rate, wait_for_subscribers, "):
+        check_parameter_names(["xyz"], "bag_player")
+
+
+def test_config_changes_and_shared_settings_follow_the_field_names():
+    changes = {"simulator_substeps": 4, "measurement_sigma": 0.002, "marker_std_max": 0.01}
+    assert config_changes(SimulatorConfig, changes) == {"substeps": 4}
+    assert estimator_changes(changes) == {"measurement_sigma": 0.002}
+    model = SimulatorConfig(youngs_modulus=5e3, poisson_ratio=0.4, tool_radius=0.002, tool_mode="grasp", density=900.0)
+    assert shared_settings(model, EstimatorConfig) == {"youngs_modulus": 5e3, "poisson_ratio": 0.4,
+                                                       "tool_radius": 0.002, "tool_mode": "grasp"}
+    grasp = estimator_config(load_parameters({"tool_mode": "grasp", "grasped_vertices": [3]}))
+    assert (grasp.tool_mode, grasp.tool_radius) == ("grasp", 0.005)
+
+
+def test_help_describes_every_parameter_of_the_nodes():
+    text = parameters_help(["simulation_node", "estimator_node"])
+    assert text.startswith("Parameters of simulation_node") and "\nParameters of estimator_node" in text
+    estimator_part = text[text.index("Parameters of estimator_node"):]
+    for parameter in node_parameters("estimator_node"):
+        assert f"\n  {parameter.name} ({parameter.summary()})\n" in estimator_part
+        assert " ".join(parameter.description.split()[:4]) in " ".join(estimator_part.split())
+    assert "  measurement_sigma (double, default 0.001, range [1e-09, 10], dynamic)" in text
+    assert "  tool_mode (string, default 'sphere', one of: sphere, grasp, read-only)" in text
+    assert "  camera_pose (double_array, default [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0], range [-1000, 1000], 7 values, " \
+           "read-only)" in text
+
+
+def test_a_mesh_file_that_cannot_be_read_is_a_parameter_error(tmp_path):
+    with pytest.raises(ParameterError, match=r"^cannot load mesh_file /nonexistent/organ\.msh: "):
+        load_mesh_file("/nonexistent/organ.msh")
+    garbage = tmp_path / "organ.vtu"
+    garbage.write_text("not a mesh\n")
+    with pytest.raises(ParameterError, match="cannot load mesh_file .*organ.vtu") as error:
+        load_mesh_file(str(garbage))
+    assert "\n" not in str(error.value)

@@ -111,27 +111,27 @@ BASELINE_TOLERANCE = 1e-8  # relative cost decrease at which every solver stops
 
 def _single_update_problem(scale: dict):
     from meshfg_ros.benchmarks.baselines import mismatch_sequence, pending_window
-    from meshfg_ros.core.estimator import EstimatorConfig
+    from meshfg_ros.core.estimator import LINEAR_TOLERANCE, EstimatorConfig
 
     mesh, sequence = mismatch_sequence(scale["target_vertices"], scale["points_per_step"], scale["window_size"] + 1)
     _, graph = pending_window(mesh, sequence, EstimatorConfig(window_size=scale["window_size"], **BASELINE_ESTIMATOR))
     problem = (f"one window update: box {mesh.vertex_count} vertices, W={scale['window_size']}, "
                f"{scale['points_per_step']} points/step, association frozen, information fixed, same start, "
                f"stop at relative cost decrease {BASELINE_TOLERANCE:g}, meshfg's PCG to its default relative "
-               f"residual {EstimatorConfig.linear_tolerance:g}")
+               f"residual {LINEAR_TOLERANCE:g}")
     return graph, problem
 
 
 def _compare(graph, solvers, repeats: int, progress: bool, label: str) -> dict:
     from meshfg_ros.benchmarks.baselines import compare_single_update
-    from meshfg_ros.core.estimator import EstimatorConfig
+    from meshfg_ros.core.estimator import LINEAR_TOLERANCE
 
     out = {}
     for name in tqdm(solvers, desc=f"bench baselines ({label})", file=sys.stderr, disable=not progress):
         runs = 1 if name == "gtsam" else repeats  # GTSAM: seconds per run
         median_ms, results = _median_time(
             lambda: compare_single_update(graph, solvers=(name,), tolerance=BASELINE_TOLERANCE,
-                                          linear_tolerance=EstimatorConfig.linear_tolerance), runs)
+                                          linear_tolerance=LINEAR_TOLERANCE), runs)
         out[name] = {"median_ms": median_ms, "final_cost": float(results[name].cost)}
     for name in solvers:
         if name != "meshfg":

@@ -16,23 +16,23 @@ Design decisions (see also factors.py, factor_graph.py, levenberg_marquardt.py, 
   initial mesh anchors the first state). Marginalisation would turn the dropped state's
   factors into a dense prior over a whole state (3N x 3N Schur complement, fill-in of the
   mesh's separators) at every update; conditioning keeps the window sparse and its cost
-  fixed. test_estimator measures the difference to the growing full batch (`growing=True`,
-  the paper's offline graph).
+  fixed. test_estimator measures the difference to the full batch (a window as long as the
+  sequence: the paper's offline graph).
 - Fixed (boundary) vertices are eliminated: held at their initial positions.
-- K_t(X_t) (stiffness_update "update", the only one): K is evaluated at each state's
-  linearisation point once per update, at the first LM iteration that re-linearises the
-  state, and held for that update's remaining iterations; it is the information, not
-  differentiated. Each update thus has a fixed objective that LM provably decreases, and K
-  still follows X_t from one update to the next. Re-evaluating K at every LM iteration would
-  move the objective itself between iterations (K(X) changes the cost at the same X): on
-  weakly determined (smooth, unobserved) modes its optimum moves by up to about a millimetre
-  with it, and LM stalls at max_iterations rejecting steps.
-- Old states are re-linearised only when they moved more than relinearize_threshold
-  (default: the nominal measurement_sigma, RMS over vertices) since their last linearisation
-  (FactorGraph, as iSAM2's relinearisation threshold): the quadratic model error that
-  allows is second order, ~threshold^2 / edge length, far below the measurement noise; the
-  newest state is re-linearised at every LM iteration. relinearize_threshold=0 is exact LM
-  on the window (what the scipy / GTSAM cross-checks use).
+- K_t(X_t) is evaluated at each state's linearisation point once per update, at the first LM
+  iteration that re-linearises the state, and held for that update's remaining iterations;
+  K is the information, not differentiated. Re-evaluating it at every LM iteration moves the
+  objective itself between iterations (K(X) changes the cost at the same X), and on weakly
+  determined (smooth, unobserved) modes the optimum moves by up to ~mm with it: LM then
+  stalled at max_iterations rejecting steps (measured on the synthetic box). Held per update,
+  the objective is fixed and LM provably decreases it, and K still follows X_t from one update
+  to the next.
+- Old states are re-linearised only when they moved more than the nominal measurement_sigma
+  (RMS over vertices) since their last linearisation (FactorGraph.relinearize_threshold, as
+  iSAM2's relinearisation threshold): the quadratic model error that allows is second order,
+  ~threshold^2 / edge length, far below the measurement noise; the newest state is
+  re-linearised at every LM iteration. A threshold of 0 is exact LM on the window (what the
+  scipy / GTSAM cross-checks set on the graph).
 - Weights (weights.py): with estimate_weights (default) the measurement sigma is estimated
   after every update from the residual distances (robust: 1.4826 median) and the physics
   prior is weighted as a simulation sigma of a tenth of it; the first update, which starts
@@ -42,8 +42,8 @@ Design decisions (see also factors.py, factor_graph.py, levenberg_marquardt.py, 
   robust spreads (the spread clipped to [1, 10] sigmas) are gated, and the rest go through a
   Cauchy kernel of scale 2.4 sigma.
 - The physics prior's scale makes mean(diag(scale K_rest)) = 1 / simulation_sigma^2 on the
-  free dofs (factors.prior_scale); a ridge prior_ridge / simulation_sigma^2 (default 1e-6
-  of the mean information) gives a free body's 6 rigid modes a tiny information. The prior
+  free dofs (factors.prior_scale); a ridge PRIOR_RIDGE / simulation_sigma^2 (1e-6 of the
+  mean information) gives a free body's 6 rigid modes a tiny information. The prior
   carries a volume barrier (factors.VolumeBarrierFactor) that keeps every element above half
   its volume in the prediction, and LM cuts any step that would shrink an element below a
   quarter of its volume: no estimate contains a flat or inverted element.
@@ -52,20 +52,24 @@ Design decisions (see also factors.py, factor_graph.py, levenberg_marquardt.py, 
   deviations), never on a relative decrease: the window's cost grows with W and the clouds,
   and a relative test stopped the newest state short of small, statistically clear
   corrections. Steps are inexact Newton steps: PCG to a relative residual of
-  linear_tolerance (1e-3); the gain ratio judges each step on its true cost.
-- Posterior std (position_std, (N,), sqrt(trace(Sigma_ii)/3), 0 on fixed vertices): with
-  covariance "exact" (default up to `exact_covariance_max_dofs` window unknowns) the exact
-  marginal of the newest state, diag blocks of H^-1 of the undamped Gauss-Newton matrix of
-  the whole window at the solution (dense); beyond that "vertex-conditional": each vertex's
-  3x3 covariance given all other unknowns, inv(H_ii), a cheap lower bound of the marginal that
-  shows where measurements and priors constrain the mesh.
+  LINEAR_TOLERANCE (1e-3); the gain ratio judges each step on its true cost.
+- Posterior std (position_std, (N,), sqrt(trace(Sigma_ii)/3), 0 on fixed vertices): up to
+  EXACT_COVARIANCE_MAX_DOFS window unknowns the exact marginal of the newest state, diag
+  blocks of H^-1 of the undamped Gauss-Newton matrix of the whole window at the solution
+  (dense); beyond that vertex-conditional: each vertex's 3x3 covariance given all other
+  unknowns, inv(H_ii), a cheap lower bound of the marginal that shows where measurements and
+  priors constrain the mesh.
+- Dynamic settings (`reconfigure`: the sigmas, the robust kernel's scale, the gate) apply from
+  the next update on: the factors it adds use them, the factors already in the window keep
+  theirs (as they keep the weights estimated when they were added).
 - Never NaN: a failed optimisation keeps the best finite state and says so in `message`.
 """
 
 from __future__ import annotations
 
+import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 import scipy.linalg
@@ -94,6 +98,14 @@ from meshfg_ros.core.linear_solvers import LINEAR_SOLVERS, LinearSolveError, Not
 from meshfg_ros.core.mesh import TetMesh, signed_volumes
 from meshfg_ros.core.noise import IsotropicNoise
 from meshfg_ros.core.robust import ROBUST_KERNELS, make_robust_kernel
+from meshfg_ros.core.settings import dynamic_fields, setting
+from meshfg_ros.core.simulator import (
+    POISSON_RATIO_SETTING,
+    TOOL_MODE_SETTING,
+    TOOL_MODES,
+    TOOL_RADIUS_SETTING,
+    YOUNGS_MODULUS_SETTING,
+)
 from meshfg_ros.core.weights import MIN_POINTS, PRIOR_NOISE_RATIO, MeasurementNoise
 
 __all__ = [
@@ -118,9 +130,17 @@ FACTOR_CONFIGURATIONS = {
     "full": frozenset({"simulation", "measurement", "temporal"}),
     "simulation": frozenset({"simulation"}),
 }
-COVARIANCE_METHODS = ("auto", "exact", "vertex-conditional", "none")
 # LM stops when the cost could fall by less than this (chi^2 / 2 units, see the module doc).
 ABSOLUTE_COST_TOLERANCE = 0.25
+# Levenberg-Marquardt's settings; each update sets max_iterations and the time budget from the config.
+LM_CONFIG = LevenbergMarquardtConfig(cost_tolerance=1e-9, absolute_cost_tolerance=ABSOLUTE_COST_TOLERANCE)
+# PCG's relative residual in each LM step (inexact Newton, see the module doc).
+LINEAR_TOLERANCE = 1e-3
+# The physics prior's ridge, relative to its mean information: a free body's rigid modes get a tiny information.
+PRIOR_RIDGE = 1e-6
+# position_std is the exact marginal up to this many window unknowns (a dense factorisation),
+# the vertex-conditional bound beyond.
+EXACT_COVARIANCE_MAX_DOFS = 1000
 # Data-driven defaults (robust_scale = 0, gating_distance = 0), in estimated sigmas: the Cauchy
 # kernel's scale (2.3849 sigma gives 95 % efficiency on Gaussian noise), the gate on the
 # distance of a point to the predicted surface (robust spread of those distances, at least the
@@ -136,7 +156,6 @@ _MEDIAN_ABSOLUTE_TO_SIGMA = 1.4826
 # solved again with it, at most MAX_REWEIGHT_ROUNDS times (the first update, from the nominal).
 REWEIGHT_CHANGE = 0.25
 MAX_REWEIGHT_ROUNDS = 4
-STIFFNESS_UPDATES = ("update",)
 # Innovation test (SlidingWindowEstimator._innovation_test): a prediction is rejected when the
 # robust spread of the cloud's distances to its surface exceeds INNOVATION_SIGMAS nominal
 # measurement sigmas, INNOVATION_DIAGONALS of the scene's diagonal (against a sigma set far too
@@ -200,38 +219,56 @@ def _positive(name, value):
         raise EstimatorConfigError(f"{name} must be finite and > 0, got {value}")
 
 
+_LENGTH_RANGE = (1e-9, 10.0)  # metres: from a nanometre to a room-sized workspace
+
+
 @dataclass(frozen=True)
 class EstimatorConfig:
-    """Estimator settings (SI units). See the module doc for the modelling choices."""
+    """Estimator settings (SI units). See the module doc for the modelling choices. Every field is
+    a parameter of the estimator node and the replay (core/settings.py); the dynamic ones may
+    change while it runs (`SlidingWindowEstimator.reconfigure`)."""
 
-    factors: str = "full"
-    window_size: int = 5
-    measurement_sigma: float = 1e-3
-    simulation_sigma: float = 1e-3
-    temporal_sigma: float = 1e-2  # a weak random walk: up to ~1 cm per 1 Hz step (Table I: see README)
-    stiffness_kind: str = "corotational"
-    spd_projection: bool = False
-    youngs_modulus: float = 3e3
-    poisson_ratio: float = 0.45
-    robust_kernel: str | None = "cauchy"
-    robust_scale: float = 0.0      # m; 0: ROBUST_SCALE_SIGMAS estimated measurement sigmas
-    gating_distance: float = 0.0   # m; 0: GATE_SIGMAS robust innovation sigmas (see module doc)
-    estimate_weights: bool = True
-    tool_radius: float = 5e-3      # m; > 0: points inside the tool sphere (plus a margin) are leaks
-    max_iterations: int = 10
-    linear_solver: str = "pcg"
-    growing: bool = False
-    prior_ridge: float = 1e-6
-    covariance: str = "auto"
-    exact_covariance_max_dofs: int = 1000
-    relinearize_threshold: float | None = None
-    stiffness_update: str = "update"
-    linear_tolerance: float = 1e-3
-    # s of wall time LM may take per update, then it returns its best state; None: no limit. Five
-    # camera periods at 1 Hz: an organ-scale update takes 0.9 s (its first, 2.2 s; README).
-    update_time_budget: float | None = 5.0
-    lm: LevenbergMarquardtConfig = field(default_factory=lambda: LevenbergMarquardtConfig(
-        cost_tolerance=1e-9, absolute_cost_tolerance=ABSOLUTE_COST_TOLERANCE))
+    factors: str = setting("full", "Factor configuration of the estimator, by name.",
+                           choices=tuple(FACTOR_CONFIGURATIONS))
+    window_size: int = setting(5, "Number of states in the sliding window.", range=(1, 100))
+    measurement_sigma: float = setting(
+        1e-3, "Nominal standard deviation of a depth point along the surface normal, metres (the sensor's "
+        "datasheet value; with estimate_weights the estimator starts from it and estimates the real spread "
+        "from the residuals). A new value while running restarts that estimate from it.",
+        range=_LENGTH_RANGE, dynamic=True)
+    simulation_sigma: float = setting(
+        1e-3, "Expected simulator error per vertex in metres; scales the FEM-stiffness information of the "
+        "physics prior. Used with estimate_weights false; with estimate_weights the prior follows the "
+        "estimated measurement sigma (a tenth of it, core/weights.py).", range=_LENGTH_RANGE, dynamic=True)
+    temporal_sigma: float = setting(  # a weak random walk: up to ~1 cm per 1 Hz step (Table I: see README)
+        1e-2, "Standard deviation of a vertex's motion between two steps beyond the simulator's prediction, "
+        "metres.", range=_LENGTH_RANGE, dynamic=True)
+    stiffness_kind: str = setting("corotational", "FEM stiffness used as the prior's information matrix.",
+                                  choices=STIFFNESS_KINDS)
+    spd_projection: bool = setting(False, "Clamp negative eigenvalues of the element stiffness matrices.")
+    youngs_modulus: float = setting(3e3, YOUNGS_MODULUS_SETTING)
+    poisson_ratio: float = setting(0.45, POISSON_RATIO_SETTING)
+    robust_kernel: str | None = setting("cauchy", "Robust kernel on the point-to-surface residuals.",
+                                        choices=ROBUST_KERNELS)  # None: as "none"
+    robust_scale: float = setting(  # 0: ROBUST_SCALE_SIGMAS estimated measurement sigmas
+        0.0, "Scale of the robust kernel in metres; 0: 2.4 times the (estimated) measurement sigma.",
+        range=(0.0, 10.0), dynamic=True)
+    gating_distance: float = setting(  # 0: GATE_SIGMAS robust innovation sigmas (see module doc)
+        0.0, "Points farther than this from the predicted surface are rejected (metres); 0: five times the "
+        "cloud's robust spread about the predicted surface (at least the measurement sigma).",
+        range=(0.0, 10.0), dynamic=True)
+    estimate_weights: bool = setting(
+        True, "Estimate the measurement noise online from the residuals and weight the physics prior with a "
+        "tenth of it (core/weights.py); false: use measurement_sigma and simulation_sigma as given.")
+    # In sphere mode, points inside the tool sphere (plus a margin) are leaks; 0 turns that off.
+    tool_radius: float = setting(5e-3, TOOL_RADIUS_SETTING)
+    tool_mode: str = setting("sphere", TOOL_MODE_SETTING)
+    max_iterations: int = setting(10, "Levenberg-Marquardt iterations per step (at most).", range=(1, 1000))
+    linear_solver: str = setting("pcg", "Sparse solver of the normal equations.", choices=LINEAR_SOLVERS)
+    # None: no limit. Five camera periods at 1 Hz: an organ-scale update takes 0.9 s (its first, 2.2 s; README).
+    update_time_budget: float | None = setting(
+        5.0, "Seconds (wall time) Levenberg-Marquardt may take per update: it then stops between iterations "
+        "and returns its best state, 'time budget' in the status message.", range=(1e-3, 3600.0))
 
     def __post_init__(self):
         if self.factors not in FACTOR_CONFIGURATIONS:
@@ -250,21 +287,12 @@ class EstimatorConfig:
             raise EstimatorConfigError(f"poisson_ratio must be in (-1, 0.5), got {self.poisson_ratio}")
         if self.robust_kernel not in ROBUST_KERNELS + (None,):
             raise EstimatorConfigError(f"robust_kernel must be one of {ROBUST_KERNELS}, got {self.robust_kernel!r}")
+        if self.tool_mode not in TOOL_MODES:
+            raise EstimatorConfigError(f"tool_mode must be one of {TOOL_MODES}, got {self.tool_mode!r}")
         if self.linear_solver not in LINEAR_SOLVERS:
             raise EstimatorConfigError(f"linear_solver must be one of {LINEAR_SOLVERS}, got {self.linear_solver!r}")
-        if self.stiffness_update not in STIFFNESS_UPDATES:
-            raise EstimatorConfigError(f"stiffness_update must be one of {STIFFNESS_UPDATES}, got {self.stiffness_update!r}")
-        if self.covariance not in COVARIANCE_METHODS:
-            raise EstimatorConfigError(f"covariance must be one of {COVARIANCE_METHODS}, got {self.covariance!r}")
         if not (isinstance(self.max_iterations, (int, np.integer)) and self.max_iterations >= 1):
             raise EstimatorConfigError(f"max_iterations must be an integer >= 1, got {self.max_iterations!r}")
-        if not (np.isfinite(self.prior_ridge) and self.prior_ridge >= 0.0):
-            raise EstimatorConfigError(f"prior_ridge must be finite and >= 0, got {self.prior_ridge}")
-        if self.relinearize_threshold is not None and not (
-            np.isfinite(self.relinearize_threshold) and self.relinearize_threshold >= 0.0
-        ):
-            raise EstimatorConfigError(f"relinearize_threshold must be finite and >= 0, got {self.relinearize_threshold}")
-        _positive("linear_tolerance", self.linear_tolerance)
         if self.update_time_budget is not None:
             _positive("update_time_budget", self.update_time_budget)
 
@@ -310,18 +338,34 @@ class PendingStep:
     prediction: np.ndarray | None = None  # (N, 3) the prior's mean, fixed vertices reset
 
 
+class _PendingChanges:
+    """Dynamic settings `reconfigure` changed since the last update began. A node's parameter
+    callback adds to them while its solver thread may be updating, hence the lock."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._changes: dict = {}
+
+    def add(self, changes: dict) -> None:
+        with self._lock:
+            self._changes.update(changes)
+
+    def take(self) -> dict:
+        with self._lock:
+            changes, self._changes = self._changes, {}
+        return changes
+
+
 class SlidingWindowEstimator:
-    """Sliding-window (or growing) factor-graph estimator over states of `initial_mesh`."""
+    """Sliding-window factor-graph estimator over states of `initial_mesh`."""
 
     def __init__(self, initial_mesh: TetMesh, config: EstimatorConfig | None = None):
         self.config = config or EstimatorConfig()
         self.mesh = initial_mesh
         self.enabled = FACTOR_CONFIGURATIONS[self.config.factors]
-        threshold = self.config.relinearize_threshold
-        self.relinearize_threshold = self.config.measurement_sigma if threshold is None else threshold
         self.graph = FactorGraph(
             initial_mesh.vertex_count, initial_mesh.tetrahedra, initial_mesh.surface_triangles,
-            initial_mesh.fixed_vertices, initial_mesh.vertices, self.relinearize_threshold,
+            initial_mesh.fixed_vertices, initial_mesh.vertices, self.config.measurement_sigma,
         )
         self.model = None
         if "simulation" in self.enabled:
@@ -329,21 +373,54 @@ class SlidingWindowEstimator:
             self.model = ElasticModel(initial_mesh.vertices, initial_mesh.tetrahedra, cfg.youngs_modulus, cfg.poisson_ratio)
             rest_stiffness = self.model.stiffness(None, kind=cfg.stiffness_kind, spd_projection=cfg.spd_projection)
             self.prior_scale = prior_scale(rest_stiffness, cfg.simulation_sigma, self.graph.free_dofs)
-            self.prior_ridge = cfg.prior_ridge / cfg.simulation_sigma**2
+            self.prior_ridge = PRIOR_RIDGE / cfg.simulation_sigma**2
             # kappa V_e per element: the prior's volume barrier in the prior's own units
             self.bulk_energy_scale = (self.model.lam + 2.0 * self.model.mu / 3.0) * self.model.volumes
         self.noise = MeasurementNoise(self.config.measurement_sigma)
         # A sliding window's W block factors are made (their memory first touched) at the first
         # solve, not by the window-filling update.
-        reserved = 0 if self.config.growing else self.config.window_size
-        self.solver = make_linear_solver(self.config.linear_solver, tolerance=self.config.linear_tolerance,
-                                         reserved_factors=reserved)
+        self.solver = make_linear_solver(self.config.linear_solver, tolerance=LINEAR_TOLERANCE,
+                                         reserved_factors=self.config.window_size)
         self.anchor = initial_mesh.vertices.copy()
         self.step = 0
         self.last_estimate = initial_mesh.vertices.copy()
         self.scene = Scene.of(initial_mesh.vertices)  # what is far (core/input_checks.py)
         self.last_stamp_ns: int | None = None
         self.deadline: float | None = None  # perf_counter() at which the update's time budget ends
+        self._pending_changes = _PendingChanges()
+
+    # ----------------------------------------------------------------------------- settings
+    def reconfigure(self, **changes) -> None:
+        """Change dynamic settings (EstimatorConfig fields marked dynamic: the sigmas, the robust
+        kernel's scale, the gate); they apply from the next update on (see the module doc).
+
+        Safe to call from another thread while an update runs. Raises EstimatorConfigError, and
+        changes nothing, for a field that is unknown or not dynamic or a value the config refuses.
+        """
+        dynamic, known = dynamic_fields(EstimatorConfig), {item.name for item in fields(EstimatorConfig)}
+        for name in changes:
+            if name not in known:
+                raise EstimatorConfigError(f"unknown setting {name}")
+            if name not in dynamic:
+                raise EstimatorConfigError(f"{name} cannot change while the estimator runs "
+                                           f"(dynamic: {', '.join(sorted(dynamic))})")
+        replace(self.config, **changes)  # validates the values
+        self._pending_changes.add(changes)
+
+    def _apply_pending_changes(self) -> None:
+        """Start using the settings `reconfigure` changed: a new nominal measurement sigma restarts
+        the noise estimate and the re-linearisation threshold from it; a new simulation sigma
+        rescales the prior's weight."""
+        changes = self._pending_changes.take()
+        if not changes:
+            return
+        old, self.config = self.config, replace(self.config, **changes)
+        if self.config.measurement_sigma != old.measurement_sigma:
+            self.noise = MeasurementNoise(self.config.measurement_sigma)
+            self.graph.relinearize_threshold = self.config.measurement_sigma
+        if self.model is not None and self.config.simulation_sigma != old.simulation_sigma:
+            self.prior_scale *= (old.simulation_sigma / self.config.simulation_sigma) ** 2
+            self.prior_ridge = PRIOR_RIDGE / self.config.simulation_sigma**2
 
     # ----------------------------------------------------------------------------- input
     def _check_inputs(self, stamp_ns, points, predicted, tool_pose):
@@ -419,7 +496,9 @@ class SlidingWindowEstimator:
         the window, the step count and the last estimate are as they were before the call, so a
         bad input never poisons the next updates. Input that is well formed but implausible is
         not an error: far points are dropped, a far, inverted or contradicted prediction is set
-        aside (the step runs degraded on the copy-forward), each said in the result's message."""
+        aside (the step runs degraded on the copy-forward), each said in the result's message.
+        Settings changed by `reconfigure` apply from here on, also when the update fails."""
+        self._apply_pending_changes()
         saved = (_saved(self), _saved(self.graph), _saved(self.noise))
         try:
             result = self.solve(self.prepare(stamp_ns, points, predicted, tool_pose))
@@ -443,6 +522,7 @@ class SlidingWindowEstimator:
         slide the window, without optimising (benchmarks hand the same problem to other solvers).
         Input errors are raised before anything changes; `update` undoes a later failure."""
         start = time.perf_counter()
+        self._apply_pending_changes()
         cfg = self.config
         stamp_ns, points, predicted, tool_pose, dropped = self._check_inputs(stamp_ns, points, predicted, tool_pose)
         messages = [f"{dropped} non-finite point(s) dropped"] if dropped else []
@@ -481,9 +561,9 @@ class SlidingWindowEstimator:
         return pending
 
     def _outside_tool(self, points, tool_pose, pending: PendingStep):
-        """Points inside the tool sphere, grown by TOOL_MARGIN_SIGMAS measurement sigmas, are
-        leaks of the segmentation onto the tool (the commonest leak): dropped and counted."""
-        if points is None or tool_pose is None or not self.config.tool_radius > 0.0:
+        """Points inside the tool sphere (sphere mode), grown by TOOL_MARGIN_SIGMAS measurement
+        sigmas, are leaks of the segmentation onto the tool (the commonest leak): dropped and counted."""
+        if points is None or tool_pose is None or self.config.tool_mode != "sphere" or not self.config.tool_radius > 0.0:
             return points
         centre = np.asarray(tool_pose, dtype=np.float64).reshape(-1)[:3]
         reach = self.config.tool_radius + TOOL_MARGIN_SIGMAS * self.noise.sigma
@@ -571,7 +651,7 @@ class SlidingWindowEstimator:
                             f"simulation sigma {1e3 * self.simulation_sigma:.3g} mm")
         positions = graph.states[pending.key].copy()
         self.last_estimate = positions
-        std = self._position_std(messages) if self.config.covariance != "none" else np.zeros(self.mesh.vertex_count)
+        std = self._position_std(messages)
         return StepResult(
             step=pending.key, stamp_ns=pending.stamp_ns, positions=positions, position_std=std,
             iterations=iterations, initial_cost=result["initial_cost"], final_cost=result["final_cost"],
@@ -601,7 +681,7 @@ class SlidingWindowEstimator:
     def _slide(self) -> None:
         """Drop the oldest state beyond window_size; its estimate anchors the next one's temporal factor."""
         graph = self.graph
-        while not self.config.growing and len(graph.keys) > self.config.window_size:
+        while len(graph.keys) > self.config.window_size:
             dropped = graph.remove_state(graph.keys[0])
             self.anchor = dropped
             if "temporal" in self.enabled:
@@ -610,7 +690,7 @@ class SlidingWindowEstimator:
     def _optimise(self, messages) -> dict:
         graph = self.graph
         x0 = graph.get_x()
-        config = self.config.lm
+        config = LM_CONFIG
         remaining = None if self.deadline is None else max(self.deadline - time.perf_counter(), 1e-9)
         if config.max_iterations != self.config.max_iterations or remaining is not None:
             budget = config.time_budget_s if remaining is None else min(config.time_budget_s or np.inf, remaining)
@@ -636,10 +716,8 @@ class SlidingWindowEstimator:
     # ------------------------------------------------------------------------- covariance
     def _position_std(self, messages) -> np.ndarray:
         graph = self.graph
-        method = self.config.covariance
-        if method == "auto":
-            size = len(graph.keys) * graph.block_size
-            method = "exact" if size <= self.config.exact_covariance_max_dofs else "vertex-conditional"
+        size = len(graph.keys) * graph.block_size
+        method = "exact" if size <= EXACT_COVARIANCE_MAX_DOFS else "vertex-conditional"
         n = graph.block_size
         if method == "exact":
             system, _, _ = graph.linearize(graph.get_x())

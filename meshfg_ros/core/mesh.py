@@ -9,6 +9,8 @@ vertex sets) is computed lazily once and shared by every mesh made with `with_ve
 
 from __future__ import annotations
 
+import contextlib
+import io
 from pathlib import Path
 
 import numpy as np
@@ -393,10 +395,13 @@ def load_mesh(path) -> TetMesh:
     if _is_gmsh_v1(path):
         vertices, tets = _read_gmsh_v1(path)
     else:
+        # meshio raises many unrelated types for bad files, and for some prints why and exits.
         try:
-            data = meshio.read(path)
-        except Exception as error:  # meshio raises many unrelated types for bad files
-            raise MeshFileError(f"{path} could not be read by meshio: {error}") from None
+            with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()) as printed:
+                data = meshio.read(path)
+        except (Exception, SystemExit) as error:
+            reason = " ".join(printed.getvalue().split()) or str(error)
+            raise MeshFileError(f"{path} could not be read by meshio: {reason}") from None
         tet_blocks = [block.data for block in data.cells if block.type == "tetra"]
         if not tet_blocks:
             raise MeshFileError(f"{path} is not a tetrahedral mesh (no tetra cells)")

@@ -255,6 +255,7 @@ class EstimationScheduler:
         self.config = config
         self.timeouts = timeouts
         self.estimator = SlidingWindowEstimator(mesh, config)
+        self.scene = check_initial_mesh(mesh.vertices)
         self._jump_ns = _jump_ns(clock_jump_threshold)
         self._poses = ToolPoseBuffer(extrapolation_horizon_s=tool_pose_extrapolation)
         self._clouds: deque[tuple[int, np.ndarray, float, bool]] = deque()  # stamp, points, arrival, restart
@@ -265,6 +266,12 @@ class EstimationScheduler:
         self._last_step_ns: int | None = None
         self._solver_free_s = 0.0
         self._registered = False  # whether a cloud has confirmed the mesh's size and place
+
+    def reconfigure(self, config: EstimatorConfig, changes: dict) -> None:
+        """Apply changed dynamic settings (field name -> value) from the next update on, also after
+        a restart (`config`: the whole configuration with them)."""
+        self.config = config
+        self.estimator.reconfigure(**changes)
 
     @property
     def queued(self) -> int:
@@ -301,10 +308,11 @@ class EstimationScheduler:
         """Until a cloud of MIN_POINTS points or more has agreed with the mesh in size and place
         (core/patient_mesh.py), each cloud is compared with it; one that disagrees is rejected
         with the reason (a mesh in millimetres, a missing registration)."""
-        if len(points) < MIN_POINTS:
+        near = points[~self.scene.far(points)]  # far points are the estimator's to drop and count
+        if len(near) < MIN_POINTS:
             return None
         try:
-            check_against_clouds(self.mesh, [points])
+            check_against_clouds(self.mesh, [near])
         except PatientMeshError as error:
             return Rejection("clouds_rejected_registration", f"cloud at {stamp_ns} ns rejected: {error}")
         self._registered = True

@@ -43,13 +43,18 @@ from scipy.spatial.transform import Rotation, Slerp
 from meshfg_ros.core.fem import ElasticModel
 from meshfg_ros.core.sparse_cholesky import SparseCholesky
 from meshfg_ros.core.mesh import TetMesh, name_elements, signed_volumes
+from meshfg_ros.core.settings import Setting, setting
 
 __all__ = [
+    "POISSON_RATIO_SETTING",
     "SOLVERS",
     "SOLVER_STRATEGIES",
     "TOOL_CONTACTS",
     "TOOL_MODES",
     "ElasticSimulator",
+    "TOOL_MODE_SETTING",
+    "TOOL_RADIUS_SETTING",
+    "YOUNGS_MODULUS_SETTING",
     "ElementInversionError",
     "ExtendedPositionBasedDynamics",
     "SimulatorConfig",
@@ -64,6 +69,13 @@ __all__ = [
 TOOL_MODES = ("sphere", "grasp")
 TOOL_CONTACTS = ("stick", "slide")
 SOLVERS = ("vbd", "xpbd")
+# The tissue model and the tool, settings of the estimator too (its prior and its tool gate): one
+# parameter each.
+YOUNGS_MODULUS_SETTING = Setting("Young's modulus of the tissue model in pascals.", range=(1.0, 1e9))
+POISSON_RATIO_SETTING = Setting("Poisson's ratio of the tissue model.", range=(0.001, 0.499))
+TOOL_RADIUS_SETTING = Setting("Radius of the tool sphere in metres (sphere mode).", range=(1e-6, 1.0))
+TOOL_MODE_SETTING = Setting("How the tool drives the tissue: 'sphere' pushes it with a rigid sphere, 'grasp' "
+                            "moves grasped_vertices rigidly with the tool.", choices=TOOL_MODES)
 
 # Shape-function gradients of the 4 corners from the rows of Dm^-1 (corner 0: minus their sum).
 _CORNER_FROM_EDGES = np.array([[-1.0, -1.0, -1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
@@ -107,21 +119,26 @@ class ElementInversionError(RuntimeError):
 
 @dataclass(frozen=True)
 class SimulatorConfig:
-    """Material, tool and solver settings of `ElasticSimulator` (SI units)."""
+    """Material, tool and solver settings of `ElasticSimulator` (SI units). The fields made with
+    `setting` are parameters of the simulation node and the replay (core/settings.py)."""
 
-    youngs_modulus: float = 3.0e3  # Pa; soft tissue is of the order of kPa
-    poisson_ratio: float = 0.45
-    density: float = 1.0e3  # kg / m^3: the gravity load, and xpbd's inertia
-    tool_radius: float = 5.0e-3  # m, sphere mode
-    tool_mode: str = "sphere"  # "sphere": rigid contact sphere; "grasp": vertices follow the tool
-    tool_contact: str = "stick"  # sphere mode: "stick" (no slip while pushed) or "slide" (frictionless)
-    substeps: int = 2  # tool increments per predict
-    solver_iterations: int = 3  # per sub-step: vbd vertex sweep + global step; xpbd constraint sweep
+    youngs_modulus: float = setting(3.0e3, YOUNGS_MODULUS_SETTING)  # soft tissue is of the order of kPa
+    poisson_ratio: float = setting(0.45, POISSON_RATIO_SETTING)
+    density: float = setting(1.0e3, "Tissue density in kg/m^3.", range=(1.0, 1e5))  # gravity load, xpbd's inertia
+    tool_radius: float = setting(5.0e-3, TOOL_RADIUS_SETTING)
+    tool_mode: str = setting("sphere", TOOL_MODE_SETTING)
+    tool_contact: str = setting(
+        "stick", "Sphere contact: 'stick' (the tissue does not slip while pushed) or 'slide' (frictionless).",
+        choices=TOOL_CONTACTS)
+    substeps: int = setting(2, "Tool increments per prediction.", range=(1, 1000), parameter="simulator_substeps")
+    solver_iterations: int = setting(  # vbd: vertex sweep + global step; xpbd: constraint sweep
+        3, "Solver iterations per sub-step.", range=(1, 1000), parameter="simulator_iterations")
     damping: float = 1.0  # xpbd: fraction of the velocity removed each sub-step (1: quasi-static)
     # m / s^2; xpbd moves (dt / substeps)^2 g per sub-step before solving: keep it << element size
     gravity: tuple[float, float, float] = (0.0, 0.0, 0.0)
     deterministic: bool = True  # required: both solvers are bit-reproducible
-    solver: str = "vbd"  # "vbd" or "xpbd": the sub-step strategy (SOLVER_STRATEGIES), see the module docstring
+    solver: str = setting("vbd", "Simulator solver: 'vbd' (vertex block descent) or 'xpbd'.", choices=SOLVERS,
+                          parameter="simulator")  # see the module docstring
 
     def __post_init__(self):
         checks = [

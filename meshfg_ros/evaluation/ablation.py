@@ -16,6 +16,7 @@ from tqdm import tqdm
 from meshfg_ros.core.estimator import EstimatorConfig
 from meshfg_ros.core.scheduler import OfflinePipeline, run_offline
 from meshfg_ros.evaluation.metrics import summarise, unobserved_external_vertices, vertex_rmse
+from meshfg_ros.parameters import shared_settings
 from meshfg_ros.synthetic.scenarios import Scenario, generate
 
 ABLATION_CONFIGURATIONS = ("temporal", "measurement", "temporal+measurement", "simulation+measurement", "full")
@@ -28,16 +29,11 @@ PAPER_SHEAR_MM = {  # Table I of the paper, shear case: all / external / unobser
 
 
 def estimator_config_for(scenario: Scenario, factors: str, **overrides) -> EstimatorConfig:
-    """The estimator's nominal model for a scenario: its material, its noise, its prior kind."""
-    settings = dict(
-        factors=factors,
-        youngs_modulus=scenario.simulator_config.youngs_modulus,
-        poisson_ratio=scenario.simulator_config.poisson_ratio,
-        measurement_sigma=scenario.noise_sigma_m,
-    )
-    settings.update(scenario.estimator_overrides)
-    settings.update(overrides)
-    return EstimatorConfig(**settings)
+    """The estimator's nominal model for a scenario: the settings it shares with the simulator's
+    (material, tool), its noise, its prior kind."""
+    return EstimatorConfig(**{**shared_settings(scenario.simulator_config, EstimatorConfig), "factors": factors,
+                              "measurement_sigma": scenario.noise_sigma_m, **scenario.estimator_overrides,
+                              **overrides})
 
 
 def run_configuration(scenario: Scenario, factors: str, progress: tqdm | None = None, **overrides) -> dict:

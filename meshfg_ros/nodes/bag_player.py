@@ -11,28 +11,30 @@ topic; the player then waits (at most --wait-for-subscribers seconds) until ever
 has a matched subscriber, and `delay` seconds more for those subscribers to match the player
 in turn (a best-effort reader drops samples of unmatched writers), and plays the others at
 their recorded rate times --rate, publishing /clock (rosgraph_msgs/Clock) at clock_frequency
-for nodes with use_sim_time. It exits when done (or loops with --loop).
+for nodes with use_sim_time. It exits when done (or loops with --loop). Its parameters
+(meshfg_ros.parameters.PlaybackConfig) are listed by --help.
 """
 
 from __future__ import annotations
 
 import argparse
+import gc
 import sys
 import time
 from pathlib import Path
 
 import rclpy
-from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
 from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.utilities import remove_ros_args
 from rosgraph_msgs.msg import Clock
 
 from meshfg_ros.io.recording import RecordingError, RecordingReader
 from meshfg_ros.nodes.ros_conversions import RCLPY_FACTORY, rclpy_message
-from meshfg_ros.nodes.runtime import init_without_signal_handlers
+from meshfg_ros.nodes.ros_parameters import declare_parameters
+from meshfg_ros.nodes.runtime import ArgumentError, init_without_signal_handlers, program_arguments
+from meshfg_ros.parameters import ParameterError, parameters_help
 
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 STREAM_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
@@ -41,30 +43,15 @@ _ACK_TIMEOUT_S = 5.0
 _POLL_S = 0.02
 
 
-def _descriptor(description: str, low: float, high: float) -> ParameterDescriptor:
-    return ParameterDescriptor(description=description,
-                               floating_point_range=[FloatingPointRange(from_value=low, to_value=high)])
-
-
 class BagPlayer(Node):
     """Publishes the topics of one recording (see the module docstring)."""
 
     def __init__(self, reader: RecordingReader, topics: list[str] | None = None, **kwargs) -> None:
         """reader: the open recording (the player reads it, the caller closes it); topics: default all."""
         super().__init__("bag_player", **kwargs)
-        self.rate = self.declare_parameter(
-            "rate", 1.0, _descriptor("Playback speed: 1 is the recorded rate, 2 twice as fast.", 1e-3, 1e3)).value
-        self.wait_for_subscribers = self.declare_parameter(
-            "wait_for_subscribers", 10.0,
-            _descriptor("Seconds to wait for a subscriber on every played topic before playing.", 0.0, 3600.0)).value
-        self.clock_frequency = self.declare_parameter(
-            "clock_frequency", 100.0,
-            _descriptor("Rate of /clock messages between recorded ones (Hz).", 1.0, 1e4)).value
-        self.delay = self.declare_parameter(
-            "delay", 0.5, _descriptor("Seconds between finding the subscribers and playing: best-effort readers "
-                                      "drop messages of a writer they have not matched yet.", 0.0, 3600.0)).value
-        self.loop = self.declare_parameter(
-            "loop", False, ParameterDescriptor(description="Start again at the end of the recording.")).value
+        params = declare_parameters(self, "bag_player")
+        self.rate, self.wait_for_subscribers = params["rate"], params["wait_for_subscribers"]
+        self.clock_frequency, self.delay, self.loop = params["clock_frequency"], params["delay"], params["loop"]
         self._reader = reader
         names = list(dict.fromkeys(topics)) if topics else sorted(reader.topics)
         self._latched = [name for name in names if self._reader.topics[name].count == 1]
@@ -128,21 +115,28 @@ class BagPlayer(Node):
 
 
 def parse_arguments(argv: list[str]) -> argparse.Namespace:
-    """Command line without the ROS arguments (argv[0] is the program name)."""
-    parser = argparse.ArgumentParser(prog="bag_player", description="Play a rosbag2 recording over DDS.")
+    """Command line without the ROS arguments (argv[0] is the program name); ArgumentError when
+    the ROS arguments cannot be parsed."""
+    parser = argparse.ArgumentParser(prog="bag_player", description="Play a rosbag2 recording over DDS.",
+                                     epilog=parameters_help(["bag_player"]),
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("bag", type=Path, help="recording directory (with metadata.yaml)")
     parser.add_argument("--rate", type=float, help="playback speed (overrides parameter rate)")
     parser.add_argument("--topics", nargs="+", help="play only these topics (default: all)")
     parser.add_argument("--loop", action="store_true", help="start again at the end")
     parser.add_argument("--wait-for-subscribers", type=float,
                         help="seconds to wait for subscribers (overrides the parameter)")
-    return parser.parse_args(remove_ros_args(argv)[1:])
+    return parser.parse_args(program_arguments(argv)[1:])
 
 
 def main(args=None) -> int:
     """Console script `bag_player`."""
     argv = sys.argv if args is None else args
-    options = parse_arguments(argv)
+    try:
+        options = parse_arguments(argv)
+    except ArgumentError as error:
+        print(f"bag_player: {error}", file=sys.stderr)
+        return 1
     if options.rate is not None and options.rate <= 0.0:
         print("bag_player: --rate must be > 0", file=sys.stderr)
         return 2
@@ -153,9 +147,9 @@ def main(args=None) -> int:
     except RecordingError as error:
         print(f"bag_player: {error}", file=sys.stderr)
         return 1
-    init_without_signal_handlers(argv)
     player = None
     try:
+        init_without_signal_handlers(argv)
         player = BagPlayer(reader, options.topics)
         if options.rate is not None:
             player.rate = options.rate
@@ -166,13 +160,17 @@ def main(args=None) -> int:
         player.get_logger().info(f"played {count} messages from {options.bag}")
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except RecordingError as error:  # a corrupt message found while playing
+    except (RecordingError, ArgumentError) as error:  # RecordingError: a corrupt message found while playing
         print(f"bag_player: {error}", file=sys.stderr)
+        return 1
+    except ParameterError as error:
+        print(f"bag_player: invalid parameters: {error}", file=sys.stderr)
         return 1
     finally:
         reader.close()
         if player is not None:
             player.destroy_node()
+        gc.collect()  # a player whose constructor raised, finalised while the context is valid (runtime.run_nodes)
         rclpy.try_shutdown()
     return 0
 

@@ -46,14 +46,12 @@ from meshfg_ros.markers import mesh_markers, surface_edges
 from meshfg_ros.nodes.diagnostics import EstimatorCounters, EstimatorHealth, diagnostic_array
 from meshfg_ros.nodes.ros_conversions import (
     LATCHED_QOS, PREDICTION_QOS, RCLPY_FACTORY, REQUEST_QOS, STREAM_QOS, InitialMeshSource, MeshMessages,
-    declare_parameters, positions_from_msg,
+    positions_from_msg,
 )
+from meshfg_ros.nodes.ros_parameters import declare_parameters
 from meshfg_ros.nodes.runtime import run_nodes
-from meshfg_ros.parameters import PARAMETERS, FrameError, cloud_to_world, estimator_config
+from meshfg_ros.parameters import FrameError, cloud_to_world, estimator_changes, estimator_config
 
-_SIMULATOR_ONLY = {"tool_contact", "density", "simulator", "simulator_substeps", "simulator_iterations",
-                   "estimate_timeout"}
-PARAMETER_NAMES = tuple(p.name for p in PARAMETERS if p.name not in _SIMULATOR_ONLY)
 RELIABLE_POINTS_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 _POLL_PERIOD_S = 0.02
 _DIAGNOSTICS_PERIOD_S = 1.0
@@ -67,7 +65,7 @@ class EstimatorNode(Node):
 
     def __init__(self, **kwargs) -> None:
         super().__init__("estimator_node", **kwargs)
-        self.params = declare_parameters(self, PARAMETER_NAMES)
+        self.params = declare_parameters(self, "estimator_node", on_change=self._reconfigure)
         self._frame = self.params["world_frame"]
         self.counters = EstimatorCounters()
         budget = estimator_config(self.params).update_time_budget or 0.0
@@ -105,6 +103,12 @@ class EstimatorNode(Node):
         if self._solver.is_alive():
             self.get_logger().warning(f"an update still runs after {_STOP_WAIT_S:g} s: left behind at shutdown")
         super().destroy_node()
+
+    def _reconfigure(self, changes: dict) -> None:
+        """Dynamic parameters set while running: the estimator uses them from its next update on."""
+        with self._lock:
+            if self._scheduler is not None:
+                self._scheduler.reconfigure(estimator_config(self.params), estimator_changes(changes))
 
     # ------------------------------------------------------------------ input (executor thread)
     def _set_mesh(self, mesh, state) -> None:

@@ -1,29 +1,24 @@
-"""What the nodes need beyond meshfg_ros.io.messages: ROS parameters from the parameter table,
-recordings -> rclpy messages, TetraMesh <-> core arrays.
+"""What the nodes need beyond meshfg_ros.io.messages: recordings -> rclpy messages, TetraMesh <->
+core arrays (their parameters: nodes/ros_parameters.py).
 
-`declare_parameters` declares parameters of core.parameters with ParameterDescriptors (ranges,
-choices) and returns them validated; `rclpy_message(data)` turns what RecordingReader yields
-(a meshfg record or any decoded rosbags message) into the rclpy message to publish;
-`MeshMessages` builds the TetraMesh messages of one mesh topology with its index arrays
-converted once; `tet_mesh_from_state` rebuilds the core mesh of a received initial mesh.
+`rclpy_message(data)` turns what RecordingReader yields (a meshfg record or any decoded
+rosbags message) into the rclpy message to publish; `MeshMessages` builds the TetraMesh
+messages of one mesh topology with its index arrays converted once; `tet_mesh_from_state`
+rebuilds the core mesh of a received initial mesh.
 """
 
 from __future__ import annotations
 
 import array
-import sys
-from collections.abc import Iterable
 from typing import Any
 
 import numpy as np
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.parameter import Parameter as RosParameter
 
 from meshfg_ros.core.input_checks import check_initial_mesh
-from meshfg_ros.core.mesh import TetMesh, load_mesh
-from meshfg_ros.parameters import PARAMETERS, ParameterError, load_parameters
+from meshfg_ros.core.mesh import TetMesh
+from meshfg_ros.parameters import load_mesh_file
 from meshfg_ros.io.messages import (
     TETRA_MESH,
     MeshState,
@@ -86,70 +81,6 @@ def tet_mesh_from_state(state: MeshState) -> TetMesh:
     return TetMesh(state.positions, state.tetrahedra, state.fixed_vertices)
 
 
-_ROS_TYPES = {
-    "double": ParameterType.PARAMETER_DOUBLE,
-    "integer": ParameterType.PARAMETER_INTEGER,
-    "string": ParameterType.PARAMETER_STRING,
-    "bool": ParameterType.PARAMETER_BOOL,
-    "double_array": ParameterType.PARAMETER_DOUBLE_ARRAY,
-    "integer_array": ParameterType.PARAMETER_INTEGER_ARRAY,
-}
-_EMPTY_ARRAY_TYPES = {"double_array": RosParameter.Type.DOUBLE_ARRAY, "integer_array": RosParameter.Type.INTEGER_ARRAY}
-
-
-def parameter_descriptor(parameter) -> ParameterDescriptor:
-    """ROS ParameterDescriptor of a core.parameters.Parameter (type, description, range, choices)."""
-    descriptor = ParameterDescriptor(
-        name=parameter.name,
-        type=_ROS_TYPES[parameter.type],
-        description=parameter.description,
-        read_only=True,  # read once at start-up
-    )
-    if parameter.choices is not None:
-        descriptor.additional_constraints = f"one of: {', '.join(parameter.choices)}"
-    if parameter.length is not None:
-        descriptor.additional_constraints = f"exactly {parameter.length} values"
-    if parameter.range is not None and parameter.type in ("double", "integer"):
-        low, high = parameter.range
-        if parameter.type == "double":
-            descriptor.floating_point_range = [FloatingPointRange(
-                from_value=-sys.float_info.max if low is None else float(low),
-                to_value=sys.float_info.max if high is None else float(high),
-            )]
-        else:
-            descriptor.integer_range = [IntegerRange(
-                from_value=-(2**63) if low is None else int(low),
-                to_value=2**63 - 1 if high is None else int(high),
-                step=1,
-            )]
-    return descriptor
-
-
-def declare_parameters(node: Node, names: Iterable[str]) -> dict[str, Any]:
-    """Declare the table's parameters `names` on `node`; all parameters, validated (ParameterError).
-
-    Undeclared parameters keep their defaults. ROS cannot infer the type of an empty array
-    default: such a parameter is declared by type and then set to [] unless overridden, so it is
-    not read-only.
-    """
-    wanted = set(names)
-    values = {}
-    for parameter in PARAMETERS:
-        if parameter.name not in wanted:
-            continue
-        descriptor = parameter_descriptor(parameter)
-        if parameter.type in _EMPTY_ARRAY_TYPES and not parameter.default:
-            descriptor.read_only = False
-            array_type = _EMPTY_ARRAY_TYPES[parameter.type]
-            if node.declare_parameter(parameter.name, array_type, descriptor).type_ == RosParameter.Type.NOT_SET:
-                node.set_parameters([RosParameter(parameter.name, array_type, [])])
-            values[parameter.name] = list(node.get_parameter(parameter.name).value)
-        else:
-            default = list(parameter.default) if isinstance(parameter.default, tuple) else parameter.default
-            values[parameter.name] = node.declare_parameter(parameter.name, default, descriptor).value
-    return load_parameters(values)
-
-
 class MeshMessages:
     """TetraMesh messages of one topology: the index arrays are converted once, not per message."""
 
@@ -209,10 +140,7 @@ class InitialMeshSource:
         """Load mesh_file ("" : none, wait for the topic)."""
         if not path:
             return
-        try:
-            mesh = load_mesh(path)
-        except (OSError, ValueError) as error:
-            raise ParameterError(f"mesh_file {path}: {error}") from None
+        mesh = load_mesh_file(path)  # ParameterError: the node stops at start-up
         self._install(MeshState(0, self._frame, 0, mesh.vertices, mesh.tetrahedra, mesh.surface_triangles,
                                 mesh.fixed_vertices), mesh)
 

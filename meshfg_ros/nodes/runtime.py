@@ -1,7 +1,10 @@
-"""The shared `main` of the node executables: the BLAS, init, spin, clean shutdown on Ctrl-C / SIGINT / SIGTERM."""
+"""The shared `main` of the node executables: --help, the BLAS, init, spin, clean shutdown on
+Ctrl-C / SIGINT / SIGTERM, and one-line errors for bad arguments and parameters."""
 
 from __future__ import annotations
 
+import gc
+import re
 import signal
 import sys
 from collections.abc import Callable, Sequence
@@ -9,11 +12,39 @@ from collections.abc import Callable, Sequence
 import rclpy
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
+from rclpy.utilities import remove_ros_args
 
 from meshfg_ros import blas
-from meshfg_ros.parameters import ParameterError
+from meshfg_ros.parameters import ParameterError, parameters_help
+
+_HELP_OPTIONS = ("-h", "--help")
+_USAGE = ("usage: {program} [-h] [--ros-args [-r FROM:=TO] [-p NAME:=VALUE] [--params-file FILE] "
+          "[--log-level LEVEL] ...]")
+
+
+class ArgumentError(ValueError):
+    """A command line rcl cannot parse (e.g. `-p NAME:=[0.0, 1]`, a list of mixed types)."""
+
+
+def _argument_error(error: Exception) -> ArgumentError:
+    # rcl's message ends with the C source locations of the failure: of no use to a user.
+    return ArgumentError(re.sub(r", at \S+:\d+", "", " ".join(str(error).split())))
+
+
+def program_arguments(argv: Sequence[str]) -> list[str]:
+    """The command line without its ROS arguments (argv[0] first), or ArgumentError."""
+    try:
+        return remove_ros_args(list(argv))
+    except rclpy_implementation.RCLError as error:
+        raise _argument_error(error) from None
+
+
+def help_requested(argv: Sequence[str]) -> bool:
+    """Whether -h or --help is among the program's own arguments (those outside --ros-args)."""
+    return any(argument in _HELP_OPTIONS for argument in program_arguments(argv)[1:])
 
 
 def init_without_signal_handlers(args=None) -> None:
@@ -21,28 +52,39 @@ def init_without_signal_handlers(args=None) -> None:
 
     rclpy's handlers invalidate the context at once, so a callback still running fails to
     publish with a traceback; with KeyboardInterrupt the program stops its executor, lets the
-    running callbacks finish, and only then shuts the context down.
+    running callbacks finish, and only then shuts the context down. ArgumentError when rcl
+    cannot parse the ROS arguments.
     """
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    except rclpy_implementation.RCLError as error:
+        raise _argument_error(error) from None
     for number in (signal.SIGINT, signal.SIGTERM):  # SIGINT too: a background job may inherit it ignored
         signal.signal(number, signal.default_int_handler)
 
 
-def run_nodes(program: str, node_factories: Sequence[Callable[[], Node]], args=None) -> int:
+def run_nodes(program: str, node_factories: Sequence[Callable[[], Node]], args=None,
+              node_names: Sequence[str] | None = None) -> int:
     """Create the nodes, spin them on one single-threaded executor until shutdown; the exit code.
 
     Single-threaded: rclpy's MultiThreadedExecutor costs ~3x the CPU per message, and the long
     work (the estimator's solves) has its own thread (estimator_node).
 
-    args: command line with --ros-args (None: sys.argv). Invalid parameters (or MESHFG_BLAS) end
-    the program with exit code 1 and a one-line message; Ctrl-C / SIGINT / SIGTERM end it with 0.
+    args: command line with --ros-args (None: sys.argv). -h / --help prints the parameters of
+    `node_names` (default: the node named like the program) and exits with 0 before ROS starts.
+    Invalid arguments or parameters (or MESHFG_BLAS) end the program with exit code 1 and a
+    one-line message; Ctrl-C / SIGINT / SIGTERM end it with 0.
     """
+    argv = sys.argv if args is None else list(args)
     try:
+        if help_requested(argv):
+            print(_USAGE.format(program=program), parameters_help(node_names or (program,)), sep="\n\n")
+            return 0
         blas.configure()  # before a node loads cvxopt: CHOLMOD binds to the BLAS chosen for this CPU
-    except blas.BlasSettingError as error:
+        init_without_signal_handlers(argv)
+    except (blas.BlasSettingError, ArgumentError) as error:
         print(f"{program}: {error}", file=sys.stderr)
         return 1
-    init_without_signal_handlers(args)
     nodes: list[Node] = []
     executor = None
     try:
@@ -62,5 +104,8 @@ def run_nodes(program: str, node_factories: Sequence[Callable[[], Node]], args=N
             executor.shutdown()  # lets the callbacks that are running or queued finish
         for node in nodes:
             node.destroy_node()
+        # A node whose constructor raised (a bad mesh_file) is unreachable but alive (its reference
+        # cycles): finalised here while the context is valid, not at interpreter exit after it.
+        gc.collect()
         rclpy.try_shutdown()
     return 0

@@ -32,17 +32,12 @@ from meshfg_ros.nodes.ros_conversions import (
     STREAM_QOS,
     InitialMeshSource,
     MeshMessages,
-    declare_parameters,
     positions_from_msg,
 )
+from meshfg_ros.nodes.ros_parameters import declare_parameters
 from meshfg_ros.nodes.runtime import run_nodes
 from meshfg_ros.parameters import simulator_config
 
-PARAMETER_NAMES = (
-    "tool_mode", "tool_contact", "tool_radius", "grasped_vertices", "youngs_modulus", "poisson_ratio", "density",
-    "simulator", "simulator_substeps", "simulator_iterations", "world_frame", "mesh_file", "estimate_timeout",
-    "clock_jump_threshold",
-)
 _POLL_PERIOD_S = 0.02
 _DIAGNOSTICS_PERIOD_S = 1.0
 
@@ -52,7 +47,7 @@ class SimulationNode(Node):
 
     def __init__(self, **kwargs) -> None:
         super().__init__("simulation_node", **kwargs)
-        self.params = declare_parameters(self, PARAMETER_NAMES)
+        self.params = declare_parameters(self, "simulation_node")
         self._frame = self.params["world_frame"]
         self.counters = SimulatorCounters()
         self._scheduler: PredictionScheduler | None = None

@@ -16,7 +16,8 @@ from meshfg_ros.nodes.simulation_node import SimulationNode
 
 def main(args=None) -> int:
     """Console script `meshfg_stack` (accepts --ros-args; e.g. -r __ns:=/meshfg --params-file FILE)."""
-    return run_nodes("meshfg_stack", [SimulationNode, EstimatorNode], args=args)
+    return run_nodes("meshfg_stack", [SimulationNode, EstimatorNode], args=args,
+                     node_names=("simulation_node", "estimator_node"))
 
 
 if __name__ == "__main__":

@@ -1,0 +1,61 @@
+"""Settings: the configuration fields users set, each described once, where it is defined.
+
+A configuration dataclass marks each field a user may set with `setting(default, description,
+...)`: the field's metadata then holds a `Setting` (description, valid range or choices, the
+parameter's name where it differs from the field's, whether it may change while running).
+Fields without one are internal. meshfg_ros.parameters derives the parameters of the nodes and
+of the replay, and the configurations made from parameter values, from these fields; the
+estimator reads `dynamic_fields` to know what `SlidingWindowEstimator.reconfigure` may change.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+__all__ = ["Setting", "dynamic_fields", "setting", "settings_of"]
+
+_METADATA_KEY = "meshfg_setting"
+
+
+@dataclass(frozen=True)
+class Setting:
+    """How users see one configuration field.
+
+    description: what the field does, in sentences ending with a full stop. range: inclusive
+    (low, high) of the value (of each element of an array); either bound may be None
+    (unbounded). choices: the allowed strings. parameter: the parameter's name (None: the
+    field's). type: a parameter type name of meshfg_ros.parameters.PARAMETER_TYPES (None: the
+    default value's type). length: the required length of an array. dynamic: may change while
+    running; otherwise it is read once at start-up.
+    """
+
+    description: str
+    range: tuple[float | None, float | None] | None = None
+    choices: tuple[str, ...] | None = None
+    parameter: str | None = None
+    type: str | None = None
+    length: int | None = None
+    dynamic: bool = False
+
+
+def setting(default: Any, description: str | Setting, **options: Any) -> Any:
+    """A dataclass field with `default` that users set: described by `description` and `options`
+    (the other fields of Setting), or by a Setting that several configurations share."""
+    if isinstance(description, Setting):
+        if options:
+            raise TypeError("a shared Setting takes no further options")
+        return dataclasses.field(default=default, metadata={_METADATA_KEY: description})
+    return dataclasses.field(default=default, metadata={_METADATA_KEY: Setting(description, **options)})
+
+
+def settings_of(config_class: type) -> tuple[tuple[str, Any, Setting], ...]:
+    """(field name, default, Setting) of each field of `config_class` that users set, in field order."""
+    return tuple((item.name, item.default, item.metadata[_METADATA_KEY])
+                 for item in dataclasses.fields(config_class) if _METADATA_KEY in item.metadata)
+
+
+def dynamic_fields(config_class: type) -> frozenset[str]:
+    """Names of the fields of `config_class` that may change while running."""
+    return frozenset(name for name, _, spec in settings_of(config_class) if spec.dynamic)

@@ -1,0 +1,106 @@
+"""The estimator's settings while it runs: `reconfigure` changes the dynamic ones from the next
+update on (as if configured so from the start), refuses the others, and the tool gate follows
+tool_mode."""
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from meshfg_ros.benchmarks.baselines import synthetic_sequence
+from meshfg_ros.core.estimator import (
+    EstimatorConfig,
+    EstimatorConfigError,
+    EstimatorInputError,
+    SlidingWindowEstimator,
+)
+
+BASE = EstimatorConfig(factors="full", window_size=2, measurement_sigma=5e-4)
+# Every dynamic setting, each far from its default.
+CHANGES = dict(measurement_sigma=2e-3, simulation_sigma=3e-4, temporal_sigma=4e-3, robust_scale=3e-3,
+               gating_distance=0.02)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return synthetic_sequence(target_vertices=60, points_per_step=300, steps=3, size=0.1, noise_sigma=5e-4,
+                              prediction_error=3e-3, seed=2)
+
+
+def updates(estimator, steps):
+    return [estimator.update(step.stamp_ns, step.points, step.predicted) for step in steps]
+
+
+@pytest.mark.parametrize("estimate_weights", [False, True])
+def test_a_reconfigured_estimator_runs_as_one_configured_so_from_the_start(scene, estimate_weights):
+    mesh, sequence = scene
+    base = replace(BASE, estimate_weights=estimate_weights)
+    reconfigured = SlidingWindowEstimator(mesh, base)
+    reconfigured.reconfigure(**CHANGES)
+    assert reconfigured.config == base  # pending until the next update
+    configured = SlidingWindowEstimator(mesh, replace(base, **CHANGES))
+    for ours, reference in zip(updates(reconfigured, sequence), updates(configured, sequence)):
+        np.testing.assert_allclose(ours.positions, reference.positions, rtol=0.0, atol=1e-12)
+        assert ours.measurement_sigma == pytest.approx(reference.measurement_sigma, rel=1e-12)
+        assert ours.simulation_sigma == pytest.approx(reference.simulation_sigma, rel=1e-12)
+    assert reconfigured.config == replace(base, **CHANGES)
+    assert reconfigured.graph.relinearize_threshold == CHANGES["measurement_sigma"]
+
+
+def test_changes_apply_from_the_next_update_and_survive_a_failed_one(scene):
+    mesh, sequence = scene
+    estimator = SlidingWindowEstimator(mesh, replace(BASE, estimate_weights=False))
+    first = estimator.update(sequence[0].stamp_ns, sequence[0].points, sequence[0].predicted)
+    estimator.reconfigure(measurement_sigma=1e-3)
+    estimator.reconfigure(temporal_sigma=2e-2)  # adds to the first change
+    with pytest.raises(EstimatorInputError):
+        estimator.update(sequence[1].stamp_ns, np.zeros((4, 2)), sequence[1].predicted)
+    assert (estimator.config.measurement_sigma, estimator.config.temporal_sigma) == (1e-3, 2e-2)
+    second = estimator.update(sequence[1].stamp_ns, sequence[1].points, sequence[1].predicted)
+    assert (first.measurement_sigma, second.measurement_sigma) == (5e-4, 1e-3)
+
+
+def test_a_change_made_during_an_update_waits_for_the_next(scene, monkeypatch):
+    """A node's parameter callback runs while its solver thread updates."""
+    mesh, sequence = scene
+    estimator = SlidingWindowEstimator(mesh, replace(BASE, estimate_weights=False))
+    optimise = estimator._optimise
+
+    def optimise_while_reconfigured(messages):
+        estimator.reconfigure(measurement_sigma=1e-3)
+        return optimise(messages)
+
+    monkeypatch.setattr(estimator, "_optimise", optimise_while_reconfigured)
+    during = estimator.update(sequence[0].stamp_ns, sequence[0].points, sequence[0].predicted)
+    monkeypatch.setattr(estimator, "_optimise", optimise)
+    after = estimator.update(sequence[1].stamp_ns, sequence[1].points, sequence[1].predicted)
+    assert (during.measurement_sigma, after.measurement_sigma) == (5e-4, 1e-3)
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"window_size": 3}, r"window_size cannot change while the estimator runs \(dynamic: gating_distance, "),
+    ({"youngs_modulus": 5e3}, "youngs_modulus cannot change while the estimator runs"),
+    ({"measurement_sigma": -1.0}, "measurement_sigma must be finite and > 0, got -1.0"),
+    ({"gating_distance": float("nan")}, "gating_distance must be finite and >= 0"),
+    ({"measurment_sigma": 1e-3}, "unknown setting measurment_sigma"),
+])
+def test_reconfigure_refuses_static_unknown_and_invalid_settings(scene, changes, message):
+    mesh, sequence = scene
+    estimator = SlidingWindowEstimator(mesh, replace(BASE, estimate_weights=False))
+    with pytest.raises(EstimatorConfigError, match=message):
+        estimator.reconfigure(temporal_sigma=2e-2, **changes)
+    result = estimator.update(sequence[0].stamp_ns, sequence[0].points, sequence[0].predicted)
+    assert estimator.config == replace(BASE, estimate_weights=False)  # nothing of the refused call applied
+    assert result.measurement_sigma == 5e-4
+
+
+@pytest.mark.parametrize("tool_mode, dropped", [("sphere", True), ("grasp", False)])
+def test_points_on_the_tool_are_leaks_in_sphere_mode_only(scene, tool_mode, dropped):
+    mesh, sequence = scene
+    step = sequence[0]
+    tool = np.array([*step.points[0], 0.0, 0.0, 0.0, 1.0])  # the sphere around a measured point
+    on_tool = int(np.count_nonzero(np.linalg.norm(step.points - tool[:3], axis=1) <= 6e-3))
+    estimator = SlidingWindowEstimator(mesh, replace(BASE, tool_mode=tool_mode, tool_radius=4e-3))
+    result = estimator.update(step.stamp_ns, step.points, step.predicted, tool)
+    assert on_tool >= 1
+    assert ("point(s) on the tool dropped" in result.message) is dropped
+    assert result.num_points_rejected >= (on_tool if dropped else 0)
