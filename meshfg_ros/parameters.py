@@ -33,7 +33,10 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from meshfg_ros.core.estimator import EstimatorConfig
-from meshfg_ros.core.mesh import TetMesh, load_mesh
+from meshfg_ros.core.mesh import TetMesh
+from meshfg_ros.core.patient_mesh import Box, FixedSelection, Plane, prepare_mesh
+from meshfg_ros.core.pose_history import pose_matrix
+from meshfg_ros.core.world_frame import WorldFrameInputs
 from meshfg_ros.core.settings import setting, settings_of
 from meshfg_ros.core.simulator import SimulatorConfig
 
@@ -178,9 +181,12 @@ class SimulationNodeConfig:
     grasped_vertices: tuple[int, ...] = setting(
         (), "Mesh vertex indices held by the tool (grasp mode only).", type="integer_array", range=(0, None))
     estimate_timeout: float = setting(
-        2.0, "Seconds (wall time) a tool pose waits for the estimate of the previous tool pose before it is "
-        "predicted from an older state (tool poses and clouds share stamps, as in the recordings); 0 when "
-        "tool poses come faster than clouds.", range=(0.0, 60.0))
+        2.0, "Seconds (wall time) a prediction request waits for the estimate of the previous request before it "
+        "is predicted from the newest state the node has.", range=(0.0, 60.0))
+    tool_pose_timeout: float = setting(
+        0.2, "Seconds (wall time) a prediction request waits for a tool pose stamped at or after its cloud; "
+        "then the pose is extrapolated within tool_pose_horizon, or the step runs without a prediction.",
+        range=(0.0, 60.0))
 
 
 @dataclass(frozen=True)
@@ -188,11 +194,11 @@ class EstimatorNodeConfig:
     """Settings of the estimator node beyond the estimator's: the camera, input QoS and timing, markers."""
 
     camera_frame: str = setting(
-        "camera", "Frame of clouds that are moved to world_frame with camera_pose; clouds in any other frame "
-        "are rejected.")
+        "camera", "Frame placed in world_frame by the static camera_pose when /tf does not know it (clouds in "
+        "every other frame are placed through /tf and /tf_static).")
     camera_pose: tuple[float, ...] = setting(
-        (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0), "Static pose of camera_frame in world_frame: [x, y, z, qx, qy, qz, qw].",
-        range=(-1e3, 1e3), length=7)
+        (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0), "Static pose of camera_frame in world_frame: [x, y, z, qx, qy, qz, qw] "
+        "(the fallback when /tf does not know camera_frame).", range=(-1e3, 1e3), length=7)
     points_reliable: bool = setting(
         False, "Subscribe to points with reliable QoS (depth 100): for recordings played back by bag_player, "
         "where every cloud counts; false: the sensor-data profile of live cameras (best effort, depth 5), which "
@@ -220,6 +226,39 @@ class SharedNodeConfig:
     clock_jump_threshold: float = setting(
         1.0, "A stamp this many seconds older than the newest one (a looped recording) restarts from the "
         "initial mesh; smaller steps back are dropped.", range=(0.0, 1e6))
+    mesh_scale: float = setting(
+        1.0, "Metres per unit of mesh_file: 0.001 for a mesh in millimetres.", range=(1e-9, 1e9))
+    mesh_pose: tuple[float, ...] = setting(
+        (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0), "Pose of mesh_file's frame in world_frame, [x, y, z, qx, qy, qz, qw]: "
+        "the registration of a CT mesh (applied after mesh_scale).", range=(-1e3, 1e3), length=7)
+    fixed_vertices: tuple[int, ...] = setting(
+        (), "Indices of mesh_file's vertices held fixed (the boundary), besides its 'fixed' point data.",
+        type="integer_array", range=(0, None))
+    fixed_plane: tuple[float, ...] = setting(
+        (), "Hold fixed the vertices of mesh_file within a distance of a plane (world frame, metres): "
+        "[x, y, z, nx, ny, nz, distance], a point on it, its normal, the distance; empty: none.",
+        type="double_array")
+    fixed_box: tuple[float, ...] = setting(
+        (), "Hold fixed the vertices of mesh_file inside a box (world frame, metres): "
+        "[xmin, ymin, zmin, xmax, ymax, zmax]; empty: none.", type="double_array")
+    fixed_groups: str = setting(
+        "", "Hold fixed the vertices of mesh_file's named groups (gmsh physical groups, cell or point sets), "
+        "comma-separated; empty: none.")
+    transform_timeout: float = setting(
+        0.5, "Seconds (wall time) a cloud or tool pose in another frame than world_frame waits for /tf to place "
+        "it at its stamp; then it is rejected with the reason.", range=(0.0, 60.0))
+    tool_pose_horizon: float = setting(
+        0.05, "Seconds past the newest tool pose within which the pose at a cloud's stamp is extrapolated "
+        "(tool poses are interpolated at each cloud's stamp); beyond it the step has no tool pose.",
+        range=(0.0, 10.0))
+
+    def __post_init__(self) -> None:
+        if len(self.fixed_plane) not in (0, 7):
+            raise ParameterError(f"fixed_plane needs 0 or 7 values, got {len(self.fixed_plane)}")
+        if len(self.fixed_box) not in (0, 6):
+            raise ParameterError(f"fixed_box needs 0 or 6 values, got {len(self.fixed_box)}")
+        if np.linalg.norm(self.mesh_pose[3:]) < 1e-9:
+            raise ParameterError("mesh_pose quaternion has zero norm")
 
 
 @dataclass(frozen=True)
@@ -420,12 +459,32 @@ def shared_settings(config, config_class: type) -> dict[str, Any]:
 
 
 # ------------------------------------------------------------------ the nodes' inputs and help
-def load_mesh_file(path: str) -> TetMesh:
-    """The initial mesh of parameter mesh_file, or ParameterError (one line) when it cannot be read."""
+def load_mesh_file(params: Mapping[str, Any]) -> TetMesh:
+    """The initial mesh of parameter mesh_file, scaled, placed and with the fixed vertices the
+    parameters select (core/patient_mesh.py), or ParameterError (one line) when it cannot be read
+    or simulated."""
+    path = params["mesh_file"]
+    plane, box = params["fixed_plane"], params["fixed_box"]
+    selection = FixedSelection(
+        indices=tuple(params["fixed_vertices"]),
+        planes=(Plane(tuple(plane[:3]), tuple(plane[3:6]), plane[6]),) if plane else (),
+        boxes=(Box(tuple(box[:3]), tuple(box[3:])),) if box else (),
+        groups=tuple(name.strip() for name in params["fixed_groups"].split(",") if name.strip()),
+    )
     try:
-        return load_mesh(path)
+        return prepare_mesh(path, selection, params["mesh_scale"], params["mesh_pose"])
     except (OSError, ValueError) as error:
         raise ParameterError(f"cannot load mesh_file {path}: {' '.join(str(error).split())}") from None
+
+
+def world_frame_inputs(params: Mapping[str, Any]) -> WorldFrameInputs:
+    """The placement of inputs into world_frame (core/world_frame.py) of the nodes and the replay:
+    /tf and /tf_static, with the static camera_pose as the fallback for camera_frame where the
+    parameters have it (the estimator's)."""
+    fallback = {}
+    if "camera_frame" in params:
+        fallback[params["camera_frame"]] = pose_matrix(np.asarray(params["camera_pose"], dtype=np.float64))
+    return WorldFrameInputs(params["world_frame"], fallback=fallback, wait_s=params["transform_timeout"])
 
 
 def parameters_help(nodes: Iterable[str]) -> str:

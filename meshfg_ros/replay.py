@@ -34,13 +34,13 @@ from rosbags.highlevel import AnyReader
 from meshfg_ros.core.estimator import StepResult
 from meshfg_ros.core.input_checks import SceneError, check_initial_mesh
 from meshfg_ros.core.frames import StampedTransform
-from meshfg_ros.core.pose_history import pose_matrix
 from meshfg_ros.core.scheduler import OfflinePipeline, run_offline
-from meshfg_ros.core.world_frame import CLOUD, POSE, FramedInput, WorldFrameInputs
+from meshfg_ros.core.world_frame import CLOUD, POSE, FramedInput
 from meshfg_ros.io.tf_messages import TF_STATIC_TOPIC, TF_TOPIC, tf_message_to_transforms
 from meshfg_ros.core.mesh import TetMesh, load_mesh
 from meshfg_ros.parameters import (
     estimator_config,
+    world_frame_inputs,
     load_parameters,
     parameter_names,
     read_parameters_file,
@@ -233,7 +233,7 @@ def iterate_replay(inputs: ReplayInputs, params: Mapping[str, Any],
     grasped = np.asarray(params["grasped_vertices"], dtype=np.int64) if params["grasped_vertices"] else None
     pipeline = OfflinePipeline(inputs.initial_mesh, simulator_config(params), estimator_config(params), grasped,
                                clock_jump_threshold=params["clock_jump_threshold"],
-                               alter_prediction=alter_prediction)
+                               tool_pose_extrapolation=params["tool_pose_horizon"], alter_prediction=alter_prediction)
     for step in run_offline(pipeline, _world_frame_events(inputs, params)):
         yield ReplayStep(step.stamp_ns, step.points, step.predicted, step.simulation_only, step.result)
 
@@ -259,13 +259,6 @@ def _world_frame_events(inputs: ReplayInputs, params: Mapping[str, Any]) -> Iter
         yield from ((item.kind, item.stamp_ns, item.data) for item in placed)
     placed, _ = placer.release(flush=True)
     yield from ((item.kind, item.stamp_ns, item.data) for item in placed)
-
-
-def world_frame_inputs(params: Mapping[str, Any]) -> WorldFrameInputs:
-    """The nodes' and the replay's placement of inputs into world_frame: /tf and /tf_static, with
-    the static camera_pose as the fallback for camera_frame."""
-    fallback = {params["camera_frame"]: pose_matrix(np.asarray(params["camera_pose"], dtype=np.float64))}
-    return WorldFrameInputs(params["world_frame"], fallback=fallback, wait_s=params["prediction_timeout"])
 
 
 def replay_recording(

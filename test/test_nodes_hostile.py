@@ -121,7 +121,7 @@ def test_a_stuck_update_is_an_error_and_does_not_hold_up_shutdown(monkeypatch):
         node = EstimatorNode(context=context, parameter_overrides=[Parameter("prediction_timeout", value=0.0),
                                                   Parameter("update_time_budget", value=0.01)])
         reports = []
-        node._diagnostics_publisher = SimpleNamespace(publish=reports.append)
+        node._diagnostics = SimpleNamespace(publish=reports.append)
         mesh = pushed_cube()
         node._set_mesh(mesh, MeshState(0, "world", 0, mesh.vertices, mesh.tetrahedra, mesh.surface_triangles,
                                         mesh.fixed_vertices))

@@ -200,7 +200,9 @@ def test_each_node_declares_the_parameters_of_the_configurations_it_reads():
         estimator - simulation
     # The tissue model and the tool are both configurations' fields; frames and mesh are both nodes'.
     assert simulation & estimator == {"youngs_modulus", "poisson_ratio", "tool_radius", "tool_mode", "world_frame",
-                                      "mesh_file", "clock_jump_threshold"}
+                                      "mesh_file", "clock_jump_threshold", "mesh_scale", "mesh_pose", "fixed_vertices",
+                                      "fixed_plane", "fixed_box", "fixed_groups", "transform_timeout",
+                                      "tool_pose_horizon"}
     assert simulation | estimator == {parameter.name for parameter in PARAMETERS}
     assert [parameter.name for parameter in node_parameters("bag_player")] == [
         "rate", "wait_for_subscribers", "clock_frequency", "delay", "loop"]
@@ -261,9 +263,9 @@ def test_help_describes_every_parameter_of_the_nodes():
 
 def test_a_mesh_file_that_cannot_be_read_is_a_parameter_error(tmp_path):
     with pytest.raises(ParameterError, match=r"^cannot load mesh_file /nonexistent/organ\.msh: "):
-        load_mesh_file("/nonexistent/organ.msh")
+        load_mesh_file(load_parameters({"mesh_file": "/nonexistent/organ.msh"}))
     garbage = tmp_path / "organ.vtu"
     garbage.write_text("not a mesh\n")
     with pytest.raises(ParameterError, match="cannot load mesh_file .*organ.vtu") as error:
-        load_mesh_file(str(garbage))
+        load_mesh_file(load_parameters({"mesh_file": str(garbage)}))
     assert "\n" not in str(error.value)

@@ -111,12 +111,15 @@ def test_an_input_waits_for_its_transform_then_is_set_aside_with_the_reason():
     placer = WorldFrameInputs("world", TransformBuffer(), wait_s=0.5)
     cloud = FramedInput(CLOUD, 2_000_000_000, "camera", np.zeros((4, 3)), arrival_s=10.0)
     pose = FramedInput(POSE, 2_000_000_000, "world", np.array([0, 0, 0, 0, 0, 0, 1.0]), arrival_s=10.1)
+    second = FramedInput(CLOUD, 2_100_000_000, "camera", np.ones((4, 3)), arrival_s=10.1)
     assert placer.add(cloud, 10.0) == ([], [])
-    assert placer.add(pose, 10.1) == ([], [])  # behind the waiting cloud: the arrival order is kept
-    shift = StampedTransform("world", "camera", 2_000_000_000, [0.0, 0.0, 1.0], [0.0, 0.0, 0.0, 1.0])
-    placer.transforms.set_transform(shift)
+    assert placer.add(second, 10.1) == ([], [])  # behind the waiting cloud of its stream
+    assert placer.add(pose, 10.1) == ([pose], [])  # another stream's input is not held up
+    for stamp in (2_000_000_000, 2_100_000_000):
+        placer.transforms.set_transform(StampedTransform("world", "camera", stamp, [0.0, 0.0, 1.0],
+                                                         [0.0, 0.0, 0.0, 1.0]))
     placed, set_aside = placer.release(10.2)
-    assert [item.kind for item in placed] == [CLOUD, POSE] and not set_aside
+    assert [item.stamp_ns for item in placed] == [2_000_000_000, 2_100_000_000] and not set_aside
     np.testing.assert_allclose(placed[0].data, [[0.0, 0.0, 1.0]] * 4)
     late = FramedInput(CLOUD, 3_000_000_000, "camera", np.zeros((1, 3)), arrival_s=11.0)
     assert placer.add(late, 11.0) == ([], [])  # beyond the newest transform: waits

@@ -2,13 +2,14 @@
 
 A camera on a moving arm (an endoscope) gives clouds in its optical frame and a robot gives tool
 poses in its base frame; /tf and /tf_static say where those frames are over time
-(core/frames.py). `WorldFrameInputs` keeps the inputs in arrival order and releases each one
-moved into world_frame as soon as the transform buffer can place it at its stamp. An input whose
-frame is not known yet, or whose stamp lies beyond the newest transform of a moving frame,
-waits (at most `wait_s` of the caller's clock, or until `flush`); after that it is set aside
-with the lookup's reason. Inputs already in world_frame pass at once (behind older waiting
-ones: the order of each stream is kept). Frames with a static fallback pose (the camera_pose
-parameter) are used when the buffer knows nothing of them.
+(core/frames.py). `WorldFrameInputs` releases each input moved into world_frame as soon as the
+transform buffer can place it at its stamp. An input whose frame is not known yet, or whose
+stamp lies beyond the newest transform of a moving frame, waits (at most `wait_s` of the
+caller's clock, or until `flush`); after that it is set aside with the lookup's reason. Inputs
+wait in one queue per kind and frame, so the order of each stream is kept and an input in an
+unknown frame holds up no other frame's; what one call releases comes in arrival order. Frames
+with a static fallback pose (the camera_pose parameter) are used when the buffer knows nothing
+of them.
 """
 
 from __future__ import annotations
@@ -59,32 +60,37 @@ class WorldFrameInputs:
         self.transforms = transforms if transforms is not None else TransformBuffer()
         self.fallback = dict(fallback or {})  # frame -> 4x4 (its points into world_frame)
         self.wait_s = wait_s
-        self._waiting: deque[FramedInput] = deque()
+        self._queues: dict[tuple[str, str], deque[tuple[int, FramedInput]]] = {}
+        self._arrivals = 0
 
     @property
     def waiting(self) -> int:
         """Inputs held for a transform."""
-        return len(self._waiting)
+        return sum(len(queue) for queue in self._queues.values())
 
     def add(self, item: FramedInput, now_s: float = 0.0) -> tuple[list[FramedInput], list[Unplaceable]]:
         """Queue an input; returns the inputs now placed in world_frame (in arrival order) and
         those set aside."""
-        self._waiting.append(item)
+        self._queues.setdefault((item.kind, item.frame_id), deque()).append((self._arrivals, item))
+        self._arrivals += 1
         return self.release(now_s)
 
     def release(self, now_s: float = 0.0, flush: bool = False) -> tuple[list[FramedInput], list[Unplaceable]]:
         """Place what the buffer can now place (call after new transforms and periodically)."""
         placed, set_aside = [], []
-        while self._waiting:
-            item = self._waiting[0]
-            try:
-                placed.append(self._placed(item))
-            except FrameLookupError as error:
-                if not flush and now_s - item.arrival_s < self.wait_s and error.reason != FrameLookupError.TOO_OLD:
-                    break
-                set_aside.append(Unplaceable(item, str(error)))
-            self._waiting.popleft()
-        return placed, set_aside
+        for queue in self._queues.values():
+            while queue:
+                arrival, item = queue[0]
+                try:
+                    placed.append((arrival, self._placed(item)))
+                except FrameLookupError as error:
+                    waited = now_s - item.arrival_s
+                    if not flush and waited < self.wait_s and error.reason != FrameLookupError.TOO_OLD:
+                        break
+                    set_aside.append(Unplaceable(item, str(error)))
+                queue.popleft()
+        self._queues = {key: queue for key, queue in self._queues.items() if queue}
+        return [item for _, item in sorted(placed, key=lambda entry: entry[0])], set_aside
 
     def _placed(self, item: FramedInput) -> FramedInput:
         if item.frame_id == self.world_frame:

@@ -17,6 +17,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
+from meshfg_ros.core.input_checks import rejections_in
 from meshfg_ros.io.messages import RclpyMessageFactory, header_msg
 
 _RCLPY = RclpyMessageFactory()
@@ -57,6 +58,22 @@ class EstimatorCounters:
     last_publish_ms: float = float("nan")     # and publishing its outputs
     last_latency_ms: float = float("nan")     # arrival of the cloud to its estimate published
     median_latency_ms: float = float("nan")
+
+    def count(self, counter: str) -> None:
+        """One more of `counter` (a field name)."""
+        setattr(self, counter, getattr(self, counter) + 1)
+
+    def record_step(self, result, wait_ms: float, publish_ms: float, latencies_ms: list[float]) -> None:
+        """Count a published step (a core.estimator.StepResult) and its stage times."""
+        self.steps += 1
+        self.degraded_steps += int(result.degraded)
+        self.unconverged_steps += int(not result.converged)
+        self.points_used += result.num_points
+        self.points_set_aside += result.num_points_rejected
+        for counter in rejections_in(result.message):
+            self.count(counter)
+        self.last_wait_ms, self.last_solve_time_ms, self.last_publish_ms = wait_ms, float(result.solve_time_ms), publish_ms
+        self.last_latency_ms, self.median_latency_ms = latencies_ms[-1], float(np.median(latencies_ms))
 
     @property
     def clouds_rejected(self) -> int:

@@ -136,11 +136,11 @@ class InitialMeshSource:
         """The mesh in use (None: none yet)."""
         return self._state
 
-    def load_file(self, path: str) -> None:
-        """Load mesh_file ("" : none, wait for the topic)."""
-        if not path:
+    def load_file(self, params: dict) -> None:
+        """Load mesh_file as the parameters place it ("" : none, wait for the topic)."""
+        if not params["mesh_file"]:
             return
-        mesh = load_mesh_file(path)  # ParameterError: the node stops at start-up
+        mesh = load_mesh_file(params)  # ParameterError: the node stops at start-up
         self._install(MeshState(0, self._frame, 0, mesh.vertices, mesh.tetrahedra, mesh.surface_triangles,
                                 mesh.fixed_vertices), mesh)
 

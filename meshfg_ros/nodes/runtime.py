@@ -6,6 +6,7 @@ from __future__ import annotations
 import gc
 import re
 import signal
+import threading
 import sys
 from collections.abc import Callable, Sequence
 
@@ -109,3 +110,42 @@ def run_nodes(program: str, node_factories: Sequence[Callable[[], Node]], args=N
         gc.collect()
         rclpy.try_shutdown()
     return 0
+
+
+class SolverThread:
+    """The thread a node runs its long work in (the estimator's updates), so that the executor
+    keeps taking input: it runs `run(*job)` for each job `next_job()` returns (None: nothing
+    ready), when woken and every POLL_PERIOD_S (for the scheduler's timeouts). An exception of
+    one job is logged and the thread goes on. `stop` waits STOP_WAIT_S for a running job, then
+    leaves the (daemon) thread behind."""
+
+    POLL_PERIOD_S = 0.02
+    STOP_WAIT_S = 2.0
+
+    def __init__(self, next_job: Callable[[], tuple | None], run: Callable[..., None], logger) -> None:
+        self._next_job, self._run, self._logger = next_job, run, logger
+        self._wakeup, self.stopping = threading.Event(), False
+        self._thread = threading.Thread(target=self._loop, name="meshfg-solver", daemon=True)
+        self._thread.start()
+
+    def wake(self) -> None:
+        """Look for a ready job now."""
+        self._wakeup.set()
+
+    def stop(self) -> None:
+        """Stop taking jobs (`stopping`: a running job publishes nothing more), wait for it a while."""
+        self.stopping = True
+        self._wakeup.set()
+        self._thread.join(self.STOP_WAIT_S)
+        if self._thread.is_alive():
+            self._logger.warning(f"an update still runs after {self.STOP_WAIT_S:g} s: left behind at shutdown")
+
+    def _loop(self) -> None:
+        while not self.stopping:
+            self._wakeup.wait(self.POLL_PERIOD_S)
+            self._wakeup.clear()
+            while not self.stopping and (job := self._next_job()) is not None:
+                try:
+                    self._run(*job)
+                except Exception as error:  # noqa: BLE001 - the thread must outlive any one failure
+                    self._logger.error(f"solver thread: {error!r}")

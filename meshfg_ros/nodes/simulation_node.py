@@ -1,6 +1,7 @@
 """simulation_node: the physics prior, as a ROS 2 node (a shell over core.scheduler.PredictionScheduler).
 
-Subscribes `tool_pose` (geometry_msgs/PoseStamped, any rate), `prediction_request`
+Subscribes `tool_pose` (geometry_msgs/PoseStamped, any rate, any frame placed through /tf and
+/tf_static), `prediction_request`
 (std_msgs/Header: the stamp of each cloud the estimator accepted), `estimated_mesh` and
 `initial_mesh` (meshfg_msgs/TetraMesh; or parameter mesh_file). For each request it publishes
 `predicted_mesh` (TetraMesh at the cloud's stamp: the simulator moved from the estimate of the
@@ -22,8 +23,10 @@ from std_msgs.msg import Header
 
 from meshfg_msgs.msg import PredictionFailure, TetraMesh
 from meshfg_ros.core.scheduler import PredictionScheduler, SchedulingTimeouts
+from meshfg_ros.core.world_frame import POSE, FramedInput, Unplaceable
 from meshfg_ros.io.messages import MessageValidationError, header_msg, pose_from_msg, stamp_ns_from_msg
 from meshfg_ros.nodes.diagnostics import SimulatorCounters, diagnostic_array
+from meshfg_ros.nodes.frame_inputs import FrameInputs
 from meshfg_ros.nodes.ros_conversions import (
     LATCHED_QOS,
     PREDICTION_QOS,
@@ -36,7 +39,7 @@ from meshfg_ros.nodes.ros_conversions import (
 )
 from meshfg_ros.nodes.ros_parameters import declare_parameters
 from meshfg_ros.nodes.runtime import run_nodes
-from meshfg_ros.parameters import simulator_config
+from meshfg_ros.parameters import simulator_config, world_frame_inputs
 
 _POLL_PERIOD_S = 0.02
 _DIAGNOSTICS_PERIOD_S = 1.0
@@ -58,19 +61,22 @@ class SimulationNode(Node):
         self._failure_publisher = self.create_publisher(PredictionFailure, "prediction_failed", PREDICTION_QOS)
         self._diagnostics_publisher = self.create_publisher(DiagnosticArray, "/diagnostics", STREAM_QOS)
         self._mesh = InitialMeshSource(self, self._frame, self._set_mesh)
+        self._inputs = FrameInputs(self, world_frame_inputs(self.params), self._on_placed, self._on_unplaceable)
         self.create_subscription(TetraMesh, "estimated_mesh", self._on_estimate, LATCHED_QOS)
         self.create_subscription(PoseStamped, "tool_pose", self._on_tool_pose, STREAM_QOS)
         self.create_subscription(Header, "prediction_request", self._on_request, REQUEST_QOS)
         steady = Clock(clock_type=ClockType.STEADY_TIME)  # waits on wall time, also with use_sim_time
         self.create_timer(_POLL_PERIOD_S, self._answer, clock=steady)
         self.create_timer(_DIAGNOSTICS_PERIOD_S, self._publish_diagnostics, clock=steady)
-        self._mesh.load_file(self.params["mesh_file"])
+        self._mesh.load_file(self.params)
 
     def _set_mesh(self, mesh, state) -> None:
-        grasped = self.params["grasped_vertices"]
-        timeouts = SchedulingTimeouts(estimate_timeout=self.params["estimate_timeout"])
-        self._scheduler = PredictionScheduler(mesh, simulator_config(self.params), grasped or None, timeouts=timeouts,
-                                              clock_jump_threshold=self.params["clock_jump_threshold"])
+        timeouts = SchedulingTimeouts(estimate_timeout=self.params["estimate_timeout"],
+                                      tool_pose_timeout=self.params["tool_pose_timeout"])
+        self._scheduler = PredictionScheduler(
+            mesh, simulator_config(self.params), self.params["grasped_vertices"] or None, timeouts=timeouts,
+            clock_jump_threshold=self.params["clock_jump_threshold"],
+            tool_pose_extrapolation=self.params["tool_pose_horizon"])
         self._messages = MeshMessages(state)
 
     def _on_estimate(self, msg: TetraMesh) -> None:
@@ -90,18 +96,22 @@ class SimulationNode(Node):
             record = pose_from_msg(msg)
         except MessageValidationError as error:
             return self._count("tool_poses_rejected_malformed", f"tool_pose rejected: {error}")
-        if record.frame_id != self._frame:
-            return self._count("tool_poses_rejected_frame",
-                               f"tool_pose in frame {record.frame_id!r}, expected {self._frame!r}: rejected")
+        self._inputs.add(FramedInput(POSE, record.stamp_ns, record.frame_id, record.pose, time.monotonic()))
+
+    def _on_placed(self, item: FramedInput) -> None:
+        """A tool pose in world_frame."""
         if self._scheduler is None:
             return
-        rejection = self._scheduler.add_tool_pose(record.stamp_ns, record.pose)
+        rejection = self._scheduler.add_tool_pose(item.stamp_ns, item.data)
         if rejection is not None:
             return self._count(rejection.counter, rejection.reason)
         if self._scheduler.restarted:
             self.counters.clock_jumps_back += 1
             self.get_logger().warning("tool_pose stamp jumped back: restarting from the initial mesh")
         self._answer()
+
+    def _on_unplaceable(self, unplaceable: Unplaceable) -> None:
+        self._count("tool_poses_rejected_frame", f"tool_pose rejected: {unplaceable.reason}")
 
     def _on_request(self, msg: Header) -> None:
         if self._scheduler is not None:
