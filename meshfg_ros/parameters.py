@@ -59,6 +59,7 @@ __all__ = [
     "estimator_changes",
     "estimator_config",
     "load_mesh_file",
+    "placed_mesh_file",
     "load_parameters",
     "node_parameters",
     "parameter_names",
@@ -459,11 +460,9 @@ def shared_settings(config, config_class: type) -> dict[str, Any]:
 
 
 # ------------------------------------------------------------------ the nodes' inputs and help
-def load_mesh_file(params: Mapping[str, Any]) -> TetMesh:
-    """The initial mesh of parameter mesh_file, scaled, placed and with the fixed vertices the
-    parameters select (core/patient_mesh.py), or ParameterError (one line) when it cannot be read
-    or simulated."""
-    path = params["mesh_file"]
+def placed_mesh_file(params: Mapping[str, Any]) -> TetMesh:
+    """The mesh of parameter mesh_file, scaled, placed and with the fixed vertices the parameters
+    select (core/patient_mesh.py); the errors of core.mesh and core.patient_mesh."""
     plane, box = params["fixed_plane"], params["fixed_box"]
     selection = FixedSelection(
         indices=tuple(params["fixed_vertices"]),
@@ -471,10 +470,16 @@ def load_mesh_file(params: Mapping[str, Any]) -> TetMesh:
         boxes=(Box(tuple(box[:3]), tuple(box[3:])),) if box else (),
         groups=tuple(name.strip() for name in params["fixed_groups"].split(",") if name.strip()),
     )
+    return prepare_mesh(params["mesh_file"], selection, params["mesh_scale"], params["mesh_pose"])
+
+
+def load_mesh_file(params: Mapping[str, Any]) -> TetMesh:
+    """The nodes' initial mesh from mesh_file (`placed_mesh_file`), or ParameterError (one line)
+    when it cannot be read or simulated."""
     try:
-        return prepare_mesh(path, selection, params["mesh_scale"], params["mesh_pose"])
+        return placed_mesh_file(params)
     except (OSError, ValueError) as error:
-        raise ParameterError(f"cannot load mesh_file {path}: {' '.join(str(error).split())}") from None
+        raise ParameterError(f"cannot load mesh_file {params['mesh_file']}: {' '.join(str(error).split())}") from None
 
 
 def world_frame_inputs(params: Mapping[str, Any]) -> WorldFrameInputs:

@@ -37,14 +37,16 @@ from meshfg_ros.core.frames import StampedTransform
 from meshfg_ros.core.scheduler import OfflinePipeline, run_offline
 from meshfg_ros.core.world_frame import CLOUD, POSE, FramedInput
 from meshfg_ros.io.tf_messages import TF_STATIC_TOPIC, TF_TOPIC, tf_message_to_transforms
-from meshfg_ros.core.mesh import TetMesh, load_mesh
+from meshfg_ros.core.mesh import TetMesh
 from meshfg_ros.parameters import (
+    default_parameters,
     estimator_config,
-    world_frame_inputs,
     load_parameters,
     parameter_names,
+    placed_mesh_file,
     read_parameters_file,
     simulator_config,
+    world_frame_inputs,
 )
 from meshfg_ros.core.simulator import SimulatorConfig
 from meshfg_ros.io.messages import (
@@ -144,8 +146,11 @@ class ReplayResult:
         return self.steps[-1].result.positions if self.steps else self.initial_mesh.vertices
 
 
-def load_inputs(path: str | Path, mesh_path: str | Path | None = None) -> ReplayInputs:
-    """Read the replay's inputs; the initial mesh comes from `mesh_path` if given."""
+def load_inputs(path: str | Path, mesh_path: str | Path | None = None,
+                placement: Mapping[str, Any] | None = None) -> ReplayInputs:
+    """Read the replay's inputs; the initial mesh comes from `mesh_path` if given, scaled, placed
+    and with the fixed vertices that the parameters `placement` select (mesh_scale, mesh_pose,
+    fixed_*: as the nodes load mesh_file; default: as the file is)."""
     with RecordingReader(path) as reader:
         reader.require(TOOL_POSE_TOPIC, PoseRecord)
         reader.require(POINTS_TOPIC, PointCloudRecord)
@@ -167,7 +172,7 @@ def load_inputs(path: str | Path, mesh_path: str | Path | None = None) -> Replay
         if mesh.flipped_count:
             raise ReplayError(f"{INITIAL_MESH_TOPIC}: {mesh.flipped_count} tetrahedra have negative volume")
     else:
-        mesh = load_mesh(mesh_path)
+        mesh = placed_mesh_file({**default_parameters(), **(placement or {}), "mesh_file": str(mesh_path)})
         initial_state = MeshState(poses[0].stamp_ns if poses else 0, clouds[0].frame_id if clouds else "world", 0,
                                   mesh.vertices, mesh.tetrahedra, mesh.surface_triangles, mesh.fixed_vertices)
     try:
@@ -267,8 +272,10 @@ def replay_recording(
     mesh_path: str | Path | None = None,
 ) -> ReplayResult:
     """Replay a recording in memory. params: overrides of the recording's defaults."""
-    inputs = load_inputs(path, mesh_path)
+    inputs = load_inputs(path)
     parameters = replay_parameters(inputs, params)
+    if mesh_path is not None:
+        inputs = load_inputs(path, mesh_path, parameters)
     return ReplayResult(parameters, inputs.initial_mesh, tuple(iterate_replay(inputs, parameters)))
 
 
@@ -314,8 +321,10 @@ def write_replay(
     path, out = Path(path), Path(out)
     if out.exists() or out.is_symlink():
         raise RecordingExistsError(f"{out} exists already; recordings are never overwritten")
-    inputs = load_inputs(path, mesh_path)
+    inputs = load_inputs(path)
     parameters = replay_parameters(inputs, params)
+    if mesh_path is not None:
+        inputs = load_inputs(path, mesh_path, parameters)
     frame = parameters["world_frame"]
     template = inputs.initial_state
     edges = surface_edges(template.surface_triangles)

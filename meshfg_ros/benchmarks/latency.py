@@ -38,6 +38,7 @@ from meshfg_msgs.msg import EstimatorStatus, TetraMesh
 from meshfg_ros.parameters import parameters_yaml
 from meshfg_ros.io.messages import stamp_ns_from_msg
 from meshfg_ros.replay import load_inputs, replay_parameters
+from meshfg_ros.io.tf_messages import TF_STATIC_TOPIC, TF_TOPIC
 from meshfg_ros.topics import INITIAL_MESH_TOPIC, POINTS_TOPIC, TOOL_POSE_TOPIC
 
 NAMESPACE = "/meshfg"
@@ -133,8 +134,11 @@ def run_live_pipeline(
         for name, command in commands.items():
             processes[name] = _start(command, logs[name], workdir, env)
         _wait_until_ready(workdir / READY_FILE, processes, timeout_s)
-        player_command = [executable("bag_player"), str(bag), "--rate", str(rate), "--topics",
-                          INITIAL_MESH_TOPIC, TOOL_POSE_TOPIC, POINTS_TOPIC]
+        statics = {static for _, static, _ in inputs.transforms}  # the recording's transform topics
+        played = [TOOL_POSE_TOPIC, POINTS_TOPIC] + [TF_STATIC_TOPIC] * (True in statics) + [TF_TOPIC] * (False in statics)
+        if not params["mesh_file"]:
+            played.insert(0, INITIAL_MESH_TOPIC)
+        player_command = [executable("bag_player"), str(bag), "--rate", str(rate), "--topics", *played]
         processes["bag_player"] = _start(player_command, logs["bag_player"], workdir, env)
         exit_codes = _wait_for_recorder(processes, timeout_s)
         for name in nodes:
