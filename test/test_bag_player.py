@@ -82,3 +82,40 @@ def test_messages_are_due_at_their_recorded_offsets_over_the_rate(context, recor
     assert len(clock_stamps) > (STAMPS_NS[-1] - STAMPS_NS[0]) / 1e9 / rate * player.clock_frequency
     for at, stamp in clock_stamps[1:]:
         assert stamp == pytest.approx(STAMPS_NS[0] + at * rate * 1e9, abs=1.0)
+
+
+class FakeGraph:
+    """Who subscribes to which topic, as the player's node would see it on the ROS graph."""
+
+    def __init__(self, clock: VirtualClock, subscribed: dict[str, float]) -> None:
+        self.clock, self.subscribed = clock, subscribed  # topic -> virtual time its subscriber appears
+
+    def count(self, topic: str) -> int:
+        return int(self.clock.now >= self.subscribed.get(topic, float("inf")))
+
+
+def wait_with(recording, monkeypatch, subscribed: dict[str, float], wait_s: float = 60.0) -> float:
+    """The virtual time the player's wait for subscribers takes."""
+    clock = VirtualClock()
+    monkeypatch.setattr(bag_player, "time", clock)
+    graph = FakeGraph(clock, subscribed)
+    with RecordingReader(recording) as reader:
+        player = BagPlayer(reader)
+        player.wait_for_subscribers = wait_s
+        monkeypatch.setattr(player, "count_subscribers", graph.count)
+        for name, publisher in player._topic_publishers.items():
+            monkeypatch.setattr(publisher, "get_subscription_count", lambda name=name: graph.count(name))
+        player._wait_for_subscribers()
+        player.destroy_node()
+    return clock.now
+
+
+def test_the_player_waits_only_for_topics_that_nodes_subscribe_to(context, recording, monkeypatch):
+    settle = bag_player._SETTLE_S
+    # one topic subscribed from the start, nobody on the others: it plays once the graph settled
+    assert settle <= wait_with(recording, monkeypatch, {"/rec/points": 0.0}) < settle + 0.1
+    # a second node appears later: the player waits for it, then settles again
+    late = wait_with(recording, monkeypatch, {"/rec/points": 0.0, "/rec/tool_pose": 0.3})
+    assert 0.3 + settle <= late < 0.3 + settle + 0.1
+    # nobody at all: it waits the whole wait_for_subscribers
+    assert wait_with(recording, monkeypatch, {}, wait_s=5.0) >= 5.0

@@ -41,6 +41,7 @@ STREAM_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 CLOCK_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
 _ACK_TIMEOUT_S = 5.0
 _POLL_S = 0.02
+_SETTLE_S = 0.5  # the subscribed topics must stay the same this long before playing starts
 
 
 class BagPlayer(Node):
@@ -80,14 +81,23 @@ class BagPlayer(Node):
         return self.published
 
     def _wait_for_subscribers(self) -> None:
+        """Wait (at most wait_for_subscribers) until every played topic that some node subscribes
+        to is matched, and that set has not grown for _SETTLE_S: topics nobody subscribes to (the
+        ground truth, metadata) are not waited for."""
         deadline = time.monotonic() + self.wait_for_subscribers
+        last, settled_since = None, time.monotonic()
         while time.monotonic() < deadline:
-            if all(publisher.get_subscription_count() for publisher in self._topic_publishers.values()):
-                return
+            wanted = frozenset(name for name in self._topic_publishers if self.count_subscribers(name))
+            matched = frozenset(name for name, publisher in self._topic_publishers.items()
+                                if publisher.get_subscription_count())
+            if (wanted, matched) != last:
+                last, settled_since = (wanted, matched), time.monotonic()
+            elif wanted and wanted <= matched and time.monotonic() - settled_since >= _SETTLE_S:
+                break
             time.sleep(_POLL_S)
         lonely = [name for name, publisher in self._topic_publishers.items() if not publisher.get_subscription_count()]
         if lonely:
-            self.get_logger().warning(f"playing without subscribers on {', '.join(lonely)}")
+            self.get_logger().info(f"playing without subscribers on {', '.join(lonely)}")
 
     def _play_streamed(self) -> None:
         if not self._streamed:
