@@ -94,13 +94,14 @@ class FakeGraph:
         return int(self.clock.now >= self.subscribed.get(topic, float("inf")))
 
 
-def wait_with(recording, monkeypatch, subscribed: dict[str, float], wait_s: float = 60.0) -> float:
+def wait_with(recording, monkeypatch, subscribed: dict[str, float], wait_s: float = 60.0,
+              topics: list[str] | None = None) -> float:
     """The virtual time the player's wait for subscribers takes."""
     clock = VirtualClock()
     monkeypatch.setattr(bag_player, "time", clock)
     graph = FakeGraph(clock, subscribed)
     with RecordingReader(recording) as reader:
-        player = BagPlayer(reader)
+        player = BagPlayer(reader, topics)
         player.wait_for_subscribers = wait_s
         monkeypatch.setattr(player, "count_subscribers", graph.count)
         for name, publisher in player._topic_publishers.items():
@@ -119,3 +120,8 @@ def test_the_player_waits_only_for_topics_that_nodes_subscribe_to(context, recor
     assert 0.3 + settle <= late < 0.3 + settle + 0.1
     # nobody at all: it waits the whole wait_for_subscribers
     assert wait_with(recording, monkeypatch, {}, wait_s=5.0) >= 5.0
+    # topics the user names are all waited for, subscribed or not yet
+    named = ["/rec/points", "/rec/tool_pose"]
+    assert wait_with(recording, monkeypatch, {"/rec/points": 0.0}, wait_s=5.0, topics=named) >= 5.0
+    assert 2.0 + settle <= wait_with(recording, monkeypatch, {"/rec/points": 0.0, "/rec/tool_pose": 2.0},
+                                     topics=named) < 2.0 + settle + 0.1

@@ -121,7 +121,7 @@ def test_a_stuck_update_is_an_error_and_does_not_hold_up_shutdown(monkeypatch):
         node = EstimatorNode(context=context, parameter_overrides=[Parameter("prediction_timeout", value=0.0),
                                                   Parameter("update_time_budget", value=0.01)])
         reports = []
-        node._diagnostics = SimpleNamespace(publish=reports.append)
+        node.outputs._diagnostics = SimpleNamespace(publish=reports.append)
         mesh = pushed_cube()
         node._set_mesh(mesh, MeshState(0, "world", 0, mesh.vertices, mesh.tetrahedra, mesh.surface_triangles,
                                         mesh.fixed_vertices))
@@ -129,7 +129,7 @@ def test_a_stuck_update_is_an_error_and_does_not_hold_up_shutdown(monkeypatch):
         assert entered.wait(30.0)
         for _ in range(100):  # the limit: 0 s + 2 x 0.01 s + the margin of 1 s
             time.sleep(0.1)
-            node._publish_reports()
+            node.outputs.report()
             if reports[-1].status[0].level == DiagnosticStatus.ERROR:
                 break
         assert reports[-1].status[0].level == DiagnosticStatus.ERROR

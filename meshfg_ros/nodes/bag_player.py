@@ -7,8 +7,9 @@ their recorded names (remap them with --ros-args -r OLD:=NEW) and types; message
 with RecordingReader and converted to rclpy messages (PointCloud2 re-encoded as FLOAT32
 x, y, z: other point fields are not replayed). A topic with a single message (initial_mesh,
 scenario metadata, camera pose) is published first, reliable and transient-local, like a latched
-topic; the player then waits (at most --wait-for-subscribers seconds) until every played topic
-has a matched subscriber, and `delay` seconds more for those subscribers to match the player
+topic; the player then waits (at most --wait-for-subscribers seconds) until every topic given
+with --topics, or (playing everything) every topic some node subscribes to, has a matched
+subscriber, and `delay` seconds more for those subscribers to match the player
 in turn (a best-effort reader drops samples of unmatched writers), and plays the others at
 their recorded rate times --rate, publishing /clock (rosgraph_msgs/Clock) at clock_frequency
 for nodes with use_sim_time. It exits when done (or loops with --loop). Its parameters
@@ -55,6 +56,7 @@ class BagPlayer(Node):
         self.clock_frequency, self.delay, self.loop = params["clock_frequency"], params["delay"], params["loop"]
         self._reader = reader
         names = list(dict.fromkeys(topics)) if topics else sorted(reader.topics)
+        self._chosen = bool(topics)  # topics named by the user are all waited for
         self._latched = [name for name in names if self._reader.topics[name].count == 1]
         self._streamed = [name for name in names if name not in self._latched]
         self._topic_publishers = {
@@ -81,13 +83,14 @@ class BagPlayer(Node):
         return self.published
 
     def _wait_for_subscribers(self) -> None:
-        """Wait (at most wait_for_subscribers) until every played topic that some node subscribes
-        to is matched, and that set has not grown for _SETTLE_S: topics nobody subscribes to (the
-        ground truth, metadata) are not waited for."""
+        """Wait (at most wait_for_subscribers) until the topics to wait for are matched and that set
+        has not changed for _SETTLE_S. Topics named with --topics are all waited for; when the whole
+        recording plays, only those some node subscribes to (not the ground truth, the metadata)."""
         deadline = time.monotonic() + self.wait_for_subscribers
         last, settled_since = None, time.monotonic()
         while time.monotonic() < deadline:
-            wanted = frozenset(name for name in self._topic_publishers if self.count_subscribers(name))
+            wanted = frozenset(name for name in self._topic_publishers
+                               if self._chosen or self.count_subscribers(name))
             matched = frozenset(name for name, publisher in self._topic_publishers.items()
                                 if publisher.get_subscription_count())
             if (wanted, matched) != last:

@@ -1,0 +1,116 @@
+"""What the estimator node publishes, and the bookkeeping behind its diagnostics.
+
+`EstimatorOutputs` owns the node's publishers (`estimated_mesh` latched, `status`, `markers`
+built only while someone subscribes, `/diagnostics` after each step and every second), its
+counters and health (nodes/diagnostics.py), and the latency history. Input callbacks and the
+solver thread both report to it; a lock of its own guards the counters.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import replace
+
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from visualization_msgs.msg import MarkerArray
+
+from meshfg_msgs.msg import EstimatorStatus, TetraMesh
+from meshfg_ros.core.scheduler import CloudStep, Rejection, StepOutcome
+from meshfg_ros.io.messages import MeshState, status_record, status_to_msg
+from meshfg_ros.markers import mesh_markers, surface_edges
+from meshfg_ros.nodes.diagnostics import EstimatorCounters, EstimatorHealth, diagnostic_array
+from meshfg_ros.nodes.ros_conversions import LATCHED_QOS, RCLPY_FACTORY, STREAM_QOS, MeshMessages
+
+_LATENCY_HISTORY = 100
+_REPORT_PERIOD_S = 1.0
+
+
+class EstimatorOutputs:
+    """The estimator node's publications (module docstring)."""
+
+    def __init__(self, node: Node, frame: str, stalled_after_s: float, marker_std_max: Callable[[], float],
+                 queued: Callable[[], int | None]) -> None:
+        """marker_std_max: the current parameter; queued: clouds waiting in the scheduler (None: no mesh yet)."""
+        self._node, self._frame, self._marker_std_max, self._queued = node, frame, marker_std_max, queued
+        self.counters = EstimatorCounters()
+        self.health = EstimatorHealth(stalled_after_s)
+        self._lock = threading.Lock()
+        self._latencies: deque[float] = deque(maxlen=_LATENCY_HISTORY)
+        self._unanswered_since_s: float | None = None
+        self._last_rejection = ""
+        self._markers_job: tuple | None = None
+        self._mesh: tuple[MeshState, MeshMessages, object] | None = None
+        self._estimates = node.create_publisher(TetraMesh, "estimated_mesh", LATCHED_QOS)
+        self._statuses = node.create_publisher(EstimatorStatus, "status", STREAM_QOS)
+        self._markers = node.create_publisher(MarkerArray, "markers", STREAM_QOS)
+        self._diagnostics = node.create_publisher(DiagnosticArray, "/diagnostics", STREAM_QOS)
+        self._wake = node.create_guard_condition(self.report)
+        node.create_timer(_REPORT_PERIOD_S, self.report, clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def set_mesh(self, state: MeshState) -> None:
+        """The topology of the estimates to come."""
+        self._mesh = (state, MeshMessages(state), surface_edges(state.surface_triangles))
+
+    def cloud_received(self, arrival_s: float, dropped_nonfinite: int = 0) -> None:
+        with self._lock:
+            self.counters.clouds_received += 1
+            self.counters.nan_points_dropped += dropped_nonfinite
+            self._unanswered_since_s = self._unanswered_since_s or arrival_s
+
+    def count(self, counter: str) -> None:
+        with self._lock:
+            self.counters.count(counter)
+
+    def note(self, rejections: list[Rejection]) -> None:
+        """Count and log what was set aside, and report it."""
+        for rejection in rejections:
+            with self._lock:
+                self.counters.count(rejection.counter)
+                self._last_rejection = rejection.reason
+            self._node.get_logger().warning(rejection.reason, throttle_duration_sec=1.0)
+        if rejections:
+            self._wake.trigger()
+
+    def step(self, step: CloudStep, outcome: StepOutcome, start_s: float) -> None:
+        """Publish a step's estimate and status (solver thread), or log and count its failure."""
+        result = outcome.result
+        if result is None:
+            self._node.get_logger().error(f"update at {step.stamp_ns} ns: {outcome.error}")
+            self.count(outcome.counter)
+            return self._wake.trigger()
+        _, messages, _ = self._mesh
+        publish_start = time.monotonic()
+        self._estimates.publish(messages.message(step.stamp_ns, self._frame, result.step, result.positions,
+                                                 result.position_std))
+        self._statuses.publish(status_to_msg(status_record(result, self._frame), RCLPY_FACTORY))
+        done = time.monotonic()
+        with self._lock:
+            self._latencies.append(1e3 * (done - step.arrival_s))
+            self.counters.record_step(result, 1e3 * (start_s - step.arrival_s), 1e3 * (done - publish_start),
+                                      list(self._latencies))
+            self.health.record(result.degraded, result.converged, result.num_points, result.num_points_rejected)
+            self._unanswered_since_s = None
+            self._markers_job = (result.positions, result.position_std, step.points, step.stamp_ns)
+        self._wake.trigger()
+
+    def report(self) -> None:
+        """Diagnostics (after each step and periodically) and markers of the newest estimate."""
+        queued = self._queued()
+        with self._lock:
+            self.counters.queued_clouds = queued or 0
+            counters, job, self._markers_job = replace(self.counters), self._markers_job, None
+            since, last_rejection = self._unanswered_since_s, self._last_rejection
+        unanswered_s = 0.0 if since is None else time.monotonic() - since
+        level, message = self.health.assess(counters, queued is None, unanswered_s, last_rejection)
+        self._diagnostics.publish(diagnostic_array(f"{self._node.get_fully_qualified_name()}: estimation", level,
+                                                   message, counters, self._node.get_clock().now().nanoseconds))
+        if job is not None and self._markers.get_subscription_count() > 0:
+            state, _, edges = self._mesh
+            positions, position_std, points, stamp_ns = job
+            self._markers.publish(mesh_markers(positions, state.surface_triangles, position_std, points, self._frame,
+                                               stamp_ns, self._marker_std_max(), edges, RCLPY_FACTORY))
