@@ -1,24 +1,21 @@
-"""Offline replay: the simulator and the estimator run over a recording as the live nodes run.
+"""Offline replay: the simulator and the estimator run over a recording exactly as the live nodes run.
 
-Semantics shared with meshfg_ros.nodes (the loop below is the reference the nodes' end-to-end
-test compares against):
-- the initial mesh is the first /meshfg/initial_mesh (or a mesh file);
-- tool poses and clouds are taken in the order they were logged (the order the nodes receive
-  them; at equal log times the pose first), each stream under the stamp rule of
-  core/input_checks.py: a stale stamp is dropped, a jump back restarts (the simulator's
-  timeline, or the estimator, from the initial mesh);
-- the first tool pose of a timeline resets the simulator (no prediction); each later one gives
-  predicted = simulator.predict(latest estimate, pose, dt = stamp difference in s);
-- a cloud at stamp t pairs with the prediction and the tool pose stamped t;
-  estimate = estimator.update(t, points in world_frame, predicted or None, tool pose or None);
-  the estimate is the state the next prediction starts from.
-Besides the live outputs, the replay runs the simulator open loop from the initial mesh
-through the same tool poses (/meshfg/simulation_only_mesh): the "simulation alone" baseline of
-the evaluation. Parameters: the table of core.parameters; a recording's /meshfg/scenario
-metadata gives defaults (model, tool, grasped vertices, noise, estimator overrides), a config
-mapping and the factor configuration override them.
+Both run the same step loop (core/scheduler.py, connected synchronously by OfflinePipeline):
+- the initial mesh is the first /meshfg/initial_mesh, or a mesh file (--mesh) placed by the
+  parameters mesh_scale, mesh_pose and fixed_* as the nodes place mesh_file;
+- transforms (/tf, /tf_static), tool poses and clouds are taken in the order they were logged
+  (the order the nodes receive them; at equal log times transforms, then poses, then clouds);
+  clouds and tool poses are moved into world_frame at their stamps (core/world_frame.py, with
+  the log time as the clock);
+- the first tool pose of a timeline starts the simulator; each cloud at stamp t is predicted
+  from the estimate of the previous cloud with the tool pose interpolated at t, and estimated
+  with that prediction and tool pose (the stamp rule, waits and failures are the scheduler's).
+Besides the live outputs, the replay runs the simulator open loop from the initial mesh through
+the same tool poses (/meshfg/simulation_only_mesh): the "simulation alone" baseline of the
+evaluation. Parameters: meshfg_ros/parameters.py; a recording's /meshfg/scenario metadata gives
+defaults (model, tool, grasped vertices, noise, estimator overrides), a config mapping and the
+factor configuration override them.
 """
-
 from __future__ import annotations
 
 from collections import deque
@@ -231,9 +228,8 @@ def iterate_replay(inputs: ReplayInputs, params: Mapping[str, Any],
     step per estimate. alter_prediction(stamp, predicted) (fault injection, `meshfg fuzz`) replaces
     each prediction the estimator gets, as a faulty simulation node's message would.
 
-    As the nodes do, inputs go in arrival order; a tool pose in another frame than world_frame
-    and a cloud without points or in an unknown frame are dropped here, everything else is the
-    schedulers' rule.
+    As the nodes do, inputs go in arrival order into world_frame (a cloud without points, or an
+    input /tf cannot place, is dropped); everything else is the schedulers' rule.
     """
     grasped = np.asarray(params["grasped_vertices"], dtype=np.int64) if params["grasped_vertices"] else None
     pipeline = OfflinePipeline(inputs.initial_mesh, simulator_config(params), estimator_config(params), grasped,

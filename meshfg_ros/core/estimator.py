@@ -265,7 +265,7 @@ class EstimatorConfig:
     tool_mode: str = setting("sphere", TOOL_MODE_SETTING)
     max_iterations: int = setting(10, "Levenberg-Marquardt iterations per step (at most).", range=(1, 1000))
     linear_solver: str = setting("pcg", "Sparse solver of the normal equations.", choices=LINEAR_SOLVERS)
-    # None: no limit. Five camera periods at 1 Hz: an organ-scale update takes 0.9 s (its first, 2.2 s; README).
+    # Five camera periods at 1 Hz: an update that needs longer is stopped, not left to fall behind.
     update_time_budget: float | None = setting(
         5.0, "Seconds (wall time) Levenberg-Marquardt may take per update: it then stops between iterations "
         "and returns its best state, 'time budget' in the status message.", range=(1e-3, 3600.0))
