@@ -158,3 +158,33 @@ def test_a_mesh_file_that_cannot_be_read_stops_the_node(program, tmp_path):
     assert garbage.returncode == 1 and garbage.stdout == ""
     assert garbage.stderr.startswith(f"{prefix} organ.vtu: organ.vtu could not be read") and \
         len(garbage.stderr.splitlines()) == 1, garbage.stderr
+
+
+def test_a_mesh_that_cannot_be_simulated_stops_the_node(tmp_path):
+    loose = pushed_cube()
+    save_mesh(loose.with_fixed(np.zeros(0, dtype=np.int64)), tmp_path / "loose.vtu")
+    completed = run(tmp_path, "simulation_node", "--ros-args", "-p", "mesh_file:=loose.vtu")
+    assert completed.returncode == 1 and len(completed.stderr.splitlines()) == 1, completed.stderr
+    assert "cannot load mesh_file loose.vtu" in completed.stderr and "fixed" in completed.stderr
+
+
+def test_a_millimetre_mesh_is_caught_at_the_first_cloud_and_mesh_scale_fixes_it(probe, processes, tmp_path):
+    cube = pushed_cube()
+    save_mesh(cube.with_vertices(1e3 * cube.vertices), tmp_path / "cube_mm.vtu")
+    overrides = ("prediction_timeout:=0.0", "update_time_budget:=0.01", "factors:=temporal+measurement")
+    wrong = Process(tmp_path, "estimator_node", *ros_args("/mm", f"mesh_file:={tmp_path / 'cube_mm.vtu'}", *overrides))
+    right = Process(tmp_path, "estimator_node", *ros_args("/m", f"mesh_file:={tmp_path / 'cube_mm.vtu'}",
+                                                          "mesh_scale:=0.001", *overrides))
+    processes += [wrong, right]
+    unscaled, scaled = EstimatorProbe(probe, "/mm"), EstimatorProbe(probe, "/m")
+    assert spin_until(probe, lambda: unscaled.cloud.get_subscription_count() == 1
+                      and scaled.cloud.get_subscription_count() == 1)
+    for stamp in (1 * S, 2 * S):
+        unscaled.cloud.publish(cloud_msg(top_points(seed=stamp // S), stamp))
+    unscaled.wait_for(clouds_rejected_registration=2, steps=0)
+    # no estimate for longer than prediction_timeout + 2 x update_time_budget + 1 s: an ERROR with the reason
+    assert spin_until(probe, lambda: unscaled.diagnostics and "set mesh_scale 0.001" in unscaled.diagnostics[-1][0],
+                      timeout_s=30.0), unscaled.diagnostics[-1:]
+    assert unscaled.diagnostics[-1][0].startswith("no estimate for the clouds of the last")
+    scaled.send(cloud_msg(top_points(), 1 * S), steps=1, clouds_rejected_registration=0)
+    assert np.abs(np.asarray(scaled.estimates[-1].positions).reshape(-1, 3) - cube.vertices).max() < 5e-3

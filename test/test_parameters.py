@@ -269,3 +269,23 @@ def test_a_mesh_file_that_cannot_be_read_is_a_parameter_error(tmp_path):
     with pytest.raises(ParameterError, match="cannot load mesh_file .*organ.vtu") as error:
         load_mesh_file(load_parameters({"mesh_file": str(garbage)}))
     assert "\n" not in str(error.value)
+
+
+def test_mesh_file_placement_and_fixed_vertices_come_from_the_parameters(tmp_path):
+    from meshfg_ros.core.mesh import save_mesh
+    from meshfg_ros.synthetic.meshing import cube_mesh
+
+    cube = cube_mesh(side=0.02, divisions=3)
+    save_mesh(cube.with_vertices(1e3 * cube.vertices).with_fixed(np.zeros(0, dtype=np.int64)), tmp_path / "mm.vtu")
+    with pytest.raises(ParameterError, match="fixed"):
+        load_mesh_file(load_parameters({"mesh_file": str(tmp_path / "mm.vtu")}))
+    pose = [0.1, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]
+    bottom = load_mesh_file(load_parameters({"mesh_file": str(tmp_path / "mm.vtu"), "mesh_scale": 0.001,
+                                             "mesh_pose": pose, "fixed_plane": [0, 0, 0, 0, 0, 1, 1e-6]}))
+    np.testing.assert_allclose(bottom.vertices, cube.vertices + [0.1, 0.0, 0.0], atol=1e-15)
+    np.testing.assert_array_equal(bottom.fixed_vertices, np.flatnonzero(np.isclose(cube.vertices[:, 2], 0.0)))
+    box = load_mesh_file(load_parameters({"mesh_file": str(tmp_path / "mm.vtu"), "mesh_scale": 0.001,
+                                          "fixed_box": [-1, -1, -1, 1, 1, 1e-6], "fixed_vertices": [26]}))
+    np.testing.assert_array_equal(box.fixed_vertices, np.union1d(bottom.fixed_vertices, [26]))
+    with pytest.raises(ParameterError, match="fixed_plane needs 0 or 7 values"):
+        load_parameters({"fixed_plane": [0.0, 0.0, 1.0]})
