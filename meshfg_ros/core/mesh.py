@@ -64,10 +64,17 @@ class MeshFileError(ValueError):
 
 
 def signed_volumes(vertices: np.ndarray, tetrahedra: np.ndarray) -> np.ndarray:
-    """Signed volume of each tetrahedron, (M,); positive when (v1-v0, v2-v0, v3-v0) is right-handed."""
-    corners = np.asarray(vertices, dtype=np.float64)[np.asarray(tetrahedra)]
-    edge_vectors = corners[:, 1:, :] - corners[:, :1, :]
-    return np.linalg.det(edge_vectors) / 6.0
+    """Signed volume of each tetrahedron, (M,); positive when (v1-v0, v2-v0, v3-v0) is right-handed.
+
+    The triple product of the edge vectors at corner 0, written out coordinate by coordinate: the
+    estimator evaluates it at every trial of its volume barrier, and on whole coordinate arrays it
+    takes a tenth of the time of np.linalg.det on (M, 3, 3) stacks."""
+    x, y, z = np.asarray(vertices, dtype=np.float64).T
+    first, second, third, fourth = np.asarray(tetrahedra).T
+    ux, uy, uz = x[second] - x[first], y[second] - y[first], z[second] - z[first]
+    vx, vy, vz = x[third] - x[first], y[third] - y[first], z[third] - z[first]
+    wx, wy, wz = x[fourth] - x[first], y[fourth] - y[first], z[fourth] - z[first]
+    return ((uy * vz - uz * vy) * wx + (uz * vx - ux * vz) * wy + (ux * vy - uy * vx) * wz) / 6.0
 
 
 def _mean_edge_length(vertices: np.ndarray, tetrahedra: np.ndarray) -> float:
