@@ -185,10 +185,11 @@ class PhysicsPriorFactor(Factor):
     def information(self, state: np.ndarray) -> scipy.sparse.csr_matrix:
         """Lambda, evaluated at `state` (N, 3) when there is none since `invalidate_information`."""
         if self._information is None:
-            stiffness = self.model.stiffness(state, kind=self.kind, spd_projection=self.spd_projection)
-            information = (self.scale * stiffness).tocsr()
+            # On K's own pattern, the ridge added in place: one pattern for every update, whose
+            # positions in the window's block pattern FactorGraph then maps once.
+            information = self.scale * self.model.stiffness(state, kind=self.kind, spd_projection=self.spd_projection)
             if self.ridge:
-                information = (information + scipy.sparse.identity(information.shape[0]) * self.ridge).tocsr()
+                information.data[self.model.diagonal_positions] += self.ridge
             self._information = information
             self.information_state = np.array(state, dtype=np.float64)
         return self._information
@@ -481,19 +482,20 @@ class PointToSurfaceFactor(Factor):
         half the remaining decrease per iteration). A point projected onto an edge or a
         vertex keeps the vector form, which is exact there (distance to a line or a point)."""
         face = association.region == REGION_FACE
-        hessians = np.empty((len(residual), 81))
-        if face.any():
-            corners = states[self.keys[0]][self.triangles[association.triangle[face]]]
-            normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        # The face form for every point (nearly all are inside a face), the rest overwritten:
+        # no masked copies of the (K, 81) terms. A degenerate triangle's NaN normal is either
+        # overwritten (edge or vertex point) or the face point's, as it would be alone.
+        corners = states[self.keys[0]][self.triangles[association.triangle]]
+        normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        with np.errstate(invalid="ignore", divide="ignore"):
             normals /= np.linalg.norm(normals, axis=1)[:, None]
-            rows = (association.barycentric[face][:, :, None] * normals[:, None, :]).reshape(-1, 9)
-            hessians[face] = ((irls[face][:, None] * rows)[:, :, None] * rows[:, None, :]).reshape(-1, 81)
+        rows = (association.barycentric[:, :, None] * normals[:, None, :]).reshape(-1, 9)
+        hessians = ((irls[:, None] * rows)[:, :, None] * rows[:, None, :]).reshape(-1, 81)
         if not face.all():
             other = ~face
-            subset = Association(*(getattr(association, name)[other] for name in (
-                "triangle", "closest", "barycentric", "region", "distance")))
-            corners = states[self.keys[0]][self.triangles[subset.triangle]]
-            jacobian = projection_jacobian(self.points[other], corners[:, 0], corners[:, 1], corners[:, 2], subset.region)
+            corners = corners[other]
+            jacobian = projection_jacobian(self.points[other], corners[:, 0], corners[:, 1], corners[:, 2],
+                                           association.region[other])
             # Batched matmul: 5x faster than the equivalent einsum on (K, 3, 9) stacks.
             hessians[other] = ((jacobian * irls[other][:, None, None]).transpose(0, 2, 1) @ jacobian).reshape(-1, 81)
         return hessians
