@@ -205,6 +205,7 @@ class PCGSolver(LinearSolver):
         self.factorizations = 0
         self._revision = 0               # counts changes of the preconditioner
         self._preconditioned = None      # (system, revision, b, M^-1 b) of the last `decrement`
+        self._prepared = None            # (system, revision) the preconditioner was last made to fit
 
     def _mode(self, system: WindowSystem) -> str:
         if self.preconditioner != "auto":
@@ -246,6 +247,16 @@ class PCGSolver(LinearSolver):
         return mean
 
     def _prepare(self, system: WindowSystem, mode: str, force: bool) -> None:
+        """Make the preconditioner fit `system`: factors refreshed where they drifted (all with
+        `force`). Nothing to check for the system it was last made to fit, unchanged since
+        (Levenberg-Marquardt's decrement test and the step after it share one system)."""
+        prepared = self._prepared
+        if not force and prepared is not None and prepared[0] is system and prepared[1] == self._revision:
+            return
+        self._refresh(system, mode, force)
+        self._prepared = (system, self._revision)
+
+    def _refresh(self, system: WindowSystem, mode: str, force: bool) -> None:
         if mode == "block":
             for key in list(self._block_factors):
                 if key not in system.keys:
