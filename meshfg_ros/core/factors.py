@@ -20,7 +20,14 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse
 
-from meshfg_ros.core.closest_point import REGION_FACE, Association, ClosestPointIndex, project_onto_triangles, projection_jacobian
+from meshfg_ros.core.closest_point import (
+    REGION_FACE,
+    Association,
+    ClosestPointIndex,
+    project_onto_triangles,
+    projection_jacobian,
+    triangle_corners,
+)
 from meshfg_ros.core.mesh import signed_volumes
 from meshfg_ros.core.noise import IdentityNoise, InformationMatrixNoise, PointNoise
 from meshfg_ros.core.robust import RobustKernel
@@ -439,8 +446,8 @@ class PointToSurfaceFactor(Factor):
         if last is not None and np.array_equal(last[0], vertices):
             return last[1]
         if self._frozen_triangle is not None:
-            corners = vertices[self.triangles[self._frozen_triangle]]
-            projection = project_onto_triangles(self.points, corners[:, 0], corners[:, 1], corners[:, 2])
+            projection = project_onto_triangles(self.points, *triangle_corners(vertices, self.triangles,
+                                                                                self._frozen_triangle))
             association = Association(self._frozen_triangle, projection.closest, projection.barycentric,
                                       projection.region, np.sqrt(projection.squared_distance))
         else:
@@ -485,24 +492,22 @@ class PointToSurfaceFactor(Factor):
         # The face form for every point (nearly all are inside a face), the rest overwritten:
         # no masked copies of the (K, 81) terms. A degenerate triangle's NaN normal is either
         # overwritten (edge or vertex point) or the face point's, as it would be alone.
-        corners = states[self.keys[0]][self.triangles[association.triangle]]
-        normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        a, b, c = triangle_corners(states[self.keys[0]], self.triangles, association.triangle)
+        normals = np.cross(b - a, c - a)
         with np.errstate(invalid="ignore", divide="ignore"):
             normals /= np.linalg.norm(normals, axis=1)[:, None]
         rows = (association.barycentric[:, :, None] * normals[:, None, :]).reshape(-1, 9)
         hessians = ((irls[:, None] * rows)[:, :, None] * rows[:, None, :]).reshape(-1, 81)
         if not face.all():
             other = ~face
-            corners = corners[other]
-            jacobian = projection_jacobian(self.points[other], corners[:, 0], corners[:, 1], corners[:, 2],
-                                           association.region[other])
+            jacobian = projection_jacobian(self.points[other], a[other], b[other], c[other], association.region[other])
             # Batched matmul: 5x faster than the equivalent einsum on (K, 3, 9) stacks.
             hessians[other] = ((jacobian * irls[other][:, None, None]).transpose(0, 2, 1) @ jacobian).reshape(-1, 81)
         return hessians
 
     def _point_jacobians(self, states, association):
-        corners = states[self.keys[0]][self.triangles[association.triangle]]
-        return projection_jacobian(self.points, corners[:, 0], corners[:, 1], corners[:, 2], association.region)
+        return projection_jacobian(self.points, *triangle_corners(states[self.keys[0]], self.triangles,
+                                                                  association.triangle), association.region)
 
     def jacobians(self, states):
         size = 3 * self.vertex_count
