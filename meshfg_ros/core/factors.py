@@ -297,6 +297,8 @@ class VolumeBarrierFactor(Factor):
         """(active tetrahedra, cost, psi', psi'', dJ (P, 12)) at `state`."""
         ratio = self._ratios(state)
         active = np.flatnonzero((ratio > 0.0) & (ratio < self.threshold))
+        if not active.size:  # every plausible state
+            return active, 0.0, np.zeros(0), np.zeros(0), np.zeros((0, 12))
         psi, slope, curvature = self._psi(ratio[active])
         six_volume_gradient = _six_volume_gradients(np.asarray(state, dtype=np.float64)[self.tetrahedra[active]])
         ratio_gradient = six_volume_gradient / (6.0 * self.reference_volumes[active])[:, None]
