@@ -35,6 +35,8 @@ from dataclasses import dataclass
 import numpy as np
 import igl
 
+from meshfg_ros.core.mesh import cross
+
 __all__ = [
     "REGION_EDGE_AB",
     "REGION_EDGE_AC",
@@ -163,7 +165,7 @@ def _edge_blocks(p, u, v):
 def _face_blocks(p, a, b, c):
     """dq/da, dq/db, dq/dc (..., 3, 3) for q = p - n (n.(p - a)) / n.n (projection on the plane)."""
     e1, e2 = b - a, c - a
-    n = np.cross(e1, e2)
+    n = cross(e1, e2)
     nn = np.maximum(_dot(n, n), _TINY)
     pa = p - a
     s = _dot(n, pa)

@@ -17,6 +17,7 @@ import scipy.sparse
 
 from meshfg_ros.core.factors import Factor, FactorError, FactorLinearization, checked_state
 from meshfg_ros.core.linear_system import WindowSystem, diagonal_positions
+from meshfg_ros.core.mesh import cross
 
 __all__ = ["MIN_VOLUME_RATIO_PER_STEP", "FactorGraph"]
 
@@ -483,7 +484,7 @@ class FactorGraph:
         du, dv, dw = (corner_moves[:, k] - corner_moves[:, 0] for k in (1, 2, 3))
 
         def triple(a, b, c):
-            return np.einsum("pi,pi->p", np.cross(a, b), c)
+            return np.einsum("pi,pi->p", cross(a, b), c)
 
         coefficients = np.stack([
             triple(u, v, w),

@@ -28,7 +28,7 @@ from meshfg_ros.core.closest_point import (
     projection_jacobian,
     triangle_corners,
 )
-from meshfg_ros.core.mesh import signed_volumes
+from meshfg_ros.core.mesh import cross, signed_volumes
 from meshfg_ros.core.noise import IdentityNoise, InformationMatrixNoise, PointNoise
 from meshfg_ros.core.robust import RobustKernel
 
@@ -495,7 +495,7 @@ class PointToSurfaceFactor(Factor):
         # no masked copies of the (K, 81) terms. A degenerate triangle's NaN normal is either
         # overwritten (edge or vertex point) or the face point's, as it would be alone.
         a, b, c = triangle_corners(states[self.keys[0]], self.triangles, association.triangle)
-        normals = np.cross(b - a, c - a)
+        normals = cross(b - a, c - a)
         with np.errstate(invalid="ignore", divide="ignore"):
             normals /= np.linalg.norm(normals, axis=1)[:, None]
         rows = (association.barycentric[:, :, None] * normals[:, None, :]).reshape(-1, 9)
