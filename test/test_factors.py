@@ -161,6 +161,20 @@ def test_prior_scale_sets_mean_information(model, cube):
     assert 0.5 * whitened @ whitened == pytest.approx(prior.cost(states), rel=1e-9)
 
 
+def test_physics_information_keeps_the_stiffness_pattern(cube, model):
+    """The ridge goes onto K's own diagonal: the information has K's pattern at every state (the
+    graph maps it onto its block pattern once) and the values of scale K + ridge I exactly."""
+    state = deformed(cube, 8.0)
+    stiffness = model.stiffness(state, kind="corotational")
+    information = PhysicsPriorFactor(0, state, model, "corotational", scale=3.0, ridge=7.0).information(state)
+    assert np.array_equal(information.indptr, stiffness.indptr)
+    assert np.array_equal(information.indices, stiffness.indices)
+    expected = (3.0 * stiffness + 7.0 * scipy.sparse.identity(stiffness.shape[0])).toarray()
+    assert np.array_equal(information.toarray(), expected)
+    rest = PhysicsPriorFactor(0, cube.vertices, model, "corotational", ridge=1.0).information(cube.vertices)
+    assert np.array_equal(rest.indices, information.indices)
+
+
 def test_physics_information_is_held_until_invalidated(cube, model):
     state = deformed(cube, 8.0)
     prior = PhysicsPriorFactor(0, state, model, "corotational")

@@ -271,6 +271,39 @@ def test_newton_decrement_estimates(cube, model):  # noqa: F811
     assert PCGSolver(preconditioner="block").decrement(single, block_rhs) == pytest.approx(single_exact, rel=1e-10)
 
 
+def test_step_after_the_decrement_reuses_its_preconditioned_gradient(cube, model, monkeypatch):  # noqa: F811
+    """The solve for -g on the system the decrement saw starts from the decrement's M^-1 g
+    (one preconditioner application fewer) and gives the very same bits as a solver that
+    never estimated the decrement; another system, right-hand side or preconditioner does not."""
+    system, rhs = window_system(cube, model)
+    gradient = -rhs
+    reference, _ = PCGSolver(tolerance=1e-3, preconditioner="block").solve(system, -gradient)
+    pcg = PCGSolver(tolerance=1e-3, preconditioner="block")
+    applications = []
+    original = PCGSolver._precondition
+    monkeypatch.setattr(PCGSolver, "_precondition",
+                        lambda solver, *args: applications.append(1) or original(solver, *args))
+    pcg.decrement(system, gradient)
+    before = len(applications)
+    step, stats = pcg.solve(system, -gradient)
+    assert np.array_equal(step, reference)
+    assert len(applications) - before == stats.iterations - 1
+    pcg.decrement(system, gradient)
+    before = len(applications)
+    _, stats = pcg.solve(system, -2.0 * gradient)  # another right-hand side: no reuse
+    assert len(applications) - before == stats.iterations
+    pcg.decrement(system, gradient)
+    before = len(applications)
+    _, stats = pcg.solve(system.with_added_diagonal(system.diagonal()), -gradient)  # another system
+    assert len(applications) - before == stats.iterations
+    pcg.decrement(system, gradient)
+    pcg._prepare(system, "block", force=True)  # new factors: another preconditioner
+    before = len(applications)
+    step, stats = pcg.solve(system, -gradient)
+    assert len(applications) - before == stats.iterations
+    assert np.array_equal(step, reference)
+
+
 class CountingProblem:
     """A FactorGraph seen through LM's problem interface, counting calls; `with_gradient`
     False hides FactorGraph.gradient (LM then re-linearises after every accepted step)."""

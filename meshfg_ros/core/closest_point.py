@@ -35,6 +35,8 @@ from dataclasses import dataclass
 import numpy as np
 import igl
 
+from meshfg_ros.core.mesh import cross
+
 __all__ = [
     "REGION_EDGE_AB",
     "REGION_EDGE_AC",
@@ -51,6 +53,7 @@ __all__ = [
     "brute_force_closest",
     "project_onto_triangles",
     "projection_jacobian",
+    "triangle_corners",
 ]
 
 REGION_FACE, REGION_VERTEX_A, REGION_VERTEX_B, REGION_VERTEX_C = 0, 1, 2, 3
@@ -112,22 +115,24 @@ def project_onto_triangles(points, a, b, c) -> TriangleProjection:
     def safe(x):
         return np.where(np.abs(x) > _TINY, x, _TINY)
 
-    t_ab = d1 / safe(d1 - d3)
-    t_ac = d2 / safe(d2 - d6)
-    t_bc = (d4 - d3) / safe((d4 - d3) + (d5 - d6))
+    # The face's barycentrics for every point (most lie inside a face), then each other
+    # region's on its own points.
     inverse = 1.0 / safe(va + vb + vc)
-    face_v, face_w = vb * inverse, vc * inverse
-    zero, one = np.zeros_like(d1), np.ones_like(d1)
-    beta = np.select(
-        [region == REGION_VERTEX_B, region == REGION_EDGE_AB, region == REGION_EDGE_BC, region == REGION_FACE],
-        [one, t_ab, 1.0 - t_bc, face_v],
-        default=zero,
-    )
-    gamma = np.select(
-        [region == REGION_VERTEX_C, region == REGION_EDGE_AC, region == REGION_EDGE_BC, region == REGION_FACE],
-        [one, t_ac, t_bc, face_w],
-        default=zero,
-    )
+    beta, gamma = vb * inverse, vc * inverse
+    for code in np.unique(region[region != REGION_FACE]):
+        at = region == code
+        beta[at] = gamma[at] = 0.0
+        if code == REGION_VERTEX_B:
+            beta[at] = 1.0
+        elif code == REGION_VERTEX_C:
+            gamma[at] = 1.0
+        elif code == REGION_EDGE_AB:
+            beta[at] = d1[at] / safe(d1[at] - d3[at])
+        elif code == REGION_EDGE_AC:
+            gamma[at] = d2[at] / safe(d2[at] - d6[at])
+        elif code == REGION_EDGE_BC:
+            t_bc = (d4[at] - d3[at]) / safe((d4[at] - d3[at]) + (d5[at] - d6[at]))
+            beta[at], gamma[at] = 1.0 - t_bc, t_bc
     alpha = 1.0 - beta - gamma
     barycentric = np.stack([alpha, beta, gamma], axis=-1)
     closest = alpha[..., None] * a + beta[..., None] * b + gamma[..., None] * c
@@ -160,7 +165,7 @@ def _edge_blocks(p, u, v):
 def _face_blocks(p, a, b, c):
     """dq/da, dq/db, dq/dc (..., 3, 3) for q = p - n (n.(p - a)) / n.n (projection on the plane)."""
     e1, e2 = b - a, c - a
-    n = np.cross(e1, e2)
+    n = cross(e1, e2)
     nn = np.maximum(_dot(n, n), _TINY)
     pa = p - a
     s = _dot(n, pa)
@@ -262,10 +267,17 @@ class ClosestPointIndex:
         return _association(points, self.vertices, self.triangles, triangle, max_distance)
 
 
+def triangle_corners(vertices: np.ndarray, triangles: np.ndarray, index: np.ndarray):
+    """Corners (a, b, c), each (K, 3) and contiguous, of the triangles triangles[index] of
+    `vertices`: the projection's arithmetic on them runs half again as fast as on the strided
+    columns of one (K, 3, 3) gather."""
+    corner_vertices = triangles[index]
+    return tuple(vertices[corner_vertices[:, k]] for k in range(3))
+
+
 def _association(points, vertices, triangles, triangle, max_distance=np.inf) -> Association:
     """Points associated with the given (closest) triangles by the closed-form projection."""
-    corners = vertices[triangles[triangle]]
-    projection = project_onto_triangles(points, corners[:, 0], corners[:, 1], corners[:, 2])
+    projection = project_onto_triangles(points, *triangle_corners(vertices, triangles, triangle))
     distance = np.sqrt(projection.squared_distance)
     found = distance <= max_distance
     if found.all():

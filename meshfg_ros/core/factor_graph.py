@@ -17,6 +17,7 @@ import scipy.sparse
 
 from meshfg_ros.core.factors import Factor, FactorError, FactorLinearization, checked_state
 from meshfg_ros.core.linear_system import WindowSystem, diagonal_positions
+from meshfg_ros.core.mesh import cross
 
 __all__ = ["MIN_VOLUME_RATIO_PER_STEP", "FactorGraph"]
 
@@ -68,6 +69,7 @@ class FactorGraph:
                  relinearize_threshold: float = 0.0):
         self.vertex_count = int(vertex_count)
         self.tetrahedra = np.asarray(tetrahedra, dtype=np.int64)
+        self._corner_columns = np.ascontiguousarray(self.tetrahedra.T)  # (4, M): each corner's vertices
         self.surface_triangles = np.asarray(surface_triangles, dtype=np.int64)
         fixed = np.unique(np.asarray(fixed_vertices, dtype=np.int64))
         self.fixed_vertices = fixed
@@ -435,16 +437,14 @@ class FactorGraph:
     def _volumes_and_edges(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Signed tetrahedron volumes and the longest of the three edges at corner 0, of a state
         (N, 3) -> (M,) each, or of states (W, N, 3) -> (W, M) each."""
-        # Coordinate-major triple product: ~2x faster than np.cross + einsum on (W, M, 3, 3) corners.
-        x, y, z = np.moveaxis(state, -1, 0)
-        first = self.tetrahedra[:, 0]
-
-        def edge(coordinate, corner):
-            return coordinate[..., self.tetrahedra[:, corner]] - coordinate[..., first]
-
-        ux, uy, uz = edge(x, 1), edge(y, 1), edge(z, 1)
-        vx, vy, vz = edge(x, 2), edge(y, 2), edge(z, 2)
-        wx, wy, wz = edge(x, 3), edge(y, 3), edge(z, 3)
+        # Coordinate-major triple product (~2x faster than np.cross + einsum on (W, M, 3, 3)
+        # corners), gathered from contiguous coordinate rows by contiguous corner columns.
+        x, y, z = np.ascontiguousarray(np.moveaxis(state, -1, 0))
+        first, second, third, fourth = self._corner_columns
+        x0, y0, z0 = x[..., first], y[..., first], z[..., first]
+        ux, uy, uz = x[..., second] - x0, y[..., second] - y0, z[..., second] - z0
+        vx, vy, vz = x[..., third] - x0, y[..., third] - y0, z[..., third] - z0
+        wx, wy, wz = x[..., fourth] - x0, y[..., fourth] - y0, z[..., fourth] - z0
         volumes = ((uy * vz - uz * vy) * wx + (uz * vx - ux * vz) * wy + (ux * vy - uy * vx) * wz) / 6.0
         longest = np.sqrt(np.maximum.reduce([ux * ux + uy * uy + uz * uz, vx * vx + vy * vy + vz * vz,
                                              wx * wx + wy * wy + wz * wz]))
@@ -468,7 +468,10 @@ class FactorGraph:
         moves = np.zeros((len(self.keys), self.dof_count))
         moves[:, self.free_dofs] = np.asarray(step, dtype=np.float64).reshape(len(self.keys), self.block_size)
         moves = moves.reshape(len(self.keys), -1, 3)
-        largest = np.sqrt(np.einsum("wni,wni->wn", moves, moves))[:, self.tetrahedra].max(axis=2)  # (W, M)
+        squared = np.einsum("wni,wni->wn", moves, moves)
+        first, second, third, fourth = self._corner_columns
+        largest = np.sqrt(np.maximum(np.maximum(squared[:, first], squared[:, second]),
+                                     np.maximum(squared[:, third], squared[:, fourth])))  # (W, M)
         margin = MIN_VOLUME_RATIO_PER_STEP * 6.0 * volumes
         candidates = (volumes > 0.0) & ((longest + 2.0 * largest) ** 3 - longest**3 >= 6.0 * volumes - margin)
         if not candidates.any():
@@ -481,7 +484,7 @@ class FactorGraph:
         du, dv, dw = (corner_moves[:, k] - corner_moves[:, 0] for k in (1, 2, 3))
 
         def triple(a, b, c):
-            return np.einsum("pi,pi->p", np.cross(a, b), c)
+            return np.einsum("pi,pi->p", cross(a, b), c)
 
         coefficients = np.stack([
             triple(u, v, w),

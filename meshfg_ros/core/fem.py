@@ -330,15 +330,17 @@ class ElasticModel:
 
         Element matrices are symmetric, so only their 78 upper-triangle entries are summed
         (into the unique global pairs (min dof, max dof)) and then mirrored: half the scatter
-        work, and an exactly symmetric K.
+        work, and an exactly symmetric K. The pattern holds the whole diagonal (a vertex of no
+        element gets explicit zeros), whose positions in K's data are `diagonal_positions`: a
+        shift of the diagonal keeps K's pattern (the physics prior's ridge).
         """
         dof_count = 3 * self.vertex_count
         a, i, b, k = self._element_pairs
         rows = self._element_dofs_em[a, i]  # (78, M), element-major like the entries
         columns = self._element_dofs_em[b, k]
         keys = (np.minimum(rows, columns) * dof_count + np.maximum(rows, columns)).reshape(-1)
-        unique_keys, upper_slot = np.unique(keys, return_inverse=True)
-        self._upper_slot = upper_slot.astype(np.intp).reshape(-1)
+        unique_keys = np.unique(np.concatenate([keys, np.arange(dof_count) * (dof_count + 1)]))
+        self._upper_slot = np.searchsorted(unique_keys, keys).astype(np.intp)
         self._upper_count = unique_keys.size
         upper_rows, upper_columns = np.divmod(unique_keys, dof_count)
         off_diagonal = np.flatnonzero(upper_rows != upper_columns)
@@ -349,6 +351,7 @@ class ElasticModel:
         self._csr_source = source[order].astype(np.intp)
         self._csr_indices = full_columns[order].astype(np.int32)
         self._csr_indptr = np.searchsorted(full_rows[order], np.arange(dof_count + 1)).astype(np.int32)
+        self.diagonal_positions = np.flatnonzero(full_rows[order] == full_columns[order])
 
     # ------------------------------------------------------------------------ kinematics
 

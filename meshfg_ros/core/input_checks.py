@@ -38,6 +38,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from meshfg_ros.core.mesh import signed_volumes
+
 __all__ = [
     "FAR_DIAGONALS",
     "INVALID",
@@ -163,12 +165,8 @@ def check_initial_mesh(vertices: np.ndarray) -> Scene:
 
 
 def flat_elements(vertices: np.ndarray, tetrahedra: np.ndarray) -> int:
-    """How many tetrahedra of `vertices` (N, 3) have a volume <= 0 (or NaN): a triple product of
-    edge vectors, 3x faster than the determinants of mesh.signed_volumes."""
-    corner = vertices[tetrahedra[:, 0]]
-    edges = [vertices[tetrahedra[:, k]] - corner for k in (1, 2, 3)]
-    six_volumes = np.einsum("ij,ij->i", np.cross(edges[0], edges[1]), edges[2])
-    return int(np.count_nonzero(~(six_volumes > 0.0)))
+    """How many tetrahedra of `vertices` (N, 3) have a volume <= 0 (or NaN)."""
+    return int(np.count_nonzero(~(signed_volumes(vertices, tetrahedra) > 0.0)))
 
 
 def innovation_spread(distances: np.ndarray) -> float:

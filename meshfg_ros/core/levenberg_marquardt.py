@@ -155,6 +155,7 @@ class _Run:
         self.linearized = True      # system and gradient belong to x
         self.gradient_first = False  # the last step's model was accurate: try the gradient alone first
         self.fresh_hessian = True   # the decrement test has not yet seen this linearisation
+        self._damped_kept = None    # (system, damping, damped system): see _damped
 
     # ------------------------------------------------------------------ the run
     def run(self) -> LevenbergMarquardtResult:
@@ -237,7 +238,14 @@ class _Run:
         return _Proposal(scaled, fraction, predicted, self.cost)
 
     def _damped(self, damping: float):
-        return self.system.with_added_diagonal(damping * self._scaling(self.system))
+        """The damped system at the current linearisation, one object per (linearisation,
+        damping): the decrement test and the step that follows it hand the solver the same
+        system, whose work on it (PCGSolver.decrement) the solve can then reuse."""
+        kept = self._damped_kept
+        if kept is None or kept[0] is not self.system or kept[1] != damping:
+            kept = self._damped_kept = (self.system, damping,
+                                        self.system.with_added_diagonal(damping * self._scaling(self.system)))
+        return kept[2]
 
     def _scaling(self, system) -> np.ndarray:
         if self.config.damping_mode == "identity":

