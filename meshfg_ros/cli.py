@@ -41,7 +41,7 @@ _USER_ERRORS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("meshfg_ros.io.recording", ("RecordingError",)),
     ("meshfg_ros.core.mesh", ("MeshFileError", "InvalidMeshError", "DegenerateMeshError")),
     ("meshfg_ros.core.patient_mesh", ("PatientMeshError",)),
-    ("meshfg_ros.parameters", ("ParameterError", "FrameError")),
+    ("meshfg_ros.parameters", ("ParameterError",)),
     ("meshfg_ros.synthetic.scenarios", ("ScenarioError",)),
     ("meshfg_ros.core.simulator", ("SimulatorConfigError", "SimulatorInputError")),
     ("meshfg_ros.core.estimator", ("EstimatorConfigError",)),

@@ -14,8 +14,9 @@ naming the key) and fills in defaults, for the whole pipeline (the offline repla
 for one node. config/meshfg.yaml lists every parameter of the pipeline with its default (a test
 keeps the two in sync).
 
-Clouds may come in `world_frame` or in `camera_frame`; `cloud_to_world` moves the latter into
-the world frame with the static transform `camera_pose` and rejects every other frame.
+`world_frame_inputs` builds the placement of clouds and tool poses into world_frame
+(core/world_frame.py) the nodes and the replay share: /tf, with the static `camera_pose` as the
+fallback for `camera_frame`; `placed_mesh_file` loads mesh_file as the mesh parameters place it.
 """
 
 from __future__ import annotations
@@ -30,7 +31,6 @@ from typing import Any
 
 import numpy as np
 import yaml
-from scipy.spatial.transform import Rotation
 
 from meshfg_ros.core.estimator import EstimatorConfig
 from meshfg_ros.core.mesh import TetMesh
@@ -45,14 +45,12 @@ __all__ = [
     "PARAMETERS",
     "PARAMETER_TYPES",
     "EstimatorNodeConfig",
-    "FrameError",
     "Parameter",
     "ParameterError",
     "PlaybackConfig",
     "SharedNodeConfig",
     "SimulationNodeConfig",
     "check_parameter_names",
-    "cloud_to_world",
     "config_changes",
     "config_from_parameters",
     "default_parameters",
@@ -79,10 +77,6 @@ _PARAMS_KEY = "ros__parameters"
 
 class ParameterError(ValueError):
     """A parameter that is unknown, of the wrong type or out of range (names the key)."""
-
-
-class FrameError(ValueError):
-    """A point cloud in a frame that is neither world_frame nor camera_frame."""
 
 
 @dataclass(frozen=True)
@@ -504,19 +498,3 @@ def parameters_help(nodes: Iterable[str]) -> str:
             lines += textwrap.wrap(parameter.description, width=96, initial_indent=" " * 6,
                                    subsequent_indent=" " * 6)
     return "\n".join(lines[1:])
-
-
-def cloud_to_world(points: np.ndarray, frame_id: str, params: Mapping[str, Any]) -> np.ndarray:
-    """Points (K, 3) of a cloud in `frame_id`, expressed in world_frame.
-
-    world_frame clouds pass unchanged; camera_frame clouds get the static camera_pose.
-    """
-    if frame_id == params["world_frame"]:
-        return points
-    if frame_id == params["camera_frame"]:
-        pose = np.asarray(params["camera_pose"], dtype=np.float64)
-        return points @ Rotation.from_quat(pose[3:]).as_matrix().T + pose[:3]
-    raise FrameError(
-        f"cloud frame {frame_id!r} is neither world_frame {params['world_frame']!r} "
-        f"nor camera_frame {params['camera_frame']!r}"
-    )

@@ -36,7 +36,6 @@ from meshfg_ros.core.world_frame import CLOUD, POSE, FramedInput
 from meshfg_ros.io.tf_messages import TF_STATIC_TOPIC, TF_TOPIC, tf_message_to_transforms
 from meshfg_ros.core.mesh import TetMesh
 from meshfg_ros.parameters import (
-    default_parameters,
     estimator_config,
     load_parameters,
     parameter_names,
@@ -144,10 +143,10 @@ class ReplayResult:
 
 
 def load_inputs(path: str | Path, mesh_path: str | Path | None = None,
-                placement: Mapping[str, Any] | None = None) -> ReplayInputs:
+                overrides: Mapping[str, Any] | None = None) -> ReplayInputs:
     """Read the replay's inputs; the initial mesh comes from `mesh_path` if given, scaled, placed
-    and with the fixed vertices that the parameters `placement` select (mesh_scale, mesh_pose,
-    fixed_*: as the nodes load mesh_file; default: as the file is)."""
+    and with the fixed vertices that the replay's parameters select (mesh_scale, mesh_pose,
+    fixed_*, from the recording's defaults and `overrides`), as the nodes load mesh_file."""
     with RecordingReader(path) as reader:
         reader.require(TOOL_POSE_TOPIC, PoseRecord)
         reader.require(POINTS_TOPIC, PointCloudRecord)
@@ -169,7 +168,8 @@ def load_inputs(path: str | Path, mesh_path: str | Path | None = None,
         if mesh.flipped_count:
             raise ReplayError(f"{INITIAL_MESH_TOPIC}: {mesh.flipped_count} tetrahedra have negative volume")
     else:
-        mesh = placed_mesh_file({**default_parameters(), **(placement or {}), "mesh_file": str(mesh_path)})
+        placement = load_parameters({**scenario_parameters(metadata, camera_pose), **(overrides or {})})
+        mesh = placed_mesh_file({**placement, "mesh_file": str(mesh_path)})
         initial_state = MeshState(poses[0].stamp_ns if poses else 0, clouds[0].frame_id if clouds else "world", 0,
                                   mesh.vertices, mesh.tetrahedra, mesh.surface_triangles, mesh.fixed_vertices)
     try:
@@ -268,10 +268,8 @@ def replay_recording(
     mesh_path: str | Path | None = None,
 ) -> ReplayResult:
     """Replay a recording in memory. params: overrides of the recording's defaults."""
-    inputs = load_inputs(path)
+    inputs = load_inputs(path, mesh_path, params)
     parameters = replay_parameters(inputs, params)
-    if mesh_path is not None:
-        inputs = load_inputs(path, mesh_path, parameters)
     return ReplayResult(parameters, inputs.initial_mesh, tuple(iterate_replay(inputs, parameters)))
 
 
@@ -317,10 +315,8 @@ def write_replay(
     path, out = Path(path), Path(out)
     if out.exists() or out.is_symlink():
         raise RecordingExistsError(f"{out} exists already; recordings are never overwritten")
-    inputs = load_inputs(path)
+    inputs = load_inputs(path, mesh_path, params)
     parameters = replay_parameters(inputs, params)
-    if mesh_path is not None:
-        inputs = load_inputs(path, mesh_path, parameters)
     frame = parameters["world_frame"]
     template = inputs.initial_state
     edges = surface_edges(template.surface_triangles)

@@ -43,6 +43,15 @@ def test_executables_installed_where_ros2_run_looks(install_space):
     assert (share / "meshfg_ros" / "package.xml").is_file()
 
 
+def run_in_install_space(install_space, script: str) -> list[str]:
+    """The lines a Python `script` prints with the install space sourced (as a ROS user runs it)."""
+    result = subprocess.run(
+        ["bash", "-c", f'source "{install_space}/setup.bash" && "{sys.executable}" -c "$0"', script],
+        capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    return result.stdout.strip().splitlines()
+
+
 def test_built_messages_import_from_install_space(install_space):
     script = (
         "import meshfg_msgs.msg as m\n"
@@ -51,11 +60,7 @@ def test_built_messages_import_from_install_space(install_space):
         "status = m.EstimatorStatus(iterations=4, converged=True, message='ok')\n"
         "print(mesh.step, list(mesh.positions), status.iterations, status.converged)\n"
     )
-    result = subprocess.run(
-        ["bash", "-c", f'source "{install_space}/setup.bash" && "{sys.executable}" -c "$0"', script],
-        capture_output=True, text=True, timeout=120)
-    assert result.returncode == 0, result.stderr
-    module_file, values = result.stdout.strip().splitlines()
+    module_file, values = run_in_install_space(install_space, script)
     assert module_file.startswith(str(install_space / "meshfg_msgs"))
     assert values == "3 [1.0, 2.0, 3.0] 4 True"
 
@@ -66,11 +71,7 @@ def test_built_tf2_msgs_import_from_install_space(install_space):
         "print(m.__file__)\n"
         "print(len(m.TFMessage(transforms=[]).transforms), m.TF2Error.EXTRAPOLATION_ERROR)\n"
     )
-    result = subprocess.run(
-        ["bash", "-c", f'source "{install_space}/setup.bash" && "{sys.executable}" -c "$0"', script],
-        capture_output=True, text=True, timeout=120)
-    assert result.returncode == 0, result.stderr
-    module_file, values = result.stdout.strip().splitlines()
+    module_file, values = run_in_install_space(install_space, script)
     assert module_file.startswith(str(install_space / "tf2_msgs"))
     assert values == "0 3"
 

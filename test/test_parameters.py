@@ -11,18 +11,18 @@ from rcl_interfaces.msg import ParameterType
 
 from meshfg_ros.core.estimator import EstimatorConfig
 from meshfg_ros.core.settings import setting, settings_of
+from meshfg_ros.core.world_frame import CLOUD, FramedInput
 from meshfg_ros.parameters import (
     NODE_CONFIGURATIONS,
     PARAMETERS,
-    FrameError,
     ParameterError,
     check_parameter_names,
-    cloud_to_world,
     config_changes,
     default_parameters,
     estimator_changes,
     estimator_config,
     load_mesh_file,
+    world_frame_inputs,
     load_parameters,
     node_parameters,
     parameter_names,
@@ -157,16 +157,19 @@ def test_parameters_file_formats(tmp_path):
         read_parameters_file(tmp_path / "missing.yaml")
 
 
-def test_clouds_move_from_the_camera_frame_to_the_world_frame():
+def test_camera_pose_places_camera_frame_clouds_when_tf_knows_nothing_of_it():
     quarter_turn_about_z = [0.0, 0.0, np.sqrt(0.5), np.sqrt(0.5)]
     params = load_parameters({"camera_pose": [1.0, 2.0, 3.0, *quarter_turn_about_z], "camera_frame": "endoscope"})
+    placer = world_frame_inputs(params)
     points = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 2.0]])
-    assert cloud_to_world(points, "world", params) is points
-    np.testing.assert_allclose(cloud_to_world(points, "endoscope", params), [[1.0, 3.0, 3.0], [1.0, 2.0, 5.0]],
-                               atol=1e-15)
-    message = "cloud frame 'map' is neither world_frame 'world' nor camera_frame 'endoscope'"
-    with pytest.raises(FrameError, match=message):
-        cloud_to_world(points, "map", params)
+    placed, _ = placer.add(FramedInput(CLOUD, 1, "world", points))
+    assert placed[0].data is points
+    placed, _ = placer.add(FramedInput(CLOUD, 2, "endoscope", points))
+    np.testing.assert_allclose(placed[0].data, [[1.0, 3.0, 3.0], [1.0, 2.0, 5.0]], atol=1e-15)
+    placed, set_aside = placer.add(FramedInput(CLOUD, 3, "map", points), now_s=0.0)
+    assert placed == [] and set_aside == []  # waits for /tf to name "map" ...
+    placed, set_aside = placer.release(now_s=params["transform_timeout"])
+    assert placed == [] and set_aside[0].reason.startswith("unknown frame")  # ... then is set aside, why
 
 
 # ---------------------------------------------------------------------------- derived from the fields

@@ -115,3 +115,4 @@ def test_a_request_beyond_the_tool_pose_horizon_is_answered_with_the_reason(scen
     assert simulation.poll(now_s=0.1) == []
     [answer] = simulation.poll(now_s=0.2)  # tool_pose_timeout: extrapolation is not allowed that far
     assert answer.positions is None and "beyond the newest" in answer.failure
+    assert simulation.tool_pose_unavailable == {"beyond_horizon": 1}  # the simulation node's counter

@@ -120,9 +120,9 @@ class PredictionScheduler:
         self._skipped_ns: int | None = None     # newest stamp the estimator will not answer
 
     @property
-    def waiting(self) -> int:
-        """Requests not answered yet."""
-        return len(self._requests)
+    def tool_pose_unavailable(self) -> dict[str, int]:
+        """How often no tool pose could be given for a request, by PoseUnavailable.reason."""
+        return dict(self._poses.unavailable)
 
     def add_tool_pose(self, stamp_ns: int, pose: np.ndarray) -> Rejection | None:
         """Take a tool pose (7,) (world frame); a Rejection when it is set aside. A stamp that

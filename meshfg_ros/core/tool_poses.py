@@ -59,8 +59,7 @@ class ToolPoseBuffer:
             raise ValueError(f"buffer_duration_s must be > 0, got {buffer_duration_s}")
         self.extrapolation_horizon_ns = round(extrapolation_horizon_s * _NS_PER_S)
         self._history = PoseHistory(round(buffer_duration_s * _NS_PER_S), max_samples)
-        self.unavailable: Counter[str] = Counter()
-        self.dropped_too_old = 0
+        self.unavailable: Counter[str] = Counter()  # PoseUnavailable.reason -> how often
 
     def __len__(self) -> int:
         return len(self._history)
@@ -71,9 +70,7 @@ class ToolPoseBuffer:
 
     def insert(self, stamp_ns: int, pose) -> bool:
         """Add a pose (7 values); False when its stamp is older than the kept window (dropped)."""
-        kept = self._history.insert(stamp_ns, pose)
-        self.dropped_too_old += not kept
-        return kept
+        return self._history.insert(stamp_ns, pose)
 
     def clear(self) -> None:
         """Forget every pose (the clock jumped back); the counters stay."""

@@ -103,6 +103,10 @@ class SimulatorCounters:
     predictions_failed: int = 0
     estimates_ignored: int = 0          # wrong vertex count, not finite, or far outside the scene
     last_prediction_ms: float = float("nan")
+    # requests answered without a prediction for want of a tool pose, by reason (core/tool_poses.py)
+    tool_pose_unavailable_empty: int = 0
+    tool_pose_unavailable_before_first: int = 0
+    tool_pose_unavailable_beyond_horizon: int = 0
 
     @property
     def tool_poses_rejected(self) -> int:

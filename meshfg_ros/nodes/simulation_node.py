@@ -147,6 +147,9 @@ class SimulationNode(Node):
     def _publish_diagnostics(self) -> None:
         """The counters, with OK / WARN: waiting for the mesh, rejected tool poses, a failed prediction."""
         counters = self.counters
+        if self._scheduler is not None:
+            for reason, count in self._scheduler.tool_pose_unavailable.items():
+                setattr(counters, f"tool_pose_unavailable_{reason}", count)
         new_rejections = counters.tool_poses_rejected - self._rejected_at_last_report
         self._rejected_at_last_report = counters.tool_poses_rejected
         level, message = DiagnosticStatus.OK, "predicting"
