@@ -112,7 +112,6 @@ class PredictionScheduler:
         self._poses.clear()
         self._requests.clear()
         self._start_ns: int | None = None       # stamp of the timeline's first tool pose
-        self._newest_pose_ns: int | None = None
         self._previous_ns: int | None = None    # stamp the simulator's tool pose belongs to
         self._previous_done_s = 0.0
         self._state = self.mesh.vertices.copy()
@@ -131,9 +130,9 @@ class PredictionScheduler:
         pose = np.asarray(pose, dtype=np.float64)
         if pose.shape != (7,) or not np.isfinite(pose).all():
             return Rejection("tool_poses_rejected_malformed", f"tool pose at {stamp_ns} ns is not 7 finite numbers")
-        order = stamp_order(self._newest_pose_ns, stamp_ns, self._jump_ns)
+        order = stamp_order(self._poses.newest_ns, stamp_ns, self._jump_ns)
         if order in (STALE, INVALID):
-            reason = "is negative" if order == INVALID else f"is not newer than {self._newest_pose_ns} ns"
+            reason = "is negative" if order == INVALID else f"is not newer than {self._poses.newest_ns} ns"
             return Rejection("tool_poses_rejected_stamp", f"tool pose stamp {stamp_ns} ns {reason}: dropped")
         if self.scene.far(pose[None, :3])[0]:
             return Rejection("tool_poses_rejected_far",
@@ -141,7 +140,6 @@ class PredictionScheduler:
         if order == JUMP_BACK:
             self._restart_timeline()
             self.restarted = True
-        self._newest_pose_ns = stamp_ns
         self._poses.insert(stamp_ns, pose)
         if self._start_ns is None:
             self._start_ns = self._previous_ns = stamp_ns
@@ -191,11 +189,9 @@ class PredictionScheduler:
             return Prediction(stamp, None, f"the cloud is not newer than the simulator's tool pose "
                                            f"({self._previous_ns} ns)")
         waited_s = now_s - max(request.arrival_s, self._previous_done_s)
-        answered = self._state_ns is not None and self._state_ns >= self._previous_ns
-        answered = answered or self._previous_ns == self._start_ns or (self._skipped_ns or -1) >= self._previous_ns
-        if not (answered or flush or waited_s >= self.timeouts.estimate_timeout):
+        if not (self._previous_settled() or flush or waited_s >= self.timeouts.estimate_timeout):
             return None
-        covered = self._newest_pose_ns is not None and self._newest_pose_ns >= stamp
+        covered = self._poses.newest_ns is not None and self._poses.newest_ns >= stamp
         if not (covered or flush or waited_s >= self.timeouts.tool_pose_timeout):
             return None
         try:
@@ -212,6 +208,13 @@ class PredictionScheduler:
             self.simulator.reset(pose)
             return self._finish(Prediction(stamp, None, "the predicted positions are not finite", pose), now_s)
         return self._finish(Prediction(stamp, predicted, "", pose), now_s)
+
+    def _previous_settled(self) -> bool:
+        """Whether the state to predict from is known: the previous request's estimate has come,
+        the estimator said it gives none, or the previous stamp is the timeline's start."""
+        previous = self._previous_ns
+        return (previous == self._start_ns or (self._state_ns is not None and self._state_ns >= previous)
+                or (self._skipped_ns is not None and self._skipped_ns >= previous))
 
     def _finish(self, answer: Prediction, now_s: float) -> Prediction:
         self._previous_ns = answer.stamp_ns
@@ -261,7 +264,6 @@ class EstimationScheduler:
         self._clouds: deque[tuple[int, np.ndarray, float, bool]] = deque()  # stamp, points, arrival, restart
         self._answers: dict[int, Prediction] = {}
         self._newest_cloud_ns: int | None = None
-        self._newest_pose_ns: int | None = None
         self._newest_answer_ns: int | None = None
         self._last_step_ns: int | None = None
         self._solver_free_s = 0.0
@@ -323,12 +325,11 @@ class EstimationScheduler:
         pose = np.asarray(pose, dtype=np.float64)
         if pose.shape != (7,) or not np.isfinite(pose).all():
             return  # the simulation side counts it
-        order = stamp_order(self._newest_pose_ns, stamp_ns, self._jump_ns)
+        order = stamp_order(self._poses.newest_ns, stamp_ns, self._jump_ns)
         if order in (STALE, INVALID):
             return
         if order == JUMP_BACK:
             self._poses.clear()
-        self._newest_pose_ns = stamp_ns
         self._poses.insert(stamp_ns, pose)
 
     def add_prediction(self, answer: Prediction) -> Rejection | None:
@@ -360,7 +361,7 @@ class EstimationScheduler:
         later_answer = any(stamp < other <= self._newest_cloud_ns for other in self._answers)
         if answer is None and not (later_answer or waited):
             return None
-        pose_pending = self._newest_pose_ns is not None and self._newest_pose_ns < stamp
+        pose_pending = self._poses.newest_ns is not None and self._poses.newest_ns < stamp
         if pose_pending and not (waited or (answer is not None and answer.tool_pose is not None)):
             return None
         self._clouds.popleft()
