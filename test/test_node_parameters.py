@@ -178,7 +178,11 @@ def test_a_millimetre_mesh_is_caught_at_the_first_cloud_and_mesh_scale_fixes_it(
     processes += [wrong, right]
     unscaled, scaled = EstimatorProbe(probe, "/mm"), EstimatorProbe(probe, "/m")
     assert spin_until(probe, lambda: unscaled.cloud.get_subscription_count() == 1
-                      and scaled.cloud.get_subscription_count() == 1)
+                      and scaled.cloud.get_subscription_count() == 1
+                      and unscaled.status_subscription.get_publisher_count() == 1
+                      and scaled.status_subscription.get_publisher_count() == 1)
+    unscaled.wait_for(clouds_received=0)  # the nodes report: they have matched the probe too
+    scaled.wait_for(clouds_received=0)
     for stamp in (1 * S, 2 * S):
         unscaled.cloud.publish(cloud_msg(top_points(seed=stamp // S), stamp))
     unscaled.wait_for(clouds_rejected_registration=2, steps=0)
