@@ -66,15 +66,18 @@ def tiny_scenario(steps: int = 3, seed: int = 0, camera: bool = False) -> Scenar
     )
 
 
-def write_fake_replay(scenario: Scenario, path: Path, estimate_offset: float = 0.0) -> None:
+def write_fake_replay(scenario: Scenario, path: Path, estimate_offset: float = 0.0,
+                      prediction_offset: float | None = None) -> None:
     """A replay output without running the estimator: the estimate is the truth shifted by
-    estimate_offset along +z, the open-loop simulation the initial mesh, LM costs made up."""
+    estimate_offset along +z, the open-loop simulation the initial mesh, LM costs made up; with
+    prediction_offset, predictions that are the truth shifted by it along +z."""
     from meshfg_ros.io.messages import MeshState, PointCloudRecord, RosbagsMessageFactory, StatusRecord
     from meshfg_ros.io.recording import RecordingWriter
     from meshfg_ros.topics import (
         COST_HISTORY_TOPIC,
         ESTIMATED_MESH_TOPIC,
         POINTS_TOPIC,
+        PREDICTED_MESH_TOPIC,
         SIMULATION_ONLY_MESH_TOPIC,
         STATUS_TOPIC,
     )
@@ -92,6 +95,8 @@ def write_fake_replay(scenario: Scenario, path: Path, estimate_offset: float = 0
             writer.write(ESTIMATED_MESH_TOPIC, state(step.truth + [0.0, 0.0, estimate_offset], step.stamp_ns, index,
                                                      np.full(mesh.vertex_count, 1e-4)))
             writer.write(SIMULATION_ONLY_MESH_TOPIC, state(mesh.vertices, step.stamp_ns, index))
+            if prediction_offset is not None:
+                writer.write(PREDICTED_MESH_TOPIC, state(step.truth + [0.0, 0.0, prediction_offset], step.stamp_ns, index))
             writer.write(STATUS_TOPIC, StatusRecord(step.stamp_ns, "world", index, 3, 10.0, 1.0, 5.0, len(step.points),
                                                     0, min(index, 3), True, False, ""))
             history = factory.make("std_msgs/msg/Float64MultiArray",

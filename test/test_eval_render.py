@@ -108,6 +108,25 @@ def test_camera_less_scene_splits_by_observed_faces(tmp_path):
         vertex_rmse(mesh.vertices, truth, hidden), rel=1e-9)
 
 
+def test_correction_of_the_prediction_is_compared_with_the_truths(tmp_path):
+    """Predictions 2 mm below the truth, estimates 1 mm above it: on every set the correction
+    (3 mm up) points along the needed one (2 mm up) and overshoots it by half."""
+    scenario = tiny_scenario(steps=2, camera=True)
+    write_scenario(scenario, tmp_path / "truth")
+    write_fake_replay(scenario, tmp_path / "replay", estimate_offset=OFFSET, prediction_offset=-2 * OFFSET)
+    evaluation = evaluate_recordings(tmp_path / "replay", tmp_path / "truth", samples=SAMPLES)
+    correction = evaluation["correction"]
+    assert "unobserved external: alignment 1.00 (1.00), gain 1.50 (1.50)" in format_tables(evaluation)
+    assert set(correction) == {"observed_normal", "observed_tangential", "unobserved_external"}
+    for name, quantities in correction.items():
+        assert quantities["alignment"]["per_step"] == pytest.approx([1.0, 1.0], abs=1e-9), name
+        assert quantities["gain"]["per_step"] == pytest.approx([1.5, 1.5], abs=1e-9), name
+
+
+def test_no_correction_without_predictions(evaluation):
+    assert "correction" not in evaluation
+
+
 def test_recordings_that_do_not_match_are_rejected(camera_scene, tmp_path):
     other = tiny_scenario(steps=2, camera=True)
     shifted = type(other)(**{**other.__dict__, "steps": tuple(

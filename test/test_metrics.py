@@ -5,6 +5,7 @@ import pytest
 import trimesh
 
 from meshfg_ros.evaluation import metrics
+from meshfg_ros.evaluation.metrics import correction_alignment
 from meshfg_ros.synthetic.camera import PinholeCamera, capture
 
 UNIT_SQUARE = (
@@ -168,6 +169,39 @@ def test_unobserved_external_vertices():
     np.testing.assert_array_equal(metrics.unobserved_external_vertices(surface, triangles, [2, 2, 1]), [0, 6])
     with pytest.raises(ValueError, match="outside"):
         metrics.observed_vertices(triangles, [3])
+
+
+def test_correction_alignment_hand_computed():
+    prediction = np.zeros((3, 3))
+    truth = np.array([[1.0, 0.0, 0.0], [0.0, 2.0, 0.0], [0.0, 0.0, 0.0]])
+    half_way = correction_alignment(prediction, 0.5 * truth, truth)
+    assert half_way["alignment"] == pytest.approx(1.0) and half_way["gain"] == pytest.approx(0.5)
+    away = correction_alignment(prediction, -truth, truth)
+    assert away["alignment"] == pytest.approx(-1.0) and away["gain"] == pytest.approx(-1.0)
+    unrelated = correction_alignment(prediction, np.array([[0.0, 0.0, 1.0]] * 3), truth)
+    assert unrelated["alignment"] == pytest.approx(0.0) and unrelated["gain"] == pytest.approx(0.0)
+    only_vertex_1 = correction_alignment(prediction, truth * [[-1.0], [3.0], [1.0]], truth, indices=[1])
+    assert only_vertex_1["gain"] == pytest.approx(3.0)
+
+
+def test_correction_alignment_along_and_across_directions():
+    """Normals +z: a correction that gets the normal error right and slides the wrong way."""
+    prediction = np.zeros((2, 3))
+    normals = np.tile([0.0, 0.0, 1.0], (2, 1))
+    truth = np.array([[1.0, 0.0, 2.0], [0.0, 1.0, -2.0]])
+    estimate = np.array([[-1.0, 0.0, 1.0], [0.0, -1.0, -1.0]])
+    along = correction_alignment(prediction, estimate, truth, directions=normals)
+    assert along["alignment"] == pytest.approx(1.0) and along["gain"] == pytest.approx(0.5)
+    across = correction_alignment(prediction, estimate, truth, directions=normals, across=True)
+    assert across["alignment"] == pytest.approx(-1.0) and across["gain"] == pytest.approx(-1.0)
+
+
+def test_correction_alignment_is_undefined_without_a_correction():
+    prediction = np.zeros((2, 3))
+    assert np.isnan(correction_alignment(prediction, prediction, np.ones((2, 3)))["alignment"])
+    assert np.isnan(correction_alignment(prediction, np.ones((2, 3)), prediction)["gain"])
+    with pytest.raises(ValueError, match="across needs directions"):
+        correction_alignment(prediction, prediction, prediction, across=True)
 
 
 def test_summarise():

@@ -33,8 +33,11 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
+import igl
+
 from meshfg_ros.core.closest_point import ClosestPointIndex
 from meshfg_ros.evaluation.metrics import (
+    correction_alignment,
     observable_triangles,
     sample_surface,
     unobserved_external_vertices,
@@ -48,6 +51,7 @@ from meshfg_ros.topics import (
     ESTIMATED_MESH_TOPIC,
     GROUND_TRUTH_TOPIC,
     POINTS_TOPIC,
+    PREDICTED_MESH_TOPIC,
     SIMULATION_ONLY_MESH_TOPIC,
 )
 
@@ -56,6 +60,10 @@ METHOD_TITLES = {"factor_graph": "Factor Graph", "simulation": "Simulation", "me
 REGIONS = ("full", "unobserved", "observable")
 SURFACE_METRICS = ("chamfer", "rmse", "h95")
 VERTEX_SETS = ("all", "external", "unobserved_external")
+# Where the factor graph's correction of each prediction is compared with the truth's
+# (metrics.correction_alignment): observed external vertices along their normal (what the
+# measurements see) and across it, and the unobserved external ones (the prior's extrapolation).
+CORRECTION_SETS = ("observed_normal", "observed_tangential", "unobserved_external")
 DEFAULT_SAMPLES = 10_000
 _UNDEFINED = {metric: float("nan") for metric in SURFACE_METRICS}  # a region empty at some step
 
@@ -70,6 +78,8 @@ class EvaluationInputs:
 
     stamps: evaluated steps (stamps present in the estimate and the truth, step > 0).
     estimates: method -> stamp -> (N', 3) positions on the estimate's topology `estimate_mesh`.
+    predictions: stamp -> (N', 3) the prediction each estimate started from (the replay's
+    /meshfg/predicted_mesh; empty when the replay has none).
     observed_faces: (F,) bool on the truth's surface for camera-less scenes, else None.
     """
 
@@ -79,6 +89,7 @@ class EvaluationInputs:
     truth: dict[int, np.ndarray]
     estimate_mesh: MeshState
     estimates: dict[str, dict[int, np.ndarray]]
+    predictions: dict[int, np.ndarray]
     clouds: dict[int, np.ndarray]
     camera_center: np.ndarray | None
     observed_faces: np.ndarray | None
@@ -110,6 +121,9 @@ def load_inputs(replay_path: str | Path, truth_path: str | Path) -> EvaluationIn
         estimates = {"factor_graph": estimated}
         if SIMULATION_ONLY_MESH_TOPIC in replay_reader.topics:
             estimates["simulation"] = _mesh_series(replay_reader, SIMULATION_ONLY_MESH_TOPIC)[1]
+        predictions = {}
+        if PREDICTED_MESH_TOPIC in replay_reader.topics:
+            predictions = _mesh_series(replay_reader, PREDICTED_MESH_TOPIC)[1]
         clouds = {cloud.stamp_ns: cloud.points for cloud in replay_reader.records(POINTS_TOPIC, PointCloudRecord)}
     stamps = tuple(sorted(
         stamp for stamp in set(estimated) & set(truth) & set(clouds)
@@ -130,6 +144,7 @@ def load_inputs(replay_path: str | Path, truth_path: str | Path) -> EvaluationIn
         truth=truth,
         estimate_mesh=estimate_mesh,
         estimates=estimates,
+        predictions=predictions,
         clouds=clouds,
         camera_center=camera_center,
         observed_faces=observed_faces,
@@ -258,7 +273,23 @@ def evaluate_step(inputs: EvaluationInputs, stamp: int, samples: int = DEFAULT_S
                 name: (vertex_rmse(series[stamp], inputs.truth[stamp], ids) if len(ids) else float("nan"))
                 for name, ids in sets.items()
             }
-    return {"surface": surface, "vertex_rmse": vertex}
+    step = {"surface": surface, "vertex_rmse": vertex}
+    if inputs.same_topology and reference.observed is not None and stamp in inputs.predictions:
+        step["correction"] = _correction(inputs, stamp, external, sets["unobserved_external"])
+    return step
+
+
+def _correction(inputs: EvaluationInputs, stamp: int, external: np.ndarray, unobserved: np.ndarray) -> dict:
+    """The factor graph's correction of the step's prediction against the truth's, per CORRECTION_SETS."""
+    prediction, estimate, truth = inputs.predictions[stamp], inputs.estimates["factor_graph"][stamp], inputs.truth[stamp]
+    normals = igl.per_vertex_normals(prediction, inputs.truth_mesh.surface_triangles)
+    normals = np.where(np.isfinite(normals), normals, 0.0)  # vertices off the surface: not used
+    observed = np.setdiff1d(external, unobserved)
+    return {  # NaN for an empty set (correction_alignment)
+        "observed_normal": correction_alignment(prediction, estimate, truth, observed, normals),
+        "observed_tangential": correction_alignment(prediction, estimate, truth, observed, normals, across=True),
+        "unobserved_external": correction_alignment(prediction, estimate, truth, unobserved),
+    }
 
 
 def _summary(values: list[float]) -> dict:
@@ -290,7 +321,7 @@ def evaluate(inputs: EvaluationInputs, samples: int = DEFAULT_SAMPLES, seed: int
         method: {name: _summary([s["vertex_rmse"][method][name] for s in steps]) for name in sets}
         for method, sets in steps[0]["vertex_rmse"].items()
     }
-    return {
+    result = {
         "scenario": inputs.scenario,
         "units": "m",
         "samples_per_surface": samples,
@@ -298,6 +329,13 @@ def evaluate(inputs: EvaluationInputs, samples: int = DEFAULT_SAMPLES, seed: int
         "surface": surface,
         "vertex_rmse": vertex,
     }
+    corrected = [s["correction"] for s in steps if "correction" in s]
+    if corrected:
+        result["correction"] = {
+            name: {quantity: _summary([c[name][quantity] for c in corrected]) for quantity in ("alignment", "gain")}
+            for name in CORRECTION_SETS
+        }
+    return result
 
 
 def evaluate_recordings(replay_path: str | Path, truth_path: str | Path, samples: int = DEFAULT_SAMPLES,
@@ -357,7 +395,20 @@ def format_tables(evaluation: dict) -> str:
             [("Vertices", name.replace("_", " ")) for name in sets],
             [(METHOD_TITLES[m], [vertex[m][s] for s in sets]) for m in ("simulation", "factor_graph") if m in vertex],
         ))
+    if "correction" in evaluation:
+        lines = ["Correction of each prediction by the factor graph against the truth's "
+                 "(alignment 1: towards the truth, -1: away; gain: share made): final step (mean over steps)"]
+        for name, quantities in evaluation["correction"].items():
+            lines.append(f"  {name.replace('_', ' ')}: " + ", ".join(
+                f"{quantity} {_ratio_cell(summary)}" for quantity, summary in quantities.items()))
+        blocks.append("\n".join(lines))
     return "\n\n".join(blocks)
+
+
+def _ratio_cell(summary: dict) -> str:
+    final = "n/a" if summary["final"] is None else f"{summary['final']:.2f}"
+    mean = "n/a" if summary["mean"] is None else f"{summary['mean']:.2f}"
+    return f"{final} ({mean})"
 
 
 def write_json(evaluation: dict, path: str | Path) -> None:

@@ -33,6 +33,51 @@ def vertex_rmse(estimate, truth, indices=None) -> float:
     return float(np.sqrt(np.mean(np.einsum("ij,ij->i", errors, errors))))
 
 
+def correction_alignment(prediction, estimate, truth, indices=None, directions=None,
+                         across: bool = False) -> dict[str, float]:
+    """How the estimator's correction of a prediction compares with the one the truth needed.
+
+    With a = estimate - prediction (what the measurements changed) and b = truth - prediction
+    (what they should have changed), over `indices` (all vertices by default) and, with unit
+    `directions` (N, 3), of their components along them (a vertex normal: what a
+    point-to-surface measurement sees) or, with `across`, orthogonal to them (sliding along
+    the surface, which it does not see):
+      alignment = a.b / (|a| |b|): 1 when the correction points at the truth, 0 when it is
+                  unrelated to the error (noise), -1 when it moves away from the truth;
+      gain      = a.b / b.b: the share of the needed correction made along it (1: all of it).
+    Vertex RMSE says whether the estimate improved; these say why not: a correction in the
+    wrong direction (the prior's extrapolation) or too small a one (a prior that is too stiff,
+    or an error the measurements cannot see). NaN when either correction is zero."""
+    prediction = as_point_array("prediction", prediction)
+    estimate = as_point_array("estimate", estimate)
+    truth = as_point_array("truth", truth)
+    if not prediction.shape == estimate.shape == truth.shape:
+        raise ValueError(f"prediction {prediction.shape}, estimate {estimate.shape} and truth {truth.shape} differ")
+    made, needed = estimate - prediction, truth - prediction
+    if directions is not None:
+        directions = as_point_array("directions", directions)
+        if directions.shape != prediction.shape:
+            raise ValueError(f"directions {directions.shape} and prediction {prediction.shape} differ in shape")
+        made_along = np.einsum("ij,ij->i", made, directions)
+        needed_along = np.einsum("ij,ij->i", needed, directions)
+        if across:
+            made = made - made_along[:, None] * directions
+            needed = needed - needed_along[:, None] * directions
+        else:
+            made, needed = made_along, needed_along
+    elif across:
+        raise ValueError("across needs directions")
+    if indices is not None:
+        selected = _as_indices("indices", indices, len(prediction))
+        made, needed = made[selected], needed[selected]
+    made, needed = made.ravel(), needed.ravel()
+    both = float(made @ needed)
+    made_norm, needed_norm = float(np.linalg.norm(made)), float(np.linalg.norm(needed))
+    if made_norm == 0.0 or needed_norm == 0.0:
+        return {"alignment": float("nan"), "gain": float("nan")}
+    return {"alignment": both / (made_norm * needed_norm), "gain": both / needed_norm**2}
+
+
 def sample_surface(vertices, triangles, count: int, seed=0, return_faces: bool = False):
     """`count` points drawn uniformly by area on the triangle surface, deterministic by `seed`
     (an int or a numpy Generator). With return_faces, also the (count,) triangle index of each
