@@ -164,6 +164,12 @@ class Parameter:
         )
 
 
+def _check_quaternion(name: str, pose: tuple[float, ...]) -> None:
+    """A pose [x, y, z, qx, qy, qz, qw] whose quaternion cannot be normalised is refused."""
+    if np.linalg.norm(pose[3:]) < 1e-9:
+        raise ParameterError(f"{name} quaternion has zero norm")
+
+
 def _bound(value: float | None, unbounded: str) -> str:
     return unbounded if value is None else f"{value:g}"
 
@@ -206,8 +212,7 @@ class EstimatorNodeConfig:
         range=(0.0, 10.0), dynamic=True)
 
     def __post_init__(self) -> None:
-        if np.linalg.norm(self.camera_pose[3:]) < 1e-9:
-            raise ParameterError("camera_pose quaternion has zero norm")
+        _check_quaternion("camera_pose", self.camera_pose)
 
 
 @dataclass(frozen=True)
@@ -252,8 +257,7 @@ class SharedNodeConfig:
             raise ParameterError(f"fixed_plane needs 0 or 7 values, got {len(self.fixed_plane)}")
         if len(self.fixed_box) not in (0, 6):
             raise ParameterError(f"fixed_box needs 0 or 6 values, got {len(self.fixed_box)}")
-        if np.linalg.norm(self.mesh_pose[3:]) < 1e-9:
-            raise ParameterError("mesh_pose quaternion has zero norm")
+        _check_quaternion("mesh_pose", self.mesh_pose)
 
 
 @dataclass(frozen=True)

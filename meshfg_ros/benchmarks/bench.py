@@ -247,12 +247,10 @@ def format_report(result: dict) -> str:
 
 def write_plot(result: dict, path: Path) -> None:
     """Bar chart of the latencies against their targets and the baselines."""
-    import matplotlib
+    from matplotlib.figure import Figure  # drawn by Agg, no pyplot state (as evaluation/render.py)
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    fig = Figure(figsize=(10, 4))
+    axes = fig.subplots(1, 2)
     scales = [k for k in ("paper_scale", "organ_scale") if k in result]
     if scales:
         x = np.arange(len(scales))
@@ -271,7 +269,6 @@ def write_plot(result: dict, path: Path) -> None:
         axes[1].set_title("same problem, same start")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def save(result: dict, json_path: Path | None) -> None:

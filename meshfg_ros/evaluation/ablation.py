@@ -97,12 +97,10 @@ def format_table(result: dict) -> str:
 
 def write_plot(result: dict, path) -> None:
     """Grouped bars (log scale): vertex RMSE per configuration and vertex set, with std."""
-    import matplotlib
+    from matplotlib.figure import Figure  # drawn by Agg, no pyplot state (as evaluation/render.py)
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(9, 4))
+    fig = Figure(figsize=(9, 4))
+    ax = fig.subplots()
     width = 0.8 / len(VERTEX_SETS)
     for offset, vertex_set in enumerate(VERTEX_SETS):
         rows = [result["configurations"][name][vertex_set] for name in ABLATION_CONFIGURATIONS]
@@ -116,4 +114,3 @@ def write_plot(result: dict, path) -> None:
     ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)

@@ -192,15 +192,13 @@ def format_table(result: dict) -> str:
 
 def write_plot(result: dict, path: Path) -> None:
     """PNG: FG / simulation ratios per scene (final vertex RMSE, all and unobserved external)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure  # drawn by Agg, no pyplot state (as evaluation/render.py)
 
     rows = result["scenes"]
     names = [row["scene"] for row in rows]
     positions = np.arange(len(rows))
-    figure, axes = plt.subplots(1, 3, figsize=(16, 4.2), gridspec_kw={"width_ratios": [3, 1, 3]})
+    figure = Figure(figsize=(16, 4.2))
+    axes = figure.subplots(1, 3, gridspec_kw={"width_ratios": [3, 1, 3]})
     for offset, key, label in ((-0.2, "ratio_all_final", "all vertices"),
                                (0.2, "ratio_unobserved_external_final", "unobserved external")):
         axes[0].bar(positions + offset, [row[key] or 0.0 for row in rows], width=0.4, label=label)
@@ -223,7 +221,6 @@ def write_plot(result: dict, path: Path) -> None:
     axes[2].legend(fontsize=8)
     figure.tight_layout()
     figure.savefig(path, dpi=120)
-    plt.close(figure)
 
 
 def save(result: dict, path: Path) -> None:
