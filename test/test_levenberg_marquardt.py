@@ -21,6 +21,7 @@ from meshfg_ros.core.linear_solvers import (
     make_linear_solver,
 )
 from meshfg_ros.core.linear_system import WindowSystem
+from meshfg_ros.core.mesh import signed_volumes
 from meshfg_ros.core import sparse_cholesky
 from meshfg_ros.synthetic.meshing import cube_mesh
 
@@ -104,9 +105,9 @@ def test_steps_that_would_invert_tetrahedra_are_shortened_not_dropped():
     graph.fixed_vertices = np.flatnonzero(fixed)
     scale = prior_scale(elastic.stiffness(), 1e-3)
     graph.add_factor(PhysicsPriorFactor(0, target, elastic, "linear", scale=scale, ridge=1.0))
-    start_volumes = graph._signed_volumes(mesh.vertices)
+    start_volumes = signed_volumes(mesh.vertices, graph.tetrahedra)
     result = levenberg_marquardt(graph, graph.get_x(), LevenbergMarquardtConfig(max_iterations=30), CholeskySolver())
-    final = graph._signed_volumes(graph.states_from_x(result.x)[0])
+    final = signed_volumes(graph.states_from_x(result.x)[0], graph.tetrahedra)
     assert result.shortened_steps > 0 and result.accepted_steps > 0
     assert np.all(final > 0.0)
     assert result.final_cost < 0.5 * result.initial_cost
@@ -122,15 +123,15 @@ def test_step_fraction_keeps_the_margin_exactly():
     graph.add_state(1, mesh.vertices * 1.01)
     x = graph.get_x()
     rng = np.random.default_rng(0)
-    before = np.stack([graph._signed_volumes(state) for state in graph.states_from_x(x).values()])
+    before = np.stack([signed_volumes(state, graph.tetrahedra) for state in graph.states_from_x(x).values()])
     for scale, full in ((1e-4, True), (1e-2, False), (3e-2, False)):
         step = rng.normal(scale=scale, size=x.shape)
         fraction = graph.step_fraction(x, step)
         assert (fraction == 1.0) == full
-        after = np.stack([graph._signed_volumes(s) for s in graph.states_from_x(x + fraction * step).values()])
+        after = np.stack([signed_volumes(s, graph.tetrahedra) for s in graph.states_from_x(x + fraction * step).values()])
         assert np.min(after / before) >= MIN_VOLUME_RATIO_PER_STEP * (1 - 1e-9)
         if not full:
-            beyond = np.stack([graph._signed_volumes(s)
+            beyond = np.stack([signed_volumes(s, graph.tetrahedra)
                                for s in graph.states_from_x(x + 1.01 * fraction * step).values()])
             assert np.min(beyond / before) < MIN_VOLUME_RATIO_PER_STEP
 

@@ -8,8 +8,8 @@ every state of the window jointly, and the newest state is returned with its per
 posterior standard deviation.
 
 Design decisions (see also factors.py, factor_graph.py, levenberg_marquardt.py, linear_solvers.py):
-- Initial value of a new state: the prediction when given, else the previous estimate
-  (copy-forward). A configuration with the physics prior but no prediction uses the
+- Initial value of a new state: the prediction when given and the configuration has the
+  physics prior, else the previous estimate (copy-forward). A configuration with the physics prior but no prediction uses the
   copy-forward state as the prediction and flags the step degraded.
 - What leaves the window is *conditioned on*, not marginalised: the dropped state's estimate
   becomes a constant anchor of the temporal factor of the oldest remaining state (the
@@ -98,7 +98,7 @@ from meshfg_ros.core.linear_solvers import LINEAR_SOLVERS, LinearSolveError, Not
 from meshfg_ros.core.mesh import TetMesh, signed_volumes
 from meshfg_ros.core.noise import IsotropicNoise
 from meshfg_ros.core.robust import ROBUST_KERNELS, make_robust_kernel
-from meshfg_ros.core.settings import dynamic_fields, setting
+from meshfg_ros.core.settings import check_settings, dynamic_fields, setting
 from meshfg_ros.core.simulator import (
     POISSON_RATIO_SETTING,
     TOOL_MODE_SETTING,
@@ -214,11 +214,6 @@ def _restore(obj, saved: dict) -> None:
     vars(obj).update(saved)
 
 
-def _positive(name, value):
-    if not (np.isfinite(value) and value > 0.0):
-        raise EstimatorConfigError(f"{name} must be finite and > 0, got {value}")
-
-
 _LENGTH_RANGE = (1e-9, 10.0)  # metres: from a nanometre to a room-sized workspace
 
 
@@ -260,7 +255,7 @@ class EstimatorConfig:
     estimate_weights: bool = setting(
         True, "Estimate the measurement noise online from the residuals and weight the physics prior with a "
         "tenth of it (core/weights.py); false: use measurement_sigma and simulation_sigma as given.")
-    # In sphere mode, points inside the tool sphere (plus a margin) are leaks; 0 turns that off.
+    # In sphere mode, points inside the tool sphere (plus a margin) are leaks (see _outside_tool).
     tool_radius: float = setting(5e-3, TOOL_RADIUS_SETTING)
     tool_mode: str = setting("sphere", TOOL_MODE_SETTING)
     max_iterations: int = setting(10, "Levenberg-Marquardt iterations per step (at most).", range=(1, 1000))
@@ -271,30 +266,10 @@ class EstimatorConfig:
         "and returns its best state, 'time budget' in the status message.", range=(1e-3, 3600.0))
 
     def __post_init__(self):
-        if self.factors not in FACTOR_CONFIGURATIONS:
-            raise EstimatorConfigError(f"factors must be one of {tuple(FACTOR_CONFIGURATIONS)}, got {self.factors!r}")
-        if not (isinstance(self.window_size, (int, np.integer)) and self.window_size >= 1):
-            raise EstimatorConfigError(f"window_size must be an integer >= 1, got {self.window_size!r}")
-        for name in ("measurement_sigma", "simulation_sigma", "temporal_sigma", "youngs_modulus"):
-            _positive(name, getattr(self, name))
-        for name in ("robust_scale", "gating_distance", "tool_radius"):
-            value = getattr(self, name)
-            if not (np.isfinite(value) and value >= 0.0):
-                raise EstimatorConfigError(f"{name} must be finite and >= 0, got {value}")
-        if self.stiffness_kind not in STIFFNESS_KINDS:
-            raise EstimatorConfigError(f"stiffness_kind must be one of {STIFFNESS_KINDS}, got {self.stiffness_kind!r}")
-        if not -1.0 < self.poisson_ratio < 0.5:
-            raise EstimatorConfigError(f"poisson_ratio must be in (-1, 0.5), got {self.poisson_ratio}")
-        if self.robust_kernel not in ROBUST_KERNELS + (None,):
-            raise EstimatorConfigError(f"robust_kernel must be one of {ROBUST_KERNELS}, got {self.robust_kernel!r}")
-        if self.tool_mode not in TOOL_MODES:
-            raise EstimatorConfigError(f"tool_mode must be one of {TOOL_MODES}, got {self.tool_mode!r}")
-        if self.linear_solver not in LINEAR_SOLVERS:
-            raise EstimatorConfigError(f"linear_solver must be one of {LINEAR_SOLVERS}, got {self.linear_solver!r}")
-        if not (isinstance(self.max_iterations, (int, np.integer)) and self.max_iterations >= 1):
-            raise EstimatorConfigError(f"max_iterations must be an integer >= 1, got {self.max_iterations!r}")
-        if self.update_time_budget is not None:
-            _positive("update_time_budget", self.update_time_budget)
+        check_settings(self, EstimatorConfigError)
+        for name in ("window_size", "max_iterations"):
+            if not isinstance(getattr(self, name), (int, np.integer)):
+                raise EstimatorConfigError(f"{name} must be an integer, got {getattr(self, name)!r}")
 
 
 @dataclass
@@ -372,8 +347,8 @@ class SlidingWindowEstimator:
             cfg = self.config
             self.model = ElasticModel(initial_mesh.vertices, initial_mesh.tetrahedra, cfg.youngs_modulus, cfg.poisson_ratio)
             rest_stiffness = self.model.stiffness(None, kind=cfg.stiffness_kind, spd_projection=cfg.spd_projection)
-            self.prior_scale = prior_scale(rest_stiffness, cfg.simulation_sigma, self.graph.free_dofs)
-            self.prior_ridge = PRIOR_RIDGE / cfg.simulation_sigma**2
+            # scale * K has mean diagonal 1 / sigma^2 with scale = unit_prior_scale / sigma^2
+            self.unit_prior_scale = prior_scale(rest_stiffness, 1.0, self.graph.free_dofs)
             # kappa V_e per element: the prior's volume barrier in the prior's own units
             self.bulk_energy_scale = (self.model.lam + 2.0 * self.model.mu / 3.0) * self.model.volumes
         self.noise = MeasurementNoise(self.config.measurement_sigma)
@@ -409,8 +384,8 @@ class SlidingWindowEstimator:
 
     def _apply_pending_changes(self) -> None:
         """Start using the settings `reconfigure` changed: a new nominal measurement sigma restarts
-        the noise estimate and the re-linearisation threshold from it; a new simulation sigma
-        rescales the prior's weight."""
+        the noise estimate and the re-linearisation threshold from it (a new simulation sigma
+        weights the priors of the states that follow, through `simulation_sigma`)."""
         changes = self._pending_changes.take()
         if not changes:
             return
@@ -418,9 +393,6 @@ class SlidingWindowEstimator:
         if self.config.measurement_sigma != old.measurement_sigma:
             self.noise = MeasurementNoise(self.config.measurement_sigma)
             self.graph.relinearize_threshold = self.config.measurement_sigma
-        if self.model is not None and self.config.simulation_sigma != old.simulation_sigma:
-            self.prior_scale *= (old.simulation_sigma / self.config.simulation_sigma) ** 2
-            self.prior_ridge = PRIOR_RIDGE / self.config.simulation_sigma**2
 
     # ----------------------------------------------------------------------------- input
     def _check_inputs(self, stamp_ns, points, predicted, tool_pose):
@@ -501,7 +473,7 @@ class SlidingWindowEstimator:
         self._apply_pending_changes()
         saved = (_saved(self), _saved(self.graph), _saved(self.noise))
         try:
-            result = self.solve(self.prepare(stamp_ns, points, predicted, tool_pose))
+            result = self.solve(self._prepare(stamp_ns, points, predicted, tool_pose))
             if not _finite_result(result):
                 raise EstimatorStepError("the update produced non-finite values")
             return result
@@ -521,14 +493,19 @@ class SlidingWindowEstimator:
         """First half of `update`: validate the input, append the new state and its factors and
         slide the window, without optimising (benchmarks hand the same problem to other solvers).
         Input errors are raised before anything changes; `update` undoes a later failure."""
-        start = time.perf_counter()
         self._apply_pending_changes()
+        return self._prepare(stamp_ns, points, predicted, tool_pose)
+
+    def _prepare(self, stamp_ns, points, predicted, tool_pose) -> PendingStep:
+        """`prepare` with the settings as they are (`update` applied the pending changes before
+        it saved the state a failure restores)."""
+        start = time.perf_counter()
         cfg = self.config
         stamp_ns, points, predicted, tool_pose, dropped = self._check_inputs(stamp_ns, points, predicted, tool_pose)
         messages = [f"{dropped} non-finite point(s) dropped"] if dropped else []
-        points, predicted, tool_pose, far = self._far_input(points, predicted, tool_pose, messages)
         if "simulation" not in self.enabled:
             predicted = None  # a configuration without the physics prior starts from the copy-forward
+        points, predicted, tool_pose, far = self._far_input(points, predicted, tool_pose, messages)
         self.step += 1
         self.last_stamp_ns = stamp_ns
         self.deadline = None if cfg.update_time_budget is None else start + cfg.update_time_budget
@@ -563,7 +540,7 @@ class SlidingWindowEstimator:
     def _outside_tool(self, points, tool_pose, pending: PendingStep):
         """Points inside the tool sphere (sphere mode), grown by TOOL_MARGIN_SIGMAS measurement
         sigmas, are leaks of the segmentation onto the tool (the commonest leak): dropped and counted."""
-        if points is None or tool_pose is None or self.config.tool_mode != "sphere" or not self.config.tool_radius > 0.0:
+        if points is None or tool_pose is None or self.config.tool_mode != "sphere":
             return points
         centre = np.asarray(tool_pose, dtype=np.float64).reshape(-1)[:3]
         reach = self.config.tool_radius + TOOL_MARGIN_SIGMAS * self.noise.sigma
@@ -601,9 +578,10 @@ class SlidingWindowEstimator:
         cfg, graph, key = self.config, self.graph, pending.key
         factors = []
         if "simulation" in self.enabled:
-            scale = self.prior_scale * (cfg.simulation_sigma / self.simulation_sigma) ** 2
+            sigma = self.simulation_sigma
+            scale = self.unit_prior_scale / sigma**2
             factors.append(PhysicsPriorFactor(key, pending.prediction, self.model, cfg.stiffness_kind,
-                                              cfg.spd_projection, scale, self.prior_ridge))
+                                              cfg.spd_projection, scale, PRIOR_RIDGE / sigma**2))
             factors.append(VolumeBarrierFactor(key, self.model.tetrahedra,
                                                signed_volumes(pending.prediction, self.model.tetrahedra),
                                                scale * self.bulk_energy_scale))
@@ -690,12 +668,8 @@ class SlidingWindowEstimator:
     def _optimise(self, messages) -> dict:
         graph = self.graph
         x0 = graph.get_x()
-        config = LM_CONFIG
         remaining = None if self.deadline is None else max(self.deadline - time.perf_counter(), 1e-9)
-        if config.max_iterations != self.config.max_iterations or remaining is not None:
-            budget = config.time_budget_s if remaining is None else min(config.time_budget_s or np.inf, remaining)
-            config = LevenbergMarquardtConfig(**{**config.__dict__, "max_iterations": self.config.max_iterations,
-                                                 "time_budget_s": budget})
+        config = replace(LM_CONFIG, max_iterations=self.config.max_iterations, time_budget_s=remaining)
         try:
             lm = levenberg_marquardt(graph, x0, config, self.solver)
         except (LinearSolveError, NotPositiveDefiniteError, np.linalg.LinAlgError, FloatingPointError) as error:

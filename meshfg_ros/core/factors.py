@@ -84,15 +84,13 @@ class FactorLinearization:
     """A factor's cost and normal-equation terms at a linearisation point.
 
     gradients[key] (3N,) = J_key^T W r; hessians[(key, key)] csr (3N, 3N) = J^T W J;
-    identity_terms[(key_i, key_j)] = c for a c * I block (i == j on the diagonal block,
-    i != j the off-diagonal block); point_blocks[key] per-point terms (measurements);
-    element_blocks[key] per-tetrahedron terms (the volume barrier).
+    point_blocks[key] per-point terms (measurements); element_blocks[key] per-tetrahedron terms
+    (the volume barrier). An identity_blocks factor gives its c * I blocks by `identity_terms`.
     """
 
     cost: float
     gradients: dict = field(default_factory=dict)
     hessians: dict = field(default_factory=dict)
-    identity_terms: dict = field(default_factory=dict)
     point_blocks: dict = field(default_factory=dict)
     element_blocks: dict = field(default_factory=dict)
 
@@ -376,7 +374,7 @@ class TemporalFactor(Factor):
 
     def linearize(self, states, hessian=True):
         r = self.residual(states)
-        out = FactorLinearization(cost=0.5 * self.weight * float(r @ r), identity_terms=self.identity_terms())
+        out = FactorLinearization(cost=0.5 * self.weight * float(r @ r))
         out.gradients[self.key] = self.weight * r
         if self.anchor is None:
             out.gradients[self.previous_key] = -self.weight * r

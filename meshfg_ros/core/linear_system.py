@@ -32,9 +32,10 @@ class WindowSystem:
     revisions[t] (optional) names block t's off-diagonal values: two blocks with the same key
     and revision differ at most on the diagonal (damping, temporal terms), which lets the PCG
     preconditioner compare them on the diagonal alone. `diagonal_shift` (W, n) (optional) is
-    added to the blocks' diagonals without copying them: LM's damping, applied to every trial
-    damping of one linearisation (damped copies of ten blocks would cost 0.8 ms per trial at
-    paper scale); `block_data(t)` and `blocks` include it.
+    added to the blocks' diagonals without copying them: the temporal factors' c I terms of each
+    state (FactorGraph.linearize) and LM's damping on top of them (`with_added_diagonal`, one
+    shift per trial damping of a linearisation: damped copies of ten blocks would cost 0.8 ms
+    per trial at paper scale); `block_data(t)` and `blocks` include it.
     """
 
     def __init__(self, blocks, couplings, keys, diagonal_index: np.ndarray, coupling_diagonal=None,

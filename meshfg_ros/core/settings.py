@@ -11,10 +11,12 @@ estimator reads `dynamic_fields` to know what `SlidingWindowEstimator.reconfigur
 from __future__ import annotations
 
 import dataclasses
+import math
+import numbers
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["Setting", "dynamic_fields", "setting", "settings_of"]
+__all__ = ["Setting", "check_settings", "dynamic_fields", "setting", "settings_of"]
 
 _METADATA_KEY = "meshfg_setting"
 
@@ -59,3 +61,22 @@ def settings_of(config_class: type) -> tuple[tuple[str, Any, Setting], ...]:
 def dynamic_fields(config_class: type) -> frozenset[str]:
     """Names of the fields of `config_class` that may change while running."""
     return frozenset(name for name, _, spec in settings_of(config_class) if spec.dynamic)
+
+
+def check_settings(config: Any, error: type[Exception] = ValueError) -> None:
+    """Check each set field of the dataclass instance `config` against its Setting: a string among
+    the choices, a number (each element of an array) finite and within the range. None passes
+    (a field whose None means "not set"). Raises `error` naming the field."""
+    for name, _, spec in settings_of(type(config)):
+        value = getattr(config, name)
+        if value is None:
+            continue
+        if spec.choices is not None and value not in spec.choices:
+            raise error(f"{name} must be one of {', '.join(spec.choices)}; got {value!r}")
+        if spec.range is None:
+            continue
+        low, high = spec.range
+        for item in value if isinstance(value, (tuple, list)) else (value,):
+            if (isinstance(item, bool) or not isinstance(item, numbers.Real) or not math.isfinite(item)
+                    or (low is not None and item < low) or (high is not None and item > high)):
+                raise error(f"{name} must be finite and within [{low}, {high}], got {value!r}")

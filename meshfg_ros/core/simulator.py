@@ -43,7 +43,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from meshfg_ros.core.fem import ElasticModel
 from meshfg_ros.core.sparse_cholesky import SparseCholesky
 from meshfg_ros.core.mesh import TetMesh, name_elements, signed_volumes
-from meshfg_ros.core.settings import Setting, setting
+from meshfg_ros.core.settings import Setting, check_settings, setting
 
 __all__ = [
     "POISSON_RATIO_SETTING",
@@ -141,17 +141,8 @@ class SimulatorConfig:
                           parameter="simulator")  # see the module docstring
 
     def __post_init__(self):
+        check_settings(self, SimulatorConfigError)
         checks = [
-            (np.isfinite(self.youngs_modulus) and self.youngs_modulus > 0.0, "youngs_modulus must be > 0"),
-            (0.0 < self.poisson_ratio < 0.5, "poisson_ratio must lie in (0, 0.5)"),
-            (np.isfinite(self.density) and self.density > 0.0, "density must be > 0"),
-            (np.isfinite(self.tool_radius) and self.tool_radius > 0.0, "tool_radius must be > 0"),
-            (self.tool_mode in TOOL_MODES, f"tool_mode must be one of {TOOL_MODES}, got {self.tool_mode!r}"),
-            (
-                self.tool_contact in TOOL_CONTACTS,
-                f"tool_contact must be one of {TOOL_CONTACTS}, got {self.tool_contact!r}",
-            ),
-            (self.solver in SOLVERS, f"solver must be one of {SOLVERS}, got {self.solver!r}"),
             (int(self.substeps) == self.substeps and self.substeps >= 1, "substeps must be an integer >= 1"),
             (
                 int(self.solver_iterations) == self.solver_iterations and self.solver_iterations >= 1,
