@@ -7,6 +7,7 @@ from offline_helpers import NOISE_SIGMA, TOOL_RADIUS, tiny_scenario
 from meshfg_ros.core.estimator import EstimatorConfig
 from meshfg_ros.core.scheduler import (
     EstimationScheduler,
+    OfflinePipeline,
     Prediction,
     PredictionScheduler,
     SchedulingTimeouts,
@@ -116,3 +117,23 @@ def test_a_request_beyond_the_tool_pose_horizon_is_answered_with_the_reason(scen
     [answer] = simulation.poll(now_s=0.2)  # tool_pose_timeout: extrapolation is not allowed that far
     assert answer.positions is None and "beyond the newest" in answer.failure
     assert simulation.tool_pose_unavailable == {"beyond_horizon": 1}  # the simulation node's counter
+
+
+def test_the_offline_pipeline_requests_no_prediction_for_a_cloud_it_did_not_queue(scenario):
+    """A first cloud two mesh diagonals off the mesh (a wrong registration, near enough not to be
+    dropped as far) fails the registration check: no prediction is requested for it (as the
+    estimator node does), so the next clouds' predictions need no estimate of it and
+    each step is estimated when its cloud and tool pose are in, not only when the input ends."""
+    model = SimulatorConfig(**{**scenario.simulator_config.__dict__, "tool_radius": TOOL_RADIUS})
+    config = EstimatorConfig(measurement_sigma=NOISE_SIGMA, tool_radius=TOOL_RADIUS, max_iterations=3)
+    pipeline = OfflinePipeline(scenario.initial_mesh, model, config)
+    first, *rest = scenario.steps
+    pipeline.tool_pose(FIRST_STAMP_NS, scenario.initial_tool_pose)
+    pipeline.tool_pose(first.stamp_ns, first.tool_pose)
+    diagonal = float(np.linalg.norm(np.ptp(scenario.initial_mesh.vertices, axis=0)))
+    assert pipeline.cloud(first.stamp_ns, first.points + [2.0 * diagonal, 0.0, 0.0]) == []
+    for step in rest:
+        pipeline.tool_pose(step.stamp_ns, step.tool_pose)
+        [estimated] = pipeline.cloud(step.stamp_ns, step.points)
+        assert estimated.stamp_ns == step.stamp_ns and estimated.predicted is not None
+    assert pipeline.finish() == []

@@ -61,6 +61,16 @@ class Rejection:
     reason: str
 
 
+# What EstimationScheduler.add_cloud says of a cloud it did not queue.
+_CLOUD_NOT_QUEUED = frozenset({"clouds_rejected_stamp", "clouds_rejected_registration"})
+
+
+def cloud_queued(rejections: list[Rejection]) -> bool:
+    """Whether add_cloud queued the cloud it returned `rejections` for: then a prediction is to be
+    requested for its stamp (the estimator node and the offline pipeline follow this one rule)."""
+    return not any(rejection.counter in _CLOUD_NOT_QUEUED for rejection in rejections)
+
+
 @dataclass(frozen=True)
 class Prediction:
     """The simulator's answer for a cloud's stamp: positions (N, 3), or None with the failure."""
@@ -283,7 +293,7 @@ class EstimationScheduler:
     def add_cloud(self, stamp_ns: int, points: np.ndarray, now_s: float = 0.0) -> list[Rejection]:
         """Queue a cloud (K, 3) in the world frame. Returns what was set aside: this cloud (a stale
         or invalid stamp), the oldest queued one (backlog), or the restart a jump back causes
-        (counter clock_jumps_back). A cloud without rejection of its own is to be requested."""
+        (counter clock_jumps_back). `cloud_queued` says whether this cloud was queued."""
         order = stamp_order(self._newest_cloud_ns, stamp_ns, self._jump_ns)
         if order in (STALE, INVALID):
             reason = "is negative" if order == INVALID else f"is not newer than {self._newest_cloud_ns} ns"
@@ -445,8 +455,7 @@ class OfflinePipeline:
 
     def cloud(self, stamp_ns: int, points: np.ndarray) -> list[PipelineStep]:
         """Take a cloud (K, 3) in the world frame."""
-        rejections = self.estimation.add_cloud(stamp_ns, points)
-        if not any(r.counter == "clouds_rejected_stamp" for r in rejections):
+        if cloud_queued(self.estimation.add_cloud(stamp_ns, points)):
             self.simulation.request(stamp_ns)
             self.open_loop.request(stamp_ns)
         return self._pump(False)
@@ -501,5 +510,6 @@ __all__ = [
     "Rejection",
     "SchedulingTimeouts",
     "StepOutcome",
+    "cloud_queued",
     "run_offline",
 ]

@@ -24,7 +24,14 @@ from std_msgs.msg import Header
 
 from meshfg_msgs.msg import PredictionFailure, TetraMesh
 from meshfg_ros import blas
-from meshfg_ros.core.scheduler import EstimationScheduler, Prediction, Rejection, SchedulingTimeouts, StepOutcome
+from meshfg_ros.core.scheduler import (
+    EstimationScheduler,
+    Prediction,
+    Rejection,
+    SchedulingTimeouts,
+    StepOutcome,
+    cloud_queued,
+)
 from meshfg_ros.core.world_frame import CLOUD, POSE, FramedInput, Unplaceable
 from meshfg_ros.io.messages import MessageValidationError, header_msg, pose_from_msg, stamp_ns_from_msg
 from meshfg_ros.io.pointcloud import PointCloudError, cloud_record_from_msg
@@ -119,7 +126,7 @@ class EstimatorNode(Node):
             if item.kind == POSE:
                 return self._scheduler.add_tool_pose(item.stamp_ns, item.data)
             notes = self._scheduler.add_cloud(item.stamp_ns, item.data, item.arrival_s)
-        if not any(note.counter in ("clouds_rejected_stamp", "clouds_rejected_registration") for note in notes):
+        if cloud_queued(notes):
             self._requests.publish(header_msg(item.stamp_ns, self._frame, RCLPY_FACTORY))
         self.outputs.note(notes)
         self._solver.wake()
