@@ -36,6 +36,7 @@ from meshfg_ros.core.estimator import EstimatorConfig
 from meshfg_ros.core.mesh import TetMesh
 from meshfg_ros.core.patient_mesh import Box, FixedSelection, Plane, prepare_mesh
 from meshfg_ros.core.pose_history import pose_matrix
+from meshfg_ros.core.frames import TransformBuffer
 from meshfg_ros.core.world_frame import WorldFrameInputs
 from meshfg_ros.core.settings import setting, settings_of
 from meshfg_ros.core.simulator import SimulatorConfig
@@ -225,7 +226,7 @@ class SharedNodeConfig:
         "initial_mesh. A file that cannot be read stops the node at start-up.")
     clock_jump_threshold: float = setting(
         1.0, "A stamp this many seconds older than the newest one (a looped recording) restarts from the "
-        "initial mesh; smaller steps back are dropped.", range=(0.0, 1e6))
+        "initial mesh (a /tf transform: its frame's history); smaller steps back are dropped.", range=(0.0, 1e6))
     mesh_scale: float = setting(
         1.0, "Metres per unit of mesh_file: 0.001 for a mesh in millimetres.", range=(1e-9, 1e9))
     mesh_pose: tuple[float, ...] = setting(
@@ -488,7 +489,8 @@ def world_frame_inputs(params: Mapping[str, Any]) -> WorldFrameInputs:
     fallback = {}
     if "camera_frame" in params:
         fallback[params["camera_frame"]] = pose_matrix(np.asarray(params["camera_pose"], dtype=np.float64))
-    return WorldFrameInputs(params["world_frame"], fallback=fallback, wait_s=params["transform_timeout"])
+    return WorldFrameInputs(params["world_frame"], TransformBuffer(jump_back_s=params["clock_jump_threshold"]),
+                            fallback=fallback, wait_s=params["transform_timeout"])
 
 
 def parameters_help(nodes: Iterable[str]) -> str:

@@ -148,6 +148,24 @@ def test_stamp_older_than_the_buffer():
     assert "buffer 1 s" in str(error.value)
 
 
+def test_a_jump_back_restarts_the_history_and_a_late_sample_joins_it():
+    """A looped recording's /tf starts again 2 s earlier: the edge follows the new timeline at
+    once (a lookup at a new stamp interpolates the new samples, not the old ones); a sample late
+    by less than jump_back_s is inserted in order."""
+    buffer = TransformBuffer(jump_back_s=1.0)
+    for k in range(21):  # 2 s at 10 Hz, moving +x
+        buffer.set_transform(transform("world", "tool", EPOCH_NS + k * NS // 10, Rotation.identity(), (k, 0, 0)))
+    for k in range(3):  # the loop: the same stamps again, moving -x
+        buffer.set_transform(transform("world", "tool", EPOCH_NS + k * NS // 10, Rotation.identity(), (-k, 0, 0)))
+    np.testing.assert_allclose(buffer.lookup("world", "tool", EPOCH_NS + NS // 20)[:3, 3], [-0.5, 0, 0])
+    with pytest.raises(FrameLookupError) as error:  # the old timeline is gone
+        buffer.lookup("world", "tool", EPOCH_NS + NS)
+    assert error.value.reason == FrameLookupError.BEYOND_HORIZON
+    buffer.set_transform(transform("world", "tool", EPOCH_NS + NS // 20, Rotation.identity(), (7, 0, 0)))
+    np.testing.assert_allclose(buffer.lookup("world", "tool", EPOCH_NS + NS // 20)[:3, 3], [7, 0, 0])
+    np.testing.assert_allclose(buffer.lookup("world", "tool", EPOCH_NS + 2 * NS // 10)[:3, 3], [-2, 0, 0])
+
+
 def test_unknown_frame_and_separate_trees():
     buffer = robot_buffer()
     buffer.set_transform(transform("odom", "base_link", 0, Rotation.identity(), (0, 0, 0)), static=True)
@@ -190,7 +208,10 @@ def test_history_is_bounded_in_time_and_count():
         buffer.lookup("a", "b", 950 * NS // 100 - 1)  # 1 s would keep 101 samples; the cap keeps 50
     assert error.value.reason == FrameLookupError.TOO_OLD
     np.testing.assert_allclose(buffer.lookup("a", "b", 950 * NS // 100)[:3, 3], [950, 0, 0])
-    assert not buffer.set_transform(transform("a", "b", 0, Rotation.identity(), (0, 0, 0)))  # older than 1 s
+    late = TransformBuffer(buffer_duration_s=1.0, jump_back_s=2.0)
+    late.set_transform(transform("a", "b", 2 * NS, Rotation.identity(), (0, 0, 0)))
+    assert not late.set_transform(transform("a", "b", NS // 2, Rotation.identity(), (0, 0, 0)))  # 1.5 s late
+    np.testing.assert_allclose(late.lookup("a", "b", 2 * NS)[:3, 3], [0, 0, 0])
 
 
 def test_loops_and_bad_transforms_are_rejected():

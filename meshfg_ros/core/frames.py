@@ -9,7 +9,11 @@ child's pose in the parent. Between two stamps of an edge the translation is int
 linearly and the rotation by slerp, as tf2 does; static edges hold at every stamp.
 
 History is bounded: each edge keeps the last `buffer_duration_s` seconds (tf2's cache time) and
-at most `max_samples_per_edge` samples. A lookup that cannot be answered raises
+at most `max_samples_per_edge` samples. A sample older than its edge's newest by more than
+`jump_back_s` is a jump back in time (a looped recording, a reset clock): the edge's history
+restarts from it, as tf2_ros clears its buffer when the clock jumps back, instead of mixing two
+timelines or refusing the new one until its stamps catch up; later samples that are less late
+are inserted in stamp order. A lookup that cannot be answered raises
 FrameLookupError with a one-line message and a `reason`: an unknown frame, frames in two
 separate trees, a stamp older than an edge's history, or a stamp beyond its newest transform by
 more than `extrapolation_horizon_s` (0 by default, as tf2: never guess ahead).
@@ -33,6 +37,7 @@ from meshfg_ros.core.pose_history import InvalidPoseError, PoseHistory, as_pose,
 
 __all__ = [
     "DEFAULT_BUFFER_DURATION_S",
+    "DEFAULT_JUMP_BACK_S",
     "FrameLookupError",
     "InvalidTransformError",
     "StampedTransform",
@@ -41,6 +46,7 @@ __all__ = [
 ]
 
 DEFAULT_BUFFER_DURATION_S = 10.0  # tf2's default cache time
+DEFAULT_JUMP_BACK_S = 1.0  # the default clock_jump_threshold of the nodes' other streams
 # Per edge: 10 s of a 1 kHz /tf stream (a robot arm's joint states), 0.6 MB.
 DEFAULT_MAX_SAMPLES_PER_EDGE = 10_000
 _NS_PER_S = 1_000_000_000
@@ -110,12 +116,16 @@ class TransformBuffer:
 
     def __init__(self, buffer_duration_s: float = DEFAULT_BUFFER_DURATION_S,
                  extrapolation_horizon_s: float = 0.0,
-                 max_samples_per_edge: int = DEFAULT_MAX_SAMPLES_PER_EDGE):
+                 max_samples_per_edge: int = DEFAULT_MAX_SAMPLES_PER_EDGE,
+                 jump_back_s: float = DEFAULT_JUMP_BACK_S):
         if not buffer_duration_s > 0.0:
             raise ValueError(f"buffer_duration_s must be > 0, got {buffer_duration_s}")
         if not extrapolation_horizon_s >= 0.0:
             raise ValueError(f"extrapolation_horizon_s must be >= 0, got {extrapolation_horizon_s}")
+        if not jump_back_s >= 0.0:
+            raise ValueError(f"jump_back_s must be >= 0, got {jump_back_s}")
         self.buffer_duration_ns = round(buffer_duration_s * _NS_PER_S)
+        self.jump_back_ns = round(jump_back_s * _NS_PER_S)
         self.extrapolation_horizon_ns = round(extrapolation_horizon_s * _NS_PER_S)
         self.max_samples_per_edge = int(max_samples_per_edge)
         self._edges: dict[str, _Edge] = {}  # by child frame
@@ -130,10 +140,6 @@ class TransformBuffer:
         edge = self._edges.get(frame)
         return None if edge is None else edge.parent
 
-    def clear(self) -> None:
-        """Forget every transform (a jump back in time: tf2_ros clears its buffer too)."""
-        self._edges.clear()
-
     def set_transforms(self, transforms: Iterable[StampedTransform], static: bool = False) -> int:
         """set_transform for each of a /tf (or /tf_static, static=True) message's transforms;
         returns how many were kept."""
@@ -141,7 +147,8 @@ class TransformBuffer:
 
     def set_transform(self, transform: StampedTransform, static: bool = False) -> bool:
         """Add `transform` to the tree. Static: replaces the edge, valid at every stamp. Dynamic:
-        one more sample of the edge's history; False when it is older than the kept window.
+        one more sample of the edge's history (which restarts from it after a jump back in time,
+        module doc); False when it is older than the kept window.
 
         A child that gets a different parent (or changes between static and dynamic) starts a new
         edge: its earlier samples are dropped. Raises InvalidTransformError for bad values and
@@ -166,7 +173,9 @@ class TransformBuffer:
         if static:
             self._edges[child] = _Edge(parent, pose, None)
             return True
-        if edge is None or edge.parent != parent or edge.history is None:
+        jumped_back = (edge is not None and edge.history is not None and edge.history.newest_ns is not None
+                       and stamp < edge.history.newest_ns - self.jump_back_ns)
+        if edge is None or edge.parent != parent or edge.history is None or jumped_back:
             edge = _Edge(parent, None, PoseHistory(self.buffer_duration_ns, self.max_samples_per_edge))
             self._edges[child] = edge
         return edge.history.insert(stamp, pose)
