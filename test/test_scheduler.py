@@ -137,3 +137,20 @@ def test_the_offline_pipeline_requests_no_prediction_for_a_cloud_it_did_not_queu
         [estimated] = pipeline.cloud(step.stamp_ns, step.points)
         assert estimated.stamp_ns == step.stamp_ns and estimated.predicted is not None
     assert pipeline.finish() == []
+
+
+def test_after_a_request_without_a_tool_pose_the_tool_moves_from_where_the_simulator_left_it(scenario):
+    """The time step of a prediction runs from the simulator's last tool pose, not from a request
+    it could not predict (no tool pose within the horizon)."""
+    simulation = prediction(scenario)
+    steps = []
+    predict = simulation.simulator.predict
+    simulation.simulator.predict = lambda state, pose, dt: steps.append(dt) or predict(state, pose, dt)
+    simulation.add_tool_pose(FIRST_STAMP_NS, scenario.initial_tool_pose)
+    simulation.request(FIRST_STAMP_NS + S, now_s=0.0)
+    [unavailable] = simulation.poll(now_s=1.0)
+    assert unavailable.positions is None and steps == []
+    simulation.add_tool_pose(FIRST_STAMP_NS + 3 * S, scenario.steps[0].tool_pose)
+    simulation.request(FIRST_STAMP_NS + 2 * S, now_s=1.0)
+    [answer] = simulation.poll(now_s=1.0, flush=True)
+    assert answer.positions is not None and steps == [2.0]

@@ -122,7 +122,8 @@ class PredictionScheduler:
         self._poses.clear()
         self._requests.clear()
         self._start_ns: int | None = None       # stamp of the timeline's first tool pose
-        self._previous_ns: int | None = None    # stamp the simulator's tool pose belongs to
+        self._previous_ns: int | None = None    # stamp of the last request answered (or the start)
+        self._tool_ns: int | None = None        # stamp the simulator's tool pose belongs to
         self._previous_done_s = 0.0
         self._state = self.mesh.vertices.copy()
         self._state_ns: int | None = None       # stamp of the estimate self._state is
@@ -152,7 +153,7 @@ class PredictionScheduler:
             self.restarted = True
         self._poses.insert(stamp_ns, pose)
         if self._start_ns is None:
-            self._start_ns = self._previous_ns = stamp_ns
+            self._start_ns = self._previous_ns = self._tool_ns = stamp_ns
             self.simulator.reset(pose)
         return None
 
@@ -208,7 +209,8 @@ class PredictionScheduler:
             pose = self._poses.pose_at(stamp)
         except PoseUnavailable as error:
             return self._finish(Prediction(stamp, None, str(error)), now_s)
-        dt = (stamp - self._previous_ns) / NS_PER_S
+        dt = (stamp - self._tool_ns) / NS_PER_S  # the tool moves from where the simulator left it
+        self._tool_ns = stamp
         try:
             predicted = self.simulator.predict(self._state, pose, dt)
         except (ValueError, RuntimeError) as error:
