@@ -29,7 +29,7 @@ import yaml
 from rosbags.highlevel import AnyReader
 
 from meshfg_ros.core.estimator import StepResult
-from meshfg_ros.core.input_checks import SceneError, check_initial_mesh
+from meshfg_ros.core.input_checks import NS_PER_S, SceneError, check_initial_mesh
 from meshfg_ros.core.frames import StampedTransform
 from meshfg_ros.core.scheduler import OfflinePipeline, run_offline
 from meshfg_ros.core.world_frame import CLOUD, POSE, FramedInput
@@ -81,7 +81,6 @@ SIMULATOR_PARAMETERS = parameter_names(SimulatorConfig)
 # Input topics copied verbatim into a replay's output, so that it is self-contained (the
 # initial mesh is written as used: the recording's or the --mesh file's).
 COPIED_TOPICS = (SCENARIO_TOPIC, CAMERA_POSE_TOPIC, TOOL_POSE_TOPIC, POINTS_TOPIC)
-_NS_PER_S = 1e9
 _TF, _POSE, _CLOUD = 0, 1, 2  # event kinds: at equal log times transforms first, then poses, then clouds
 
 
@@ -246,7 +245,7 @@ def _world_frame_events(inputs: ReplayInputs, params: Mapping[str, Any]) -> Iter
     inputs that cannot be placed are dropped."""
     placer = world_frame_inputs(params)
     for log_ns, kind, record in inputs.events():
-        now_s = log_ns / _NS_PER_S
+        now_s = log_ns / NS_PER_S
         if kind == _TF:
             static, transforms = record
             placer.transforms.set_transforms(transforms, static=static)

@@ -154,3 +154,11 @@ def test_after_a_request_without_a_tool_pose_the_tool_moves_from_where_the_simul
     simulation.request(FIRST_STAMP_NS + 2 * S, now_s=1.0)
     [answer] = simulation.poll(now_s=1.0, flush=True)
     assert answer.positions is not None and steps == [2.0]
+
+
+def test_a_tool_pose_with_a_zero_quaternion_is_set_aside_with_the_reason(scenario):
+    simulation = prediction(scenario)
+    broken = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    rejection = simulation.add_tool_pose(FIRST_STAMP_NS, broken)
+    assert rejection.counter == "tool_poses_rejected_malformed" and "zero norm" in rejection.reason
+    estimation(scenario).add_tool_pose(FIRST_STAMP_NS, broken)  # the estimator's side ignores it, no error

@@ -33,7 +33,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from meshfg_ros.core.pose_history import InvalidPoseError, PoseHistory, as_pose, as_stamp, pose_matrix
+from meshfg_ros.core.input_checks import NS_PER_S
+from meshfg_ros.core.pose_history import (
+    InvalidPoseError,
+    OutsideHistory,
+    PoseHistory,
+    as_pose,
+    as_stamp,
+    pose_matrix,
+    seconds,
+)
 
 __all__ = [
     "DEFAULT_BUFFER_DURATION_S",
@@ -49,7 +58,6 @@ DEFAULT_BUFFER_DURATION_S = 10.0  # tf2's default cache time
 DEFAULT_JUMP_BACK_S = 1.0  # the default clock_jump_threshold of the nodes' other streams
 # Per edge: 10 s of a 1 kHz /tf stream (a robot arm's joint states), 0.6 MB.
 DEFAULT_MAX_SAMPLES_PER_EDGE = 10_000
-_NS_PER_S = 1_000_000_000
 
 
 class InvalidTransformError(InvalidPoseError):
@@ -58,13 +66,12 @@ class InvalidTransformError(InvalidPoseError):
 
 
 class FrameLookupError(LookupError):
-    """A lookup the buffer cannot answer; `reason` is one of the REASONS, the message says why."""
+    """A lookup the buffer cannot answer; `reason` says which case, the message why."""
 
     UNKNOWN_FRAME = "unknown_frame"
     NO_PATH = "no_path"
     TOO_OLD = "too_old"
     BEYOND_HORIZON = "beyond_horizon"
-    REASONS = (UNKNOWN_FRAME, NO_PATH, TOO_OLD, BEYOND_HORIZON)
 
     def __init__(self, reason: str, message: str):
         self.reason = reason
@@ -94,10 +101,6 @@ def transform_points(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ matrix[:3, :3].T + matrix[:3, 3]
 
 
-def _seconds(stamp_ns: int) -> str:
-    return f"{stamp_ns / _NS_PER_S:.6f} s"
-
-
 def _milliseconds(duration_ns: int) -> str:
     return f"{duration_ns / 1e6:.3g} ms"
 
@@ -124,9 +127,9 @@ class TransformBuffer:
             raise ValueError(f"extrapolation_horizon_s must be >= 0, got {extrapolation_horizon_s}")
         if not jump_back_s >= 0.0:
             raise ValueError(f"jump_back_s must be >= 0, got {jump_back_s}")
-        self.buffer_duration_ns = round(buffer_duration_s * _NS_PER_S)
-        self.jump_back_ns = round(jump_back_s * _NS_PER_S)
-        self.extrapolation_horizon_ns = round(extrapolation_horizon_s * _NS_PER_S)
+        self.buffer_duration_ns = round(buffer_duration_s * NS_PER_S)
+        self.jump_back_ns = round(jump_back_s * NS_PER_S)
+        self.extrapolation_horizon_ns = round(extrapolation_horizon_s * NS_PER_S)
         self.max_samples_per_edge = int(max_samples_per_edge)
         self._edges: dict[str, _Edge] = {}  # by child frame
 
@@ -224,20 +227,20 @@ class TransformBuffer:
         if edge.static_matrix is not None:
             return edge.static_matrix
         history, name = edge.history, f"{edge.parent!r} -> {child!r}"
-        if stamp_ns < history.oldest_ns:
-            raise FrameLookupError(
-                FrameLookupError.TOO_OLD,
-                f"stamp {_seconds(stamp_ns)} is older than the buffered transforms {name} "
-                f"({_seconds(history.oldest_ns)} to {_seconds(history.newest_ns)}; "
-                f"buffer {self.buffer_duration_ns / _NS_PER_S:g} s)")
-        ahead = stamp_ns - history.newest_ns
-        if ahead > self.extrapolation_horizon_ns:
+        try:
+            return pose_matrix(history.pose_at(stamp_ns, self.extrapolation_horizon_ns))
+        except OutsideHistory as outside:
+            if outside.reason == OutsideHistory.TOO_OLD:
+                raise FrameLookupError(
+                    FrameLookupError.TOO_OLD,
+                    f"stamp {seconds(stamp_ns)} is older than the buffered transforms {name} "
+                    f"({seconds(history.oldest_ns)} to {seconds(history.newest_ns)}; "
+                    f"buffer {self.buffer_duration_ns / NS_PER_S:g} s)") from None
             raise FrameLookupError(
                 FrameLookupError.BEYOND_HORIZON,
-                f"stamp {_seconds(stamp_ns)} is {_milliseconds(ahead)} beyond the newest transform {name} "
-                f"({_seconds(history.newest_ns)}), more than the extrapolation horizon "
-                f"{_milliseconds(self.extrapolation_horizon_ns)}")
-        return pose_matrix(history.interpolate(stamp_ns)[0])
+                f"stamp {seconds(stamp_ns)} is {_milliseconds(outside.ahead_ns)} beyond the newest transform {name} "
+                f"({seconds(history.newest_ns)}), more than the extrapolation horizon "
+                f"{_milliseconds(self.extrapolation_horizon_ns)}") from None
 
 
 def _rigid_inverse(matrix: np.ndarray) -> np.ndarray:

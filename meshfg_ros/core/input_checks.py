@@ -57,10 +57,12 @@ __all__ = [
     "flat_elements",
     "innovation_sample",
     "innovation_spread",
+    "NS_PER_S",
     "rejections_in",
     "stamp_order",
 ]
 
+NS_PER_S = 1_000_000_000
 MAX_STAMP_NS = 2**63  # stamps are int64 nanoseconds (builtin_interfaces/Time: int32 s, uint32 ns, >= 0 here)
 INVALID, NEWER, STALE, JUMP_BACK = "invalid", "newer", "stale", "jump back"
 

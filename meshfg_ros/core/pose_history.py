@@ -16,9 +16,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from meshfg_ros.core.input_checks import StampError, check_stamp
+from meshfg_ros.core.input_checks import NS_PER_S, StampError, check_stamp
 
-__all__ = ["InvalidPoseError", "PoseHistory", "as_pose", "as_stamp", "pose_matrix"]
+__all__ = ["InvalidPoseError", "OutsideHistory", "PoseHistory", "as_pose", "as_stamp", "pose_matrix", "seconds"]
 
 _INITIAL_CAPACITY = 64
 
@@ -26,6 +26,24 @@ _INITIAL_CAPACITY = 64
 class InvalidPoseError(ValueError):
     """A pose that is not 7 finite values with a non-zero quaternion, or a stamp that is not an
     integer number of nanoseconds in [0, 2**63)."""
+
+
+class OutsideHistory(LookupError):
+    """A stamp `PoseHistory.pose_at` cannot answer: `reason` EMPTY, TOO_OLD (before the oldest
+    sample) or BEYOND_HORIZON (`ahead_ns` past the newest, more than the caller's horizon)."""
+
+    EMPTY = "empty"
+    TOO_OLD = "too_old"
+    BEYOND_HORIZON = "beyond_horizon"
+
+    def __init__(self, reason: str, ahead_ns: int = 0):
+        self.reason, self.ahead_ns = reason, ahead_ns
+        super().__init__(reason)
+
+
+def seconds(stamp_ns: int) -> str:
+    """A stamp for messages: '12.345678 s'."""
+    return f"{stamp_ns / NS_PER_S:.6f} s"
 
 
 def as_pose(pose) -> np.ndarray:
@@ -152,6 +170,18 @@ class PoseHistory:
         cutoff = int(self._stamps[self._end - 1]) - self.duration_ns
         self._start += int(np.searchsorted(self.stamps_ns, cutoff))
         self._start = max(self._start, self._end - self.max_samples)
+
+    def pose_at(self, stamp_ns: int, horizon_ns: int) -> np.ndarray:
+        """(7,) pose at `stamp_ns`: interpolated between the oldest and the newest sample, continued
+        at most `horizon_ns` past the newest; otherwise OutsideHistory with the reason."""
+        if not len(self):
+            raise OutsideHistory(OutsideHistory.EMPTY)
+        if stamp_ns < self.oldest_ns:
+            raise OutsideHistory(OutsideHistory.TOO_OLD)
+        ahead = stamp_ns - self.newest_ns
+        if ahead > horizon_ns:
+            raise OutsideHistory(OutsideHistory.BEYOND_HORIZON, ahead)
+        return self.interpolate(stamp_ns)[0]
 
     def interpolate(self, stamps_ns) -> np.ndarray:
         """Poses (m, 7) at stamps (m,) (ns), from the two neighbouring samples of each stamp.

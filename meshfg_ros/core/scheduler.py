@@ -39,15 +39,15 @@ from meshfg_ros.core.estimator import (
     SlidingWindowEstimator,
     StepResult,
 )
-from meshfg_ros.core.input_checks import INVALID, JUMP_BACK, STALE, check_initial_mesh, stamp_order
+from meshfg_ros.core.input_checks import INVALID, JUMP_BACK, NS_PER_S, STALE, check_initial_mesh, stamp_order
 from meshfg_ros.core.mesh import TetMesh
 from meshfg_ros.core.patient_mesh import PatientMeshError, check_against_clouds
+from meshfg_ros.core.pose_history import InvalidPoseError, as_pose
 from meshfg_ros.core.simulator import SimulatorConfig, ElasticSimulator
 from meshfg_ros.core.weights import MIN_POINTS
 from meshfg_ros.core.tool_poses import DEFAULT_EXTRAPOLATION_HORIZON_S as TOOL_POSE_HORIZON_S
 from meshfg_ros.core.tool_poses import PoseUnavailable, ToolPoseBuffer
 
-NS_PER_S = 1_000_000_000
 # Bounds on what a scheduler holds while it waits: beyond them the oldest entry goes.
 MAX_QUEUED_CLOUDS = 100
 MAX_STORED_ANSWERS = 100
@@ -138,9 +138,10 @@ class PredictionScheduler:
         """Take a tool pose (7,) (world frame); a Rejection when it is set aside. A stamp that
         jumps back restarts the timeline (`restarted` is then True until the next call)."""
         self.restarted = False
-        pose = np.asarray(pose, dtype=np.float64)
-        if pose.shape != (7,) or not np.isfinite(pose).all():
-            return Rejection("tool_poses_rejected_malformed", f"tool pose at {stamp_ns} ns is not 7 finite numbers")
+        try:
+            pose = as_pose(pose)
+        except InvalidPoseError as error:
+            return Rejection("tool_poses_rejected_malformed", f"tool pose at {stamp_ns} ns: {error}")
         order = stamp_order(self._poses.newest_ns, stamp_ns, self._jump_ns)
         if order in (STALE, INVALID):
             reason = "is negative" if order == INVALID else f"is not newer than {self._poses.newest_ns} ns"
@@ -334,8 +335,9 @@ class EstimationScheduler:
 
     def add_tool_pose(self, stamp_ns: int, pose: np.ndarray) -> None:
         """Buffer a tool pose (world frame) for the tool gate; a jump back empties the buffer."""
-        pose = np.asarray(pose, dtype=np.float64)
-        if pose.shape != (7,) or not np.isfinite(pose).all():
+        try:
+            pose = as_pose(pose)
+        except InvalidPoseError:
             return  # the simulation side counts it
         order = stamp_order(self._poses.newest_ns, stamp_ns, self._jump_ns)
         if order in (STALE, INVALID):

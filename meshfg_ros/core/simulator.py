@@ -43,6 +43,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from meshfg_ros.core.fem import ElasticModel
 from meshfg_ros.core.sparse_cholesky import SparseCholesky
 from meshfg_ros.core.mesh import TetMesh, name_elements, signed_volumes
+from meshfg_ros.core.pose_history import InvalidPoseError, as_pose
 from meshfg_ros.core.settings import Setting, check_settings, setting
 
 __all__ = [
@@ -275,16 +276,11 @@ def _deformation_em(state: np.ndarray, corners: np.ndarray, rest_inverse: np.nda
 
 
 def _as_pose(tool_pose) -> np.ndarray:
-    """Validated [x y z qx qy qz qw] with a unit quaternion."""
-    pose = np.asarray(tool_pose, dtype=np.float64)
-    if pose.shape != (7,) or not np.all(np.isfinite(pose)):
-        raise SimulatorInputError(
-            f"tool_pose must be 7 finite numbers [x y z qx qy qz qw], got shape {pose.shape}"
-        )
-    norm = np.linalg.norm(pose[3:])
-    if norm < 1e-9:
-        raise SimulatorInputError("tool_pose quaternion has zero norm")
-    return np.concatenate([pose[:3], pose[3:] / norm])
+    """Validated [x y z qx qy qz qw] with a unit quaternion (pose_history.as_pose), or SimulatorInputError."""
+    try:
+        return as_pose(tool_pose)
+    except InvalidPoseError as error:
+        raise SimulatorInputError(f"tool_pose: {error}") from None
 
 
 # ------------------------------------------------------------------------ shared set-up

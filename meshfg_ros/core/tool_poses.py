@@ -14,8 +14,8 @@ accelerates at 0.5 m/s^2 drifts 0.5 a t^2 = 0.6 mm from a constant-velocity gues
 A pose that cannot be given raises PoseUnavailable with a `reason` (EMPTY, BEFORE_FIRST,
 BEYOND_HORIZON) that the buffer also counts in `unavailable`, for diagnostics. Memory is bounded:
 `buffer_duration_s` of history and at most `max_samples`. A stamp older than the kept window is
-dropped (insert returns False, counted in `dropped_too_old`); after a jump back of the clock
-(a looped recording, a restarted robot) the caller calls `clear()`.
+dropped (insert returns False); after a jump back of the clock (a looped recording, a restarted
+robot) the caller calls `clear()`.
 """
 
 from __future__ import annotations
@@ -24,7 +24,8 @@ from collections import Counter
 
 import numpy as np
 
-from meshfg_ros.core.pose_history import PoseHistory
+from meshfg_ros.core.input_checks import NS_PER_S
+from meshfg_ros.core.pose_history import OutsideHistory, PoseHistory, seconds
 
 __all__ = ["DEFAULT_EXTRAPOLATION_HORIZON_S", "PoseUnavailable", "ToolPoseBuffer"]
 
@@ -32,16 +33,14 @@ DEFAULT_EXTRAPOLATION_HORIZON_S = 0.05
 # Clouds may arrive seconds after the poses of their stamp (a slow segmentation): keep 5 s.
 DEFAULT_BUFFER_DURATION_S = 5.0
 DEFAULT_MAX_SAMPLES = 10_000  # 5 s at 2 kHz
-_NS_PER_S = 1_000_000_000
 
 
 class PoseUnavailable(LookupError):
-    """No tool pose at the asked stamp; `reason` is one of REASONS, the message says why."""
+    """No tool pose at the asked stamp; `reason` says which case, the message why."""
 
     EMPTY = "empty"
     BEFORE_FIRST = "before_first"
     BEYOND_HORIZON = "beyond_horizon"
-    REASONS = (EMPTY, BEFORE_FIRST, BEYOND_HORIZON)
 
     def __init__(self, reason: str, message: str):
         self.reason = reason
@@ -57,8 +56,8 @@ class ToolPoseBuffer:
             raise ValueError(f"extrapolation_horizon_s must be >= 0, got {extrapolation_horizon_s}")
         if not buffer_duration_s > 0.0:
             raise ValueError(f"buffer_duration_s must be > 0, got {buffer_duration_s}")
-        self.extrapolation_horizon_ns = round(extrapolation_horizon_s * _NS_PER_S)
-        self._history = PoseHistory(round(buffer_duration_s * _NS_PER_S), max_samples)
+        self.extrapolation_horizon_ns = round(extrapolation_horizon_s * NS_PER_S)
+        self._history = PoseHistory(round(buffer_duration_s * NS_PER_S), max_samples)
         self.unavailable: Counter[str] = Counter()  # PoseUnavailable.reason -> how often
 
     def __len__(self) -> int:
@@ -78,26 +77,20 @@ class ToolPoseBuffer:
 
     def pose_at(self, stamp_ns: int) -> np.ndarray:
         """(7,) float64 pose at `stamp_ns`, or PoseUnavailable (counted in `unavailable`)."""
-        stamp = int(stamp_ns)
-        history = self._history
-        if not len(history):
-            self._unavailable(PoseUnavailable.EMPTY, f"no tool pose received yet (asked at {_seconds(stamp)})")
-        if stamp < history.oldest_ns:
-            self._unavailable(PoseUnavailable.BEFORE_FIRST,
-                              f"tool pose asked at {_seconds(stamp)}, before the first buffered one "
-                              f"({_seconds(history.oldest_ns)})")
-        ahead = stamp - history.newest_ns
-        if ahead > self.extrapolation_horizon_ns:
-            self._unavailable(PoseUnavailable.BEYOND_HORIZON,
-                              f"tool pose asked at {_seconds(stamp)}, {ahead / 1e6:.3g} ms beyond the newest "
-                              f"({_seconds(history.newest_ns)}): more than the extrapolation horizon "
-                              f"{self.extrapolation_horizon_ns / 1e6:.3g} ms")
-        return history.interpolate(stamp)[0]
-
-    def _unavailable(self, reason: str, message: str) -> None:
+        stamp, history = int(stamp_ns), self._history
+        try:
+            return history.pose_at(stamp, self.extrapolation_horizon_ns)
+        except OutsideHistory as outside:
+            if outside.reason == OutsideHistory.EMPTY:
+                reason, message = PoseUnavailable.EMPTY, f"no tool pose received yet (asked at {seconds(stamp)})"
+            elif outside.reason == OutsideHistory.TOO_OLD:
+                reason, message = PoseUnavailable.BEFORE_FIRST, (
+                    f"tool pose asked at {seconds(stamp)}, before the first buffered one "
+                    f"({seconds(history.oldest_ns)})")
+            else:
+                reason, message = PoseUnavailable.BEYOND_HORIZON, (
+                    f"tool pose asked at {seconds(stamp)}, {outside.ahead_ns / 1e6:.3g} ms beyond the newest "
+                    f"({seconds(history.newest_ns)}): more than the extrapolation horizon "
+                    f"{self.extrapolation_horizon_ns / 1e6:.3g} ms")
         self.unavailable[reason] += 1
         raise PoseUnavailable(reason, message)
-
-
-def _seconds(stamp_ns: int) -> str:
-    return f"{stamp_ns / _NS_PER_S:.6f} s"

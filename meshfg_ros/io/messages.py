@@ -20,6 +20,8 @@ import numpy as np
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
+from meshfg_ros.core.input_checks import NS_PER_S
+
 TETRA_MESH = "meshfg_msgs/msg/TetraMesh"
 ESTIMATOR_STATUS = "meshfg_msgs/msg/EstimatorStatus"
 POINT_CLOUD2 = "sensor_msgs/msg/PointCloud2"
@@ -58,7 +60,6 @@ string message
 
 _UINT32_MAX = 2**32 - 1
 _INT32_MIN, _INT32_MAX = -(2**31), 2**31 - 1
-_NS_PER_S = 1_000_000_000
 
 
 class MessageValidationError(ValueError):
@@ -154,13 +155,13 @@ def _default_factory(factory: MessageFactory | None) -> MessageFactory:
 
 def stamp_ns_from_msg(time_msg: Any) -> int:
     """Integer nanoseconds of a builtin_interfaces/Time message."""
-    return int(time_msg.sec) * _NS_PER_S + int(time_msg.nanosec)
+    return int(time_msg.sec) * NS_PER_S + int(time_msg.nanosec)
 
 
 def header_msg(stamp_ns: int, frame_id: str, factory: MessageFactory | None = None) -> Any:
     """A std_msgs/Header for `stamp_ns` (nanoseconds; negative allowed within int32 seconds)."""
     factory = _default_factory(factory)
-    sec, nanosec = divmod(int(stamp_ns), _NS_PER_S)
+    sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
     if not _INT32_MIN <= sec <= _INT32_MAX:
         raise MessageValidationError(f"stamp {stamp_ns} ns does not fit builtin_interfaces/Time (int32 seconds)")
     stamp = factory.make("builtin_interfaces/msg/Time", sec=sec, nanosec=nanosec)
