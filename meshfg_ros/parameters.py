@@ -37,7 +37,9 @@ from meshfg_ros.core.mesh import TetMesh
 from meshfg_ros.core.patient_mesh import Box, FixedSelection, Plane, prepare_mesh
 from meshfg_ros.core.pose_history import pose_matrix
 from meshfg_ros.core.frames import TransformBuffer
-from meshfg_ros.core.world_frame import WorldFrameInputs
+from meshfg_ros.core.input_checks import DEFAULT_CLOCK_JUMP_THRESHOLD_S
+from meshfg_ros.core.scheduler import SchedulingTimeouts
+from meshfg_ros.core.world_frame import DEFAULT_TRANSFORM_WAIT_S, WorldFrameInputs
 from meshfg_ros.core.settings import setting, settings_of
 from meshfg_ros.core.simulator import SimulatorConfig
 
@@ -183,10 +185,10 @@ class SimulationNodeConfig:
     grasped_vertices: tuple[int, ...] = setting(
         (), "Mesh vertex indices held by the tool (grasp mode only).", type="integer_array", range=(0, None))
     estimate_timeout: float = setting(
-        2.0, "Seconds (wall time) a prediction request waits for the estimate of the previous request before it "
+        SchedulingTimeouts.estimate_timeout, "Seconds (wall time) a prediction request waits for the estimate of the previous request before it "
         "is predicted from the newest state the node has.", range=(0.0, 60.0))
     tool_pose_timeout: float = setting(
-        0.2, "Seconds (wall time) a prediction request waits for a tool pose stamped at or after its cloud; "
+        SchedulingTimeouts.tool_pose_timeout, "Seconds (wall time) a prediction request waits for a tool pose stamped at or after its cloud; "
         "then the pose is extrapolated within tool_pose_horizon, or the step runs without a prediction.",
         range=(0.0, 60.0))
 
@@ -206,7 +208,7 @@ class EstimatorNodeConfig:
         "where every cloud counts; false: the sensor-data profile of live cameras (best effort, depth 5), which "
         "drops clouds the transport loses when the CPU is saturated.")
     prediction_timeout: float = setting(
-        0.5, "Seconds (wall time) a cloud waits for its simulator prediction before the step runs degraded "
+        SchedulingTimeouts.prediction_timeout, "Seconds (wall time) a cloud waits for its simulator prediction before the step runs degraded "
         "without it.", range=(0.0, 60.0))
     marker_std_max: float = setting(
         0.0, "Posterior std (metres) drawn in full red in the markers; 0: the largest std of each estimate.",
@@ -225,7 +227,7 @@ class SharedNodeConfig:
         "", "Initial mesh file (.msh, .vtu, .vtk) used when no initial_mesh message arrives; empty: wait for "
         "initial_mesh. A file that cannot be read stops the node at start-up.")
     clock_jump_threshold: float = setting(
-        1.0, "A stamp this many seconds older than the newest one (a looped recording) restarts from the "
+        DEFAULT_CLOCK_JUMP_THRESHOLD_S, "A stamp this many seconds older than the newest one (a looped recording) restarts from the "
         "initial mesh (a /tf transform: its frame's history); smaller steps back are dropped.", range=(0.0, 1e6))
     mesh_scale: float = setting(
         1.0, "Metres per unit of mesh_file: 0.001 for a mesh in millimetres.", range=(1e-9, 1e9))
@@ -246,7 +248,7 @@ class SharedNodeConfig:
         "", "Hold fixed the vertices of mesh_file's named groups (gmsh physical groups, cell or point sets), "
         "comma-separated; empty: none.")
     transform_timeout: float = setting(
-        0.5, "Seconds (wall time) a cloud or tool pose in another frame than world_frame waits for /tf to place "
+        DEFAULT_TRANSFORM_WAIT_S, "Seconds (wall time) a cloud or tool pose in another frame than world_frame waits for /tf to place "
         "it at its stamp; then it is rejected with the reason.", range=(0.0, 60.0))
     tool_pose_horizon: float = setting(
         0.05, "Seconds past the newest tool pose within which the pose at a cloud's stamp is extrapolated "

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from meshfg_ros.core.input_checks import NS_PER_S
+from meshfg_ros.core.input_checks import DEFAULT_CLOCK_JUMP_THRESHOLD_S, NS_PER_S
 from meshfg_ros.core.pose_history import (
     InvalidPoseError,
     OutsideHistory,
@@ -55,7 +55,7 @@ __all__ = [
 ]
 
 DEFAULT_BUFFER_DURATION_S = 10.0  # tf2's default cache time
-DEFAULT_JUMP_BACK_S = 1.0  # the default clock_jump_threshold of the nodes' other streams
+DEFAULT_JUMP_BACK_S = DEFAULT_CLOCK_JUMP_THRESHOLD_S  # as the nodes' other streams
 # Per edge: 10 s of a 1 kHz /tf stream (a robot arm's joint states), 0.6 MB.
 DEFAULT_MAX_SAMPLES_PER_EDGE = 10_000
 

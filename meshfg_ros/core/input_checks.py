@@ -57,12 +57,16 @@ __all__ = [
     "flat_elements",
     "innovation_sample",
     "innovation_spread",
+    "DEFAULT_CLOCK_JUMP_THRESHOLD_S",
     "NS_PER_S",
     "rejections_in",
     "stamp_order",
 ]
 
 NS_PER_S = 1_000_000_000
+# A stamp this much older than its stream's newest is a jump back (a looped recording), not a
+# late message: the default of every stream's rule (the clock_jump_threshold parameter).
+DEFAULT_CLOCK_JUMP_THRESHOLD_S = 1.0
 MAX_STAMP_NS = 2**63  # stamps are int64 nanoseconds (builtin_interfaces/Time: int32 s, uint32 ns, >= 0 here)
 INVALID, NEWER, STALE, JUMP_BACK = "invalid", "newer", "stale", "jump back"
 

@@ -40,6 +40,8 @@ from meshfg_ros.core.mesh import (
     _is_gmsh_v1,  # the legacy format meshio cannot read, which load_mesh reads itself
     load_mesh,
 )
+from meshfg_ros.core.frames import transform_points
+from meshfg_ros.core.input_checks import flat_elements
 from meshfg_ros.core.pose_history import InvalidPoseError, as_pose, pose_matrix
 
 __all__ = [
@@ -200,7 +202,7 @@ def place_mesh(mesh: TetMesh, scale: float = 1.0, pose: Sequence[float] = (0, 0,
         matrix = pose_matrix(as_pose(pose))
     except InvalidPoseError as error:
         raise PatientMeshError(f"mesh_pose: {error}") from None
-    return mesh.with_vertices(scale * mesh.vertices @ matrix[:3, :3].T + matrix[:3, 3])
+    return mesh.with_vertices(transform_points(matrix, scale * mesh.vertices))
 
 
 def select_fixed(mesh: TetMesh, groups: Mapping[str, np.ndarray], selection: FixedSelection) -> np.ndarray:
@@ -231,8 +233,7 @@ def check_simulatable(mesh: TetMesh) -> None:
             "(fixed vertex indices, a plane, a box or a group of the mesh file)")
     if mesh.fixed_vertices.size == mesh.vertex_count:
         raise PatientMeshError(f"all {mesh.vertex_count} vertices are fixed: nothing is left to deform")
-    volumes = mesh.signed_volumes()
-    bad = np.count_nonzero(~(volumes > 0.0))
+    bad = flat_elements(mesh.vertices, mesh.tetrahedra)
     if bad:
         raise PatientMeshError(f"{bad} of {mesh.tetrahedron_count} tetrahedra are flat or inverted")
     part_count, part = _connected_parts(mesh)

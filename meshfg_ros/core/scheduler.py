@@ -28,7 +28,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -39,7 +39,15 @@ from meshfg_ros.core.estimator import (
     SlidingWindowEstimator,
     StepResult,
 )
-from meshfg_ros.core.input_checks import INVALID, JUMP_BACK, NS_PER_S, STALE, check_initial_mesh, stamp_order
+from meshfg_ros.core.input_checks import (
+    DEFAULT_CLOCK_JUMP_THRESHOLD_S,
+    INVALID,
+    JUMP_BACK,
+    NS_PER_S,
+    STALE,
+    check_initial_mesh,
+    stamp_order,
+)
 from meshfg_ros.core.mesh import TetMesh
 from meshfg_ros.core.patient_mesh import PatientMeshError, check_against_clouds
 from meshfg_ros.core.pose_history import InvalidPoseError, as_pose
@@ -105,7 +113,7 @@ class PredictionScheduler:
     """The simulator's timeline over tool poses and prediction requests (module docstring)."""
 
     def __init__(self, mesh: TetMesh, model: SimulatorConfig, grasped_vertices: np.ndarray | None = None, *,
-                 clock_jump_threshold: float = 1.0, tool_pose_extrapolation: float = TOOL_POSE_HORIZON_S,
+                 clock_jump_threshold: float = DEFAULT_CLOCK_JUMP_THRESHOLD_S, tool_pose_extrapolation: float = TOOL_POSE_HORIZON_S,
                  timeouts: SchedulingTimeouts = SchedulingTimeouts()) -> None:
         self.mesh = mesh
         self.scene = check_initial_mesh(mesh.vertices)
@@ -265,7 +273,7 @@ class EstimationScheduler:
     lock, `run` outside it (it only touches the estimator).
     """
 
-    def __init__(self, mesh: TetMesh, config: EstimatorConfig, *, clock_jump_threshold: float = 1.0,
+    def __init__(self, mesh: TetMesh, config: EstimatorConfig, *, clock_jump_threshold: float = DEFAULT_CLOCK_JUMP_THRESHOLD_S,
                  tool_pose_extrapolation: float = TOOL_POSE_HORIZON_S, timeouts: SchedulingTimeouts = SchedulingTimeouts()) -> None:
         self.mesh = mesh
         self.config = config
@@ -282,11 +290,11 @@ class EstimationScheduler:
         self._solver_free_s = 0.0
         self._registered = False  # whether a cloud has confirmed the mesh's size and place
 
-    def reconfigure(self, config: EstimatorConfig, changes: dict) -> None:
+    def reconfigure(self, changes: dict) -> None:
         """Apply changed dynamic settings (field name -> value) from the next update on, also after
-        a restart (`config`: the whole configuration with them)."""
-        self.config = config
+        a restart; EstimatorConfigError, and nothing changed, for a value the estimator refuses."""
         self.estimator.reconfigure(**changes)
+        self.config = replace(self.config, **changes)
 
     @property
     def queued(self) -> int:
@@ -438,7 +446,7 @@ class OfflinePipeline:
     """
 
     def __init__(self, mesh: TetMesh, model: SimulatorConfig, config: EstimatorConfig,
-                 grasped_vertices: np.ndarray | None = None, *, clock_jump_threshold: float = 1.0,
+                 grasped_vertices: np.ndarray | None = None, *, clock_jump_threshold: float = DEFAULT_CLOCK_JUMP_THRESHOLD_S,
                  tool_pose_extrapolation: float = TOOL_POSE_HORIZON_S,
                  alter_prediction: Callable[[int, np.ndarray], np.ndarray] | None = None) -> None:
         shared = dict(clock_jump_threshold=clock_jump_threshold, tool_pose_extrapolation=tool_pose_extrapolation)

@@ -51,11 +51,15 @@ def pose_in(matrix: np.ndarray, pose: np.ndarray) -> np.ndarray:
     return np.concatenate([matrix[:3, :3] @ pose[:3] + matrix[:3, 3], rotation.as_quat()])
 
 
+# Wall time an input waits for /tf to place it (the transform_timeout parameter's default).
+DEFAULT_TRANSFORM_WAIT_S = 0.5
+
+
 class WorldFrameInputs:
     """The FIFO of inputs waiting for their frame (module docstring)."""
 
     def __init__(self, world_frame: str, transforms: TransformBuffer | None = None,
-                 fallback: dict[str, np.ndarray] | None = None, wait_s: float = 0.5) -> None:
+                 fallback: dict[str, np.ndarray] | None = None, wait_s: float = DEFAULT_TRANSFORM_WAIT_S) -> None:
         self.world_frame = world_frame
         self.transforms = transforms if transforms is not None else TransformBuffer()
         self.fallback = dict(fallback or {})  # frame -> 4x4 (its points into world_frame)

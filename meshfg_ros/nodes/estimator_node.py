@@ -79,7 +79,7 @@ class EstimatorNode(Node):
         """Dynamic parameters set while running: the estimator uses them from its next update on."""
         with self._lock:
             if self._scheduler is not None:
-                self._scheduler.reconfigure(estimator_config(self.params), estimator_changes(changes))
+                self._scheduler.reconfigure(estimator_changes(changes))
 
     def _queued(self) -> int | None:
         with self._lock:
