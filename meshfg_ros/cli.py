@@ -412,7 +412,7 @@ def run_mesh_info(args: argparse.Namespace) -> int:
 
 
 def run_mesh_export(args: argparse.Namespace) -> int:
-    from meshfg_ros.core.mesh import TetMesh, save_mesh
+    from meshfg_ros.core.mesh import save_mesh
     from meshfg_ros.io.messages import MeshState
     from meshfg_ros.io.recording import RecordingReader, TopicNotFoundError
     from meshfg_ros.topics import INITIAL_MESH_TOPIC
@@ -422,7 +422,7 @@ def run_mesh_export(args: argparse.Namespace) -> int:
         state = next(iter(reader.records(INITIAL_MESH_TOPIC, MeshState)), None)
     if state is None:
         raise TopicNotFoundError(f"{INITIAL_MESH_TOPIC} in {args.bag} holds no mesh")
-    mesh = TetMesh(state.positions, state.tetrahedra, state.fixed_vertices, name=args.out.stem)
+    mesh = state.tet_mesh(name=args.out.stem)
     save_mesh(mesh, args.out)
     print(f"wrote {args.out}: {mesh.vertex_count} vertices, {mesh.tetrahedron_count} tetrahedra, "
           f"{mesh.fixed_vertices.size} fixed, in frame {state.frame_id!r}")

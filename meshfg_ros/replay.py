@@ -163,13 +163,13 @@ def load_inputs(path: str | Path, mesh_path: str | Path | None = None,
     poses = tuple(pose for _, pose in logged_poses)
     clouds = tuple(cloud for _, cloud in logged_clouds)
     if mesh_path is None:
-        mesh = TetMesh(initial_state.positions, initial_state.tetrahedra, initial_state.fixed_vertices)
+        mesh = initial_state.tet_mesh()
         if mesh.flipped_count:
             raise ReplayError(f"{INITIAL_MESH_TOPIC}: {mesh.flipped_count} tetrahedra have negative volume")
     else:
         placement = load_parameters({**scenario_parameters(metadata, camera_pose), **(overrides or {})})
         mesh = placed_mesh_file({**placement, "mesh_file": str(mesh_path)})
-        initial_state = MeshState(poses[0].stamp_ns if poses else 0, clouds[0].frame_id if clouds else "world", 0,
+        initial_state = MeshState(poses[0].stamp_ns if poses else 0, placement["world_frame"], 0,
                                   mesh.vertices, mesh.tetrahedra, mesh.surface_triangles, mesh.fixed_vertices)
     try:
         check_initial_mesh(mesh.vertices)

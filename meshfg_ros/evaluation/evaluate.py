@@ -26,6 +26,7 @@ as fixed faces. "Unobserved external" vertices are free surface vertices on no o
 
 from __future__ import annotations
 
+import functools
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,9 +34,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-import igl
-
 from meshfg_ros.core.closest_point import ClosestPointIndex
+from meshfg_ros.core.mesh import TetMesh
 from meshfg_ros.evaluation.metrics import (
     correction_alignment,
     observable_triangles,
@@ -93,6 +93,11 @@ class EvaluationInputs:
     clouds: dict[int, np.ndarray]
     camera_center: np.ndarray | None
     observed_faces: np.ndarray | None
+
+    @functools.cached_property
+    def truth_tet_mesh(self) -> TetMesh:
+        """The truth's topology as a core mesh (its vertex normals), made once."""
+        return self.truth_mesh.tet_mesh()
 
     @property
     def same_topology(self) -> bool:
@@ -282,8 +287,7 @@ def evaluate_step(inputs: EvaluationInputs, stamp: int, samples: int = DEFAULT_S
 def _correction(inputs: EvaluationInputs, stamp: int, external: np.ndarray, unobserved: np.ndarray) -> dict:
     """The factor graph's correction of the step's prediction against the truth's, per CORRECTION_SETS."""
     prediction, estimate, truth = inputs.predictions[stamp], inputs.estimates["factor_graph"][stamp], inputs.truth[stamp]
-    normals = igl.per_vertex_normals(prediction, inputs.truth_mesh.surface_triangles)
-    normals = np.where(np.isfinite(normals), normals, 0.0)  # vertices off the surface: not used
+    normals = inputs.truth_tet_mesh.vertex_normals(prediction)
     observed = np.setdiff1d(external, unobserved)
     return {  # NaN for an empty set (correction_alignment)
         "observed_normal": correction_alignment(prediction, estimate, truth, observed, normals),

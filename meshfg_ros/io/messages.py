@@ -21,6 +21,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
 from meshfg_ros.core.input_checks import NS_PER_S
+from meshfg_ros.core.mesh import TetMesh
 
 TETRA_MESH = "meshfg_msgs/msg/TetraMesh"
 ESTIMATOR_STATUS = "meshfg_msgs/msg/EstimatorStatus"
@@ -247,6 +248,10 @@ class MeshState:
         )
         set_field("fixed_vertices", _as_index_array("fixed_vertices", self.fixed_vertices, None, num_vertices))
         set_field("position_std", _frozen(position_std))
+
+    def tet_mesh(self, name: str = "") -> TetMesh:
+        """The core mesh (vertices, tetrahedra, fixed vertices) of this state."""
+        return TetMesh(self.positions, self.tetrahedra, self.fixed_vertices, name=name)
 
 
 @dataclass(frozen=True)

@@ -3,8 +3,7 @@ core arrays (their parameters: nodes/ros_parameters.py).
 
 `rclpy_message(data)` turns what RecordingReader yields (a meshfg record or any decoded
 rosbags message) into the rclpy message to publish; `MeshMessages` builds the TetraMesh
-messages of one mesh topology with its index arrays converted once; `tet_mesh_from_state`
-rebuilds the core mesh of a received initial mesh.
+messages of one mesh topology with its index arrays converted once.
 """
 
 from __future__ import annotations
@@ -74,11 +73,6 @@ def _field_value(value: Any, kind: str) -> Any:
     if isinstance(value, list):
         return [_field_value(item, kind) for item in value]
     return value
-
-
-def tet_mesh_from_state(state: MeshState) -> TetMesh:
-    """The core TetMesh (vertices, tetrahedra, fixed vertices) of a received mesh state."""
-    return TetMesh(state.positions, state.tetrahedra, state.fixed_vertices)
 
 
 class MeshMessages:
@@ -157,7 +151,7 @@ class InitialMeshSource:
         if self._state is not None and same_mesh(self._state, state):
             return  # the latched message again (e.g. a reconnection)
         try:
-            self._install(state, tet_mesh_from_state(state))
+            self._install(state, state.tet_mesh())
         except ValueError as error:
             logger.error(f"initial_mesh rejected: {error}")
 
