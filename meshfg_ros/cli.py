@@ -437,20 +437,11 @@ def _params_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run_params(args: argparse.Namespace) -> int:
     """The parameters the replay of the recording uses, as a ROS 2 parameters file (`/**`)."""
-    from meshfg_ros.io.messages import PoseRecord
-    from meshfg_ros.io.recording import RecordingReader
-    from meshfg_ros.io.scenario_metadata import read_metadata
-    from meshfg_ros.parameters import load_parameters, parameters_yaml
-    from meshfg_ros.replay import scenario_parameters
-    from meshfg_ros.topics import CAMERA_POSE_TOPIC
+    from meshfg_ros.parameters import parameters_yaml
+    from meshfg_ros.replay import recording_parameters
 
     _refuse_existing(args.out)
-    with RecordingReader(args.bag) as reader:
-        metadata = read_metadata(reader)
-        camera_pose = None
-        if CAMERA_POSE_TOPIC in reader.topics:
-            camera_pose = next(iter(reader.records(CAMERA_POSE_TOPIC, PoseRecord)), None)
-    parameters = load_parameters(scenario_parameters(metadata, camera_pose))
+    parameters = recording_parameters(args.bag)
     text = (f"# meshfg params {args.bag.name}: the parameters of its replay, for the live nodes "
             f"(--ros-args --params-file this file).\n" + parameters_yaml(parameters))
     if args.out is None:

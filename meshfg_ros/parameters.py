@@ -269,8 +269,9 @@ class PlaybackConfig:
 
     rate: float = setting(1.0, "Playback speed: 1 is the recorded rate, 2 twice as fast.", range=(1e-3, 1e3))
     wait_for_subscribers: float = setting(
-        10.0, "At most this many seconds to wait, before playing, until the played topics that nodes subscribe "
-        "to are matched (topics no node subscribes to are not waited for).", range=(0.0, 3600.0))
+        10.0, "At most this many seconds to wait, before playing, until the played topics are matched: those "
+        "named with --topics, or, when the whole recording plays, those some node subscribes to.",
+        range=(0.0, 3600.0))
     clock_frequency: float = setting(100.0, "Rate of /clock messages between recorded ones (Hz).", range=(1.0, 1e4))
     delay: float = setting(
         0.5, "Seconds between finding the subscribers and playing: best-effort readers drop messages of a "

@@ -149,10 +149,7 @@ def load_inputs(path: str | Path, mesh_path: str | Path | None = None,
     with RecordingReader(path) as reader:
         reader.require(TOOL_POSE_TOPIC, PoseRecord)
         reader.require(POINTS_TOPIC, PointCloudRecord)
-        metadata = read_metadata(reader)
-        camera_pose = None
-        if CAMERA_POSE_TOPIC in reader.topics:
-            camera_pose = next(iter(reader.records(CAMERA_POSE_TOPIC, PoseRecord)))
+        metadata, camera_pose = _metadata_and_camera(reader)
         if mesh_path is None:
             initial_state = next(iter(reader.records(INITIAL_MESH_TOPIC, MeshState)))
         logged_poses = [(m.log_time_ns, m.data) for m in reader.messages([TOOL_POSE_TOPIC])]
@@ -178,6 +175,20 @@ def load_inputs(path: str | Path, mesh_path: str | Path | None = None,
     return ReplayInputs(mesh, initial_state, poses, clouds, metadata, camera_pose,
                         tuple(log_ns for log_ns, _ in logged_poses), tuple(log_ns for log_ns, _ in logged_clouds),
                         transforms)
+
+
+def _metadata_and_camera(reader: RecordingReader) -> tuple[ScenarioMetadata | None, PoseRecord | None]:
+    """A recording's scenario metadata and camera pose, each None when it has none."""
+    camera_pose = None
+    if CAMERA_POSE_TOPIC in reader.topics:
+        camera_pose = next(iter(reader.records(CAMERA_POSE_TOPIC, PoseRecord)), None)
+    return read_metadata(reader), camera_pose
+
+
+def recording_parameters(path: str | Path) -> dict[str, Any]:
+    """The parameter defaults the recording at `path` implies (scenario_parameters), unvalidated."""
+    with RecordingReader(path) as reader:
+        return scenario_parameters(*_metadata_and_camera(reader))
 
 
 def scenario_parameters(metadata: ScenarioMetadata | None, camera_pose: PoseRecord | None = None) -> dict[str, Any]:

@@ -10,11 +10,26 @@ VENV="$ROOT/.venv"
 STAMP="$VENV/.meshfg-setup-stamp"
 cd "$ROOT"
 
-inputs_hash() {
-  cat requirements.txt requirements-core.txt scripts/setup_env.sh setup.py setup.cfg package.xml \
-      meshfg_msgs/CMakeLists.txt meshfg_msgs/package.xml meshfg_msgs/msg/*.msg \
-      tf2_msgs/CMakeLists.txt tf2_msgs/package.xml tf2_msgs/msg/*.msg tf2_msgs/srv/*.srv tf2_msgs/action/*.action \
-      | sha256sum | cut -d' ' -f1
+# A sourced ROS install (AMENT_PREFIX_PATH outside this venv) that has tf2_msgs provides it:
+# building a second copy would shadow the one its tf2 libraries were built against.
+ros_provides() {
+  local prefix prefixes
+  IFS=':' read -ra prefixes <<<"${AMENT_PREFIX_PATH:-}"
+  for prefix in "${prefixes[@]}"; do
+    if [[ -n "$prefix" && "$(realpath -m "$prefix")" != "$(realpath -m "$VENV")" \
+          && -f "$prefix/share/$1/package.xml" ]]; then
+      echo "$prefix"; return 0
+    fi
+  done
+  return 1
+}
+
+inputs_hash() {  # whether a sourced ROS gives tf2_msgs is an input too
+  { ros_provides tf2_msgs || true
+    cat requirements.txt requirements-core.txt scripts/setup_env.sh setup.py setup.cfg package.xml \
+        meshfg_msgs/CMakeLists.txt meshfg_msgs/package.xml meshfg_msgs/msg/*.msg \
+        tf2_msgs/CMakeLists.txt tf2_msgs/package.xml tf2_msgs/msg/*.msg tf2_msgs/srv/*.srv tf2_msgs/action/*.action
+  } | sha256sum | cut -d' ' -f1
 }
 
 if [[ -f "$STAMP" && "$(cat "$STAMP")" == "$(inputs_hash)" && -x "$VENV/bin/meshfg" ]]; then
@@ -55,20 +70,6 @@ NUMPY_INCLUDE="$("$PY" -c 'import numpy; print(numpy.get_include())')"
   -e "s#/opt/python/cp311-cp311/lib/python3.11/site-packages/numpy/_core/include#${NUMPY_INCLUDE}#g" \
   -e "s#/opt/python/cp311-cp311/include/python3.11#${PY_INCLUDE}#g"
 
-# A sourced ROS install (AMENT_PREFIX_PATH outside this venv) that has tf2_msgs provides it:
-# building a second copy would shadow the one its tf2 libraries were built against.
-ros_provides() {
-  local prefix prefixes
-  IFS=':' read -ra prefixes <<<"${AMENT_PREFIX_PATH:-}"
-  for prefix in "${prefixes[@]}"; do
-    if [[ -n "$prefix" && "$(realpath -m "$prefix")" != "$(realpath -m "$VENV")" \
-          && -f "$prefix/share/$1/package.xml" ]]; then
-      echo "$prefix"; return 0
-    fi
-  done
-  return 1
-}
-
 # Generate the interface package in folder $1 with rosidl and install it into the venv.
 install_interfaces() {
   local package="$1" build="$ROOT/build/venv/$1"
@@ -86,6 +87,12 @@ install_interfaces() {
 install_interfaces meshfg_msgs
 if TF2_PREFIX="$(ros_provides tf2_msgs)"; then
   log "tf2_msgs comes from the ROS install at $TF2_PREFIX: not building the project's copy"
+  TF2_MANIFEST="$ROOT/build/venv/tf2_msgs/install_manifest.txt"
+  if [[ -f "$TF2_MANIFEST" ]]; then  # a copy an earlier set-up installed would shadow the ROS one
+    log "removing the project's tf2_msgs from the venv"
+    xargs -r -d '\n' rm -f <"$TF2_MANIFEST"
+    rm -f "$TF2_MANIFEST"
+  fi
 else
   install_interfaces tf2_msgs
 fi

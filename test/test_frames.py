@@ -214,6 +214,17 @@ def test_history_is_bounded_in_time_and_count():
     np.testing.assert_allclose(late.lookup("a", "b", 2 * NS)[:3, 3], [0, 0, 0])
 
 
+def test_a_message_with_a_bad_transform_keeps_the_good_ones():
+    buffer = TransformBuffer()
+    refused = buffer.set_transforms([
+        StampedTransform("world", "x", EPOCH_NS, np.zeros(3), np.zeros(4)),
+        transform("world", "y", EPOCH_NS, Rotation.identity(), (1, 2, 3)),
+    ])
+    assert len(refused) == 1 and "'world' -> 'x'" in refused[0] and "zero norm" in refused[0]
+    np.testing.assert_allclose(buffer.lookup("world", "y", EPOCH_NS)[:3, 3], [1, 2, 3])
+    assert "x" not in buffer.frames
+
+
 def test_loops_and_bad_transforms_are_rejected():
     buffer = robot_buffer()
     with pytest.raises(InvalidTransformError, match="would close a loop"):

@@ -45,9 +45,12 @@ NAMESPACE = "/meshfg"
 READY_FILE = "recorder.ready"
 # Wall-clock timeouts of the pipeline run, far above any step's time even on a loaded 2-core
 # machine: a timeout would run a step degraded, and the run would no longer match the replay.
+# (tool_pose_timeout stays: a recording's last cloud may have no tool pose after it, and the
+# offline replay extrapolates then at once, as the live node does after that wait.)
 # Reliable points: with the sensor-data profile, a saturated machine lost clouds in the
 # transport (2 to 4 of 15 clouds at 4x playback, in full-suite runs).
-LIVE_OVERRIDES = {"prediction_timeout": 10.0, "estimate_timeout": 10.0, "points_reliable": True}
+LIVE_OVERRIDES = {"prediction_timeout": 10.0, "estimate_timeout": 10.0, "transform_timeout": 10.0,
+                  "points_reliable": True}
 _SHUTDOWN_TIMEOUT_S = 20.0
 _POLL_S = 0.05
 

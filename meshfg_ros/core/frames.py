@@ -143,10 +143,17 @@ class TransformBuffer:
         edge = self._edges.get(frame)
         return None if edge is None else edge.parent
 
-    def set_transforms(self, transforms: Iterable[StampedTransform], static: bool = False) -> int:
-        """set_transform for each of a /tf (or /tf_static, static=True) message's transforms;
-        returns how many were kept."""
-        return sum(self.set_transform(transform, static) for transform in transforms)
+    def set_transforms(self, transforms: Iterable[StampedTransform], static: bool = False) -> list[str]:
+        """set_transform for each of a /tf (or /tf_static, static=True) message's transforms; a
+        transform that cannot enter the tree is skipped, the others kept. Returns why each skipped
+        one was (one line each)."""
+        refused = []
+        for transform in transforms:
+            try:
+                self.set_transform(transform, static)
+            except InvalidTransformError as error:
+                refused.append(str(error))
+        return refused
 
     def set_transform(self, transform: StampedTransform, static: bool = False) -> bool:
         """Add `transform` to the tree. Static: replaces the edge, valid at every stamp. Dynamic:

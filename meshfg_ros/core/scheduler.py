@@ -273,8 +273,10 @@ class EstimationScheduler:
     lock, `run` outside it (it only touches the estimator).
     """
 
-    def __init__(self, mesh: TetMesh, config: EstimatorConfig, *, clock_jump_threshold: float = DEFAULT_CLOCK_JUMP_THRESHOLD_S,
-                 tool_pose_extrapolation: float = TOOL_POSE_HORIZON_S, timeouts: SchedulingTimeouts = SchedulingTimeouts()) -> None:
+    def __init__(self, mesh: TetMesh, config: EstimatorConfig, *,
+                 clock_jump_threshold: float = DEFAULT_CLOCK_JUMP_THRESHOLD_S,
+                 tool_pose_extrapolation: float = TOOL_POSE_HORIZON_S,
+                 timeouts: SchedulingTimeouts = SchedulingTimeouts()) -> None:
         self.mesh = mesh
         self.config = config
         self.timeouts = timeouts

@@ -35,7 +35,7 @@ from meshfg_ros.io.recording import RecordingError, RecordingReader
 from meshfg_ros.nodes.ros_conversions import RCLPY_FACTORY, rclpy_message
 from meshfg_ros.nodes.ros_parameters import declare_parameters
 from meshfg_ros.nodes.runtime import ArgumentError, init_without_signal_handlers, program_arguments
-from meshfg_ros.parameters import ParameterError, parameters_help
+from meshfg_ros.parameters import ParameterError, load_parameters, parameters_help
 
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 STREAM_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
@@ -150,8 +150,13 @@ def main(args=None) -> int:
     except ArgumentError as error:
         print(f"bag_player: {error}", file=sys.stderr)
         return 1
-    if options.rate is not None and options.rate <= 0.0:
-        print("bag_player: --rate must be > 0", file=sys.stderr)
+    overrides = {name: value for name, value in (("rate", options.rate),
+                                                 ("wait_for_subscribers", options.wait_for_subscribers))
+                 if value is not None}
+    try:
+        load_parameters(overrides, "bag_player")  # the options' values, checked as the parameters are
+    except ParameterError as error:
+        print(f"bag_player: {error}", file=sys.stderr)
         return 2
     try:
         reader = RecordingReader(options.bag)

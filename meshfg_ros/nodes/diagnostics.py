@@ -23,8 +23,14 @@ from meshfg_ros.io.messages import RclpyMessageFactory, header_msg
 _RCLPY = RclpyMessageFactory()
 
 
+class _Counters:
+    def count(self, counter: str) -> None:
+        """One more of `counter` (a field name)."""
+        setattr(self, counter, getattr(self, counter) + 1)
+
+
 @dataclass
-class EstimatorCounters:
+class EstimatorCounters(_Counters):
     """What the estimator node has seen since it started (the values of its diagnostics)."""
 
     clouds_received: int = 0
@@ -59,10 +65,6 @@ class EstimatorCounters:
     last_latency_ms: float = float("nan")     # arrival of the cloud to its estimate published
     median_latency_ms: float = float("nan")
 
-    def count(self, counter: str) -> None:
-        """One more of `counter` (a field name)."""
-        setattr(self, counter, getattr(self, counter) + 1)
-
     def record_step(self, result, wait_ms: float, publish_ms: float, latencies_ms: list[float]) -> None:
         """Count a published step (a core.estimator.StepResult) and its stage times."""
         self.steps += 1
@@ -89,7 +91,7 @@ class EstimatorCounters:
 
 
 @dataclass
-class SimulatorCounters:
+class SimulatorCounters(_Counters):
     """What the simulation node has seen since it started (the values of its diagnostics)."""
 
     tool_poses_received: int = 0

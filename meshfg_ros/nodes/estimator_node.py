@@ -44,7 +44,7 @@ from meshfg_ros.nodes.runtime import SolverThread, run_nodes
 from meshfg_ros.parameters import estimator_changes, estimator_config, world_frame_inputs
 
 RELIABLE_POINTS_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-_STALL_MARGIN_S = 1.0  # beyond the prediction wait and two time budgets: no estimate means stuck
+_STALL_MARGIN_S = 1.0  # beyond the transform and prediction waits and two time budgets: no estimate means stuck
 
 
 class EstimatorNode(Node):
@@ -56,7 +56,7 @@ class EstimatorNode(Node):
         self._frame = self.params["world_frame"]
         self._lock = threading.Lock()  # guards the scheduler
         self._scheduler: EstimationScheduler | None = None
-        stalled_after_s = (self.params["prediction_timeout"] + _STALL_MARGIN_S
+        stalled_after_s = (self.params["transform_timeout"] + self.params["prediction_timeout"] + _STALL_MARGIN_S
                            + 2.0 * (estimator_config(self.params).update_time_budget or 0.0))
         self.outputs = EstimatorOutputs(self, self._frame, stalled_after_s, lambda: self.params["marker_std_max"],
                                         self._queued)

@@ -71,7 +71,8 @@ class EstimatorOutputs:
         for rejection in rejections:
             with self._lock:
                 self.counters.count(rejection.counter)
-                self._last_rejection = rejection.reason
+                if rejection.counter.startswith("clouds_"):  # what the "every cloud is rejected" error names
+                    self._last_rejection = rejection.reason
             self._node.get_logger().warning(rejection.reason, throttle_duration_sec=1.0)
         if rejections:
             self._wake.trigger()

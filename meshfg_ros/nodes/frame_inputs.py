@@ -1,7 +1,7 @@
 """The nodes' listener of /tf and /tf_static: inputs in any frame, handed on in world_frame.
 
 A thin shell over core.world_frame.WorldFrameInputs (the replay uses the same placement through
-replay.world_frame_inputs): it subscribes tf2_msgs/TFMessage on /tf and /tf_static (static
+parameters.world_frame_inputs): it subscribes tf2_msgs/TFMessage on /tf and /tf_static (static
 transforms latched, as tf2_ros publishes them), feeds the transform buffer, and hands each
 placed input to `on_placed(FramedInput)` and each one that cannot be placed to
 `on_set_aside(Unplaceable)`, in arrival order, from the executor thread.
@@ -49,12 +49,9 @@ class FrameInputs:
             self._hand_on(*self.placer.release(time.monotonic()))
 
     def _on_transforms(self, msg: TFMessage, static: bool) -> None:
-        for transform in tf_message_to_transforms(msg):  # one per frame of the message
-            try:
-                self.placer.transforms.set_transform(transform, static=static)
-            except ValueError as error:
-                self._logger.warning(f"{TF_STATIC_TOPIC if static else TF_TOPIC}: transform rejected: {error}",
-                                     throttle_duration_sec=1.0)
+        for reason in self.placer.transforms.set_transforms(tf_message_to_transforms(msg), static=static):
+            self._logger.warning(f"{TF_STATIC_TOPIC if static else TF_TOPIC}: transform rejected: {reason}",
+                                 throttle_duration_sec=1.0)
         self.release()
 
     def _hand_on(self, placed: list[FramedInput], set_aside: list[Unplaceable]) -> None:

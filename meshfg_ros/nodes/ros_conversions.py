@@ -15,9 +15,8 @@ import numpy as np
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
-from meshfg_ros.core.input_checks import check_initial_mesh
 from meshfg_ros.core.mesh import TetMesh
-from meshfg_ros.parameters import load_mesh_file
+from meshfg_ros.parameters import ParameterError, load_mesh_file
 from meshfg_ros.io.messages import (
     TETRA_MESH,
     MeshState,
@@ -79,7 +78,6 @@ class MeshMessages:
     """TetraMesh messages of one topology: the index arrays are converted once, not per message."""
 
     def __init__(self, state: MeshState) -> None:
-        self.vertex_count = state.positions.shape[0]
         self._tetrahedra = RCLPY_FACTORY.sequence(state.tetrahedra, np.uint32)
         self._surface_triangles = RCLPY_FACTORY.sequence(state.surface_triangles, np.uint32)
         self._fixed_vertices = RCLPY_FACTORY.sequence(state.fixed_vertices, np.uint32)
@@ -125,18 +123,16 @@ class InitialMeshSource:
         node.create_subscription(RCLPY_FACTORY.message_class(TETRA_MESH), "initial_mesh", self._on_message,
                                  LATCHED_QOS)
 
-    @property
-    def state(self) -> MeshState | None:
-        """The mesh in use (None: none yet)."""
-        return self._state
-
     def load_file(self, params: dict) -> None:
         """Load mesh_file as the parameters place it ("" : none, wait for the topic)."""
         if not params["mesh_file"]:
             return
         mesh = load_mesh_file(params)  # ParameterError: the node stops at start-up
-        self._install(MeshState(0, self._frame, 0, mesh.vertices, mesh.tetrahedra, mesh.surface_triangles,
-                                mesh.fixed_vertices), mesh)
+        try:
+            self._install(MeshState(0, self._frame, 0, mesh.vertices, mesh.tetrahedra, mesh.surface_triangles,
+                                    mesh.fixed_vertices), mesh)
+        except ValueError as error:  # a mesh the schedulers refuse (far from the world origin, ...)
+            raise ParameterError(f"mesh_file {params['mesh_file']}: {error}") from None
 
     def _on_message(self, msg: Any) -> None:
         logger = self._node.get_logger()
@@ -156,7 +152,6 @@ class InitialMeshSource:
             logger.error(f"initial_mesh rejected: {error}")
 
     def _install(self, state: MeshState, mesh: TetMesh) -> None:
-        check_initial_mesh(mesh.vertices)
         restart = self._state is not None
         self._on_mesh(mesh, state)
         self._state = state

@@ -57,6 +57,7 @@ class SimulationNode(Node):
         self._messages: MeshMessages | None = None
         self._last_failure: str | None = None
         self._rejected_at_last_report = 0
+        self._ignored_at_last_report = 0
         self._publisher = self.create_publisher(TetraMesh, "predicted_mesh", PREDICTION_QOS)
         self._failure_publisher = self.create_publisher(PredictionFailure, "prediction_failed", PREDICTION_QOS)
         self._diagnostics_publisher = self.create_publisher(DiagnosticArray, "/diagnostics", STREAM_QOS)
@@ -82,12 +83,15 @@ class SimulationNode(Node):
     def _on_estimate(self, msg: TetraMesh) -> None:
         if self._scheduler is None:
             return
+        stamp_ns = stamp_ns_from_msg(msg.header.stamp)
         positions = positions_from_msg(msg, self._scheduler.mesh.vertex_count)
-        rejection = self._scheduler.add_estimate(stamp_ns_from_msg(msg.header.stamp), positions)
-        if positions is None or rejection is not None:
-            self.counters.estimates_ignored += 1
-            self.get_logger().warning("estimated_mesh ignored: wrong vertex count, non-finite positions or positions "
-                                      "far outside the scene", throttle_duration_sec=1.0)
+        # A malformed estimate is no estimate: the next request does not wait for it.
+        rejection = self._scheduler.add_estimate(stamp_ns, positions)
+        if positions is None:
+            self._count("estimates_ignored", f"estimated_mesh at {stamp_ns} ns ignored: wrong vertex count or "
+                        "non-finite positions")
+        elif rejection is not None:
+            self._count(rejection.counter, rejection.reason)
         self._answer()
 
     def _on_tool_pose(self, msg: PoseStamped) -> None:
@@ -141,22 +145,28 @@ class SimulationNode(Node):
                                                            answer.positions))
 
     def _count(self, counter: str, reason: str) -> None:
-        setattr(self.counters, counter, getattr(self.counters, counter) + 1)
+        self.counters.count(counter)
         self.get_logger().warning(reason, throttle_duration_sec=1.0)
 
     def _publish_diagnostics(self) -> None:
-        """The counters, with OK / WARN: waiting for the mesh, rejected tool poses, a failed prediction."""
+        """The counters, with OK / WARN: waiting for the mesh, rejected tool poses, ignored estimates, a
+        failed prediction."""
         counters = self.counters
         if self._scheduler is not None:
             for reason, count in self._scheduler.tool_pose_unavailable.items():
                 setattr(counters, f"tool_pose_unavailable_{reason}", count)
         new_rejections = counters.tool_poses_rejected - self._rejected_at_last_report
+        new_ignored = counters.estimates_ignored - self._ignored_at_last_report
         self._rejected_at_last_report = counters.tool_poses_rejected
+        self._ignored_at_last_report = counters.estimates_ignored
         level, message = DiagnosticStatus.OK, "predicting"
         if self._scheduler is None:
             level, message = DiagnosticStatus.WARN, "waiting for initial_mesh"
         elif new_rejections:
             level, message = DiagnosticStatus.WARN, f"{new_rejections} tool poses rejected since the last report"
+        elif new_ignored:
+            level, message = DiagnosticStatus.WARN, (f"{new_ignored} estimates ignored since the last report: "
+                                                     "predicting from the newest usable state")
         elif self._last_failure is not None:
             level, message = DiagnosticStatus.WARN, f"the last prediction failed: {self._last_failure}"
         self._diagnostics_publisher.publish(diagnostic_array(
