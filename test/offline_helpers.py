@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from meshfg_ros.synthetic.meshing import cube_mesh
 from meshfg_ros.evaluation.metrics import sample_surface
@@ -25,6 +26,18 @@ POINTS_PER_STEP = 300
 MESHFG = str(Path(sys.executable).with_name("meshfg"))
 REPOSITORY = Path(__file__).resolve().parents[1]
 BAGS = REPOSITORY / "bags"
+# A robot's frames for the /tf tests: the endoscope's optical frame on its arm (ecm_link), the
+# tool arm's base in the world (each [x, y, z, qx, qy, qz, qw], static).
+OPTICAL = np.array([0.0, 0.0, 0.05, *Rotation.from_euler("xyz", [-90.0, 0.0, -90.0], degrees=True).as_quat()])
+BASE = np.array([0.3, -0.2, 0.1, *Rotation.from_euler("xyz", [0.0, 0.0, 40.0], degrees=True).as_quat()])
+
+
+def robot_statics():
+    """The /tf_static transforms of OPTICAL (ecm_link -> endoscope_optical_frame) and BASE (world -> psm1_base)."""
+    from meshfg_ros.core.frames import StampedTransform
+
+    return [StampedTransform("ecm_link", "endoscope_optical_frame", 0, OPTICAL[:3], OPTICAL[3:]),
+            StampedTransform("world", "psm1_base", 0, BASE[:3], BASE[3:])]
 
 
 def mkl_installed() -> bool:

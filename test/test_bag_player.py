@@ -112,16 +112,17 @@ def wait_with(recording, monkeypatch, subscribed: dict[str, float], wait_s: floa
 
 
 def test_the_player_waits_only_for_topics_that_nodes_subscribe_to(context, recording, monkeypatch):
-    settle = bag_player._SETTLE_S
+    settle, poll = bag_player._SETTLE_S, 2 * bag_player._POLL_S  # times on the virtual clock, to a poll
     # one topic subscribed from the start, nobody on the others: it plays once the graph settled
-    assert settle <= wait_with(recording, monkeypatch, {"/rec/points": 0.0}) < settle + 0.1
+    assert wait_with(recording, monkeypatch, {"/rec/points": 0.0}) == pytest.approx(settle, abs=poll)
     # a second node appears later: the player waits for it, then settles again
     late = wait_with(recording, monkeypatch, {"/rec/points": 0.0, "/rec/tool_pose": 0.3})
-    assert 0.3 + settle <= late < 0.3 + settle + 0.1
-    # nobody at all: it waits the whole wait_for_subscribers
-    assert wait_with(recording, monkeypatch, {}, wait_s=5.0) >= 5.0
+    assert late == pytest.approx(0.3 + settle, abs=poll)
+    # nobody at all: it waits the whole wait_for_subscribers, and no longer
+    assert wait_with(recording, monkeypatch, {}, wait_s=5.0) == pytest.approx(5.0, abs=poll)
     # topics the user names are all waited for, subscribed or not yet
     named = ["/rec/points", "/rec/tool_pose"]
-    assert wait_with(recording, monkeypatch, {"/rec/points": 0.0}, wait_s=5.0, topics=named) >= 5.0
-    assert 2.0 + settle <= wait_with(recording, monkeypatch, {"/rec/points": 0.0, "/rec/tool_pose": 2.0},
-                                     topics=named) < 2.0 + settle + 0.1
+    assert wait_with(recording, monkeypatch, {"/rec/points": 0.0}, wait_s=5.0, topics=named) == pytest.approx(
+        5.0, abs=poll)
+    assert wait_with(recording, monkeypatch, {"/rec/points": 0.0, "/rec/tool_pose": 2.0},
+                     topics=named) == pytest.approx(2.0 + settle, abs=poll)

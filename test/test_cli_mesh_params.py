@@ -4,6 +4,7 @@ from pathlib import Path
 import meshio
 import numpy as np
 import pytest
+from offline_helpers import BAGS
 
 from meshfg_ros import cli
 from meshfg_ros.core.mesh import load_mesh
@@ -12,11 +13,10 @@ from meshfg_ros.io.recording import RecordingReader
 from meshfg_ros.parameters import read_parameters_file
 from meshfg_ros.replay import load_inputs, replay_parameters, scenario_parameters
 from meshfg_ros.synthetic.meshing import gmsh_model, structured_box_mesh
+from meshfg_ros.synthetic.scenarios import LIVER_PATH_CANDIDATES
 from meshfg_ros.topics import INITIAL_MESH_TOPIC
 
-REPOSITORY = Path(__file__).resolve().parents[1]
-SHARED_LIVER = REPOSITORY.parent / "shared" / "data" / "liver.msh"
-LIVER_FILE = SHARED_LIVER if SHARED_LIVER.is_file() else REPOSITORY / "data" / "liver.msh"
+LIVER_FILE = next(path for path in LIVER_PATH_CANDIDATES if path.is_file())
 RECORDINGS = ("cao-push", "liver-push")
 
 
@@ -38,10 +38,12 @@ def test_mesh_info_of_the_sofa_liver(capsys):
     code, out, _ = run(capsys, "mesh", "info", str(LIVER_FILE))
     assert code == 0
     rows = info_rows(out)
-    assert rows["vertices"] == "181"
-    assert rows["tetrahedra"].startswith("596 (surface: ")
-    assert rows["bounding box"].startswith("6.483 x 4.939 x 4.421 (file units)")
-    assert rows["units (guess)"].startswith("cm: the largest side is 0.0648 m at mesh_scale 0.01")
+    liver = load_mesh(LIVER_FILE)
+    sides = np.ptp(liver.vertices, axis=0)
+    assert rows["vertices"] == str(liver.vertex_count) == "181"  # the SOFA liver
+    assert rows["tetrahedra"].startswith(f"{liver.tetrahedron_count} (surface: ")
+    assert rows["bounding box"].startswith(" x ".join(f"{side:.3f}" for side in sides) + " (file units)")
+    assert rows["units (guess)"].startswith(f"cm: the largest side is {0.01 * sides.max():.3g} m at mesh_scale 0.01")
     assert rows["fixed vertices"] == "0 (point data 'fixed')"
     assert rows["groups"] == "none"
 
@@ -82,9 +84,9 @@ def test_mesh_info_errors_are_one_line(capsys, tmp_path):
 @pytest.mark.parametrize("suffix", [".msh", ".vtu"])
 def test_mesh_export_round_trips_through_load_mesh(capsys, tmp_path, recording, suffix):
     out = tmp_path / f"initial{suffix}"
-    code, stdout, _ = run(capsys, "mesh", "export", str(REPOSITORY / "bags" / recording), "--out", str(out))
+    code, stdout, _ = run(capsys, "mesh", "export", str(BAGS / recording), "--out", str(out))
     assert code == 0 and stdout.startswith(f"wrote {out}: ")
-    with RecordingReader(REPOSITORY / "bags" / recording) as reader:
+    with RecordingReader(BAGS / recording) as reader:
         state = next(iter(reader.records(INITIAL_MESH_TOPIC, MeshState)))
     loaded = load_mesh(out)
     assert loaded.fixed_vertices.size > 0
@@ -97,7 +99,7 @@ def test_mesh_export_round_trips_through_load_mesh(capsys, tmp_path, recording, 
 def test_mesh_export_never_overwrites(capsys, tmp_path):
     out = tmp_path / "initial.vtu"
     out.write_text("keep me")
-    code, _, err = run(capsys, "mesh", "export", str(REPOSITORY / "bags" / "cao-push"), "--out", str(out))
+    code, _, err = run(capsys, "mesh", "export", str(BAGS / "cao-push"), "--out", str(out))
     assert code == 1 and "File exists (never overwritten)" in err
     assert out.read_text() == "keep me"
 
@@ -105,12 +107,12 @@ def test_mesh_export_never_overwrites(capsys, tmp_path):
 @pytest.mark.parametrize("recording", RECORDINGS)
 def test_params_file_gives_the_replay_parameters(capsys, tmp_path, recording):
     out = tmp_path / "params.yaml"
-    code, stdout, _ = run(capsys, "params", str(REPOSITORY / "bags" / recording), "--out", str(out))
+    code, stdout, _ = run(capsys, "params", str(BAGS / recording), "--out", str(out))
     assert (code, stdout) == (0, f"wrote {out}\n")
-    expected = replay_parameters(load_inputs(REPOSITORY / "bags" / recording))
+    expected = replay_parameters(load_inputs(BAGS / recording))
     assert read_parameters_file(out) == expected
     assert read_parameters_file(out, node_name="estimator_node") == expected
-    code, printed, _ = run(capsys, "params", str(REPOSITORY / "bags" / recording))
+    code, printed, _ = run(capsys, "params", str(BAGS / recording))
     assert code == 0 and printed == out.read_text()
 
 
@@ -118,7 +120,7 @@ def test_params_differ_between_recordings(capsys, tmp_path):
     """The file carries each recording's own model: the test above would not pass on defaults."""
     files = {name: tmp_path / f"{name}.yaml" for name in RECORDINGS}
     for name, path in files.items():
-        run(capsys, "params", str(REPOSITORY / "bags" / name), "--out", str(path))
+        run(capsys, "params", str(BAGS / name), "--out", str(path))
     airway, liver = (read_parameters_file(files[name]) for name in RECORDINGS)
     assert airway["youngs_modulus"] != liver["youngs_modulus"] or airway["measurement_sigma"] != liver["measurement_sigma"]
 
@@ -132,7 +134,7 @@ def test_params_file_through_rcl_as_the_nodes_read_it(capsys, tmp_path, recordin
     from meshfg_ros.nodes.ros_parameters import declare_parameters
 
     out = tmp_path / "params.yaml"
-    run(capsys, "params", str(REPOSITORY / "bags" / recording), "--out", str(out))
+    run(capsys, "params", str(BAGS / recording), "--out", str(out))
     context = Context()
     rclpy.init(args=["--ros-args", "--params-file", str(out)], context=context)
     values = {}
@@ -143,7 +145,7 @@ def test_params_file_through_rcl_as_the_nodes_read_it(capsys, tmp_path, recordin
             node.destroy_node()
     finally:
         rclpy.shutdown(context=context)
-    inputs = load_inputs(REPOSITORY / "bags" / recording)
+    inputs = load_inputs(BAGS / recording)
     replayed = replay_parameters(inputs)
     assert set(scenario_parameters(inputs.metadata, inputs.camera_pose)) <= set(values)
     assert values == {name: replayed[name] for name in values}

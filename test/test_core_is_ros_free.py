@@ -12,7 +12,7 @@ CORE_MODULES = tuple(sorted(f"meshfg_ros.core.{info.name}" for info in pkgutil.i
 OFFLINE_MODULES = (
     "meshfg_ros.parameters", "meshfg_ros.io.recording", "meshfg_ros.replay", "meshfg_ros.synthetic.scenarios",
     "meshfg_ros.synthetic.recordings", "meshfg_ros.evaluation.evaluate", "meshfg_ros.evaluation.ablation",
-    "meshfg_ros.evaluation.accuracy", "meshfg_ros.benchmarks.baselines",
+    "meshfg_ros.evaluation.accuracy", "meshfg_ros.benchmarks.baselines", "meshfg_ros.io.tf_messages",
 )
 ROS_PACKAGES = ("rclpy", "rosidl_parser", "std_msgs", "sensor_msgs", "meshfg_msgs", "geometry_msgs", "tf2_msgs")
 

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from offline_helpers import BASE, robot_statics
 from scipy.spatial.transform import Rotation, Slerp
 
 from meshfg_ros.benchmarks.latency import LIVE_OVERRIDES, run_live_pipeline
@@ -31,8 +32,6 @@ BUNDLED = Path(__file__).resolve().parents[1] / "bags" / "liver-push"
 RATE = 2.0
 POSE_PERIOD_NS, POSE_OFFSET_NS = 100_000_000, 3_000_000
 CLOUD_LATENCY_NS = 50_000_000
-OPTICAL = np.array([0.0, 0.0, 0.05, *Rotation.from_euler("xyz", [-90.0, 0.0, -90.0], degrees=True).as_quat()])
-BASE = np.array([0.3, -0.2, 0.1, *Rotation.from_euler("xyz", [0.0, 0.0, 40.0], degrees=True).as_quat()])
 
 
 def arm_pose(stamp_ns: int, start_ns: int) -> np.ndarray:
@@ -55,8 +54,7 @@ def robot_recording(source: Path, out: Path) -> None:
     known = np.array([pose.pose for pose in inputs.poses])
     start, end = int(known_ns[0]), int(known_ns[-1])
     transforms = TransformBuffer()
-    statics = [StampedTransform("ecm_link", "endoscope_optical_frame", 0, OPTICAL[:3], OPTICAL[3:]),
-               StampedTransform("world", "psm1_base", 0, BASE[:3], BASE[3:])]
+    statics = robot_statics()
     transforms.set_transforms(statics, static=True)
     arm_stamps = range(start - POSE_PERIOD_NS, end + 3 * POSE_PERIOD_NS, POSE_PERIOD_NS)
     arms = [StampedTransform("world", "ecm_link", stamp, *np.split(arm_pose(stamp, start), [3])) for stamp in arm_stamps]
@@ -111,4 +109,6 @@ def test_a_robot_wired_live_pipeline_has_no_degraded_step_and_equals_the_replay(
           f"largest difference to the replay of the same data "
           f"{max(np.abs(r - s.result.positions).max() for r, s in zip(live.positions, replayed.steps)):.2e} m, "
           f"to the world-frame replay {difference:.2e} m")
-    assert difference < 2e-4
+    # what the robot's wiring may change is far below what the sensor can tell apart: a fifth of
+    # the recording's measurement sigma (0.5 mm)
+    assert difference < 0.2 * load_inputs(BUNDLED).metadata.noise_sigma_m

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rclpy
+import rclpy.executors
 from rclpy.serialization import deserialize_message, serialize_message
 from scipy.spatial.transform import Rotation
 
@@ -98,12 +99,19 @@ def test_tf_message_published_is_received_over_dds():
         received = []
         subscriber_node.create_subscription(TFMessage, "/tf", received.append, 10)
         publisher = publisher_node.create_publisher(TFMessage, "/tf", 10)
-        message = transforms_to_tf_message(TRANSFORMS, RclpyMessageFactory())
-        deadline = time.monotonic() + 30.0
-        while not received and time.monotonic() < deadline:
-            publisher.publish(message)
-            rclpy.spin_once(subscriber_node, timeout_sec=0.1)
-        assert received, "no TFMessage arrived within 30 s"
+        executor = rclpy.executors.SingleThreadedExecutor()
+        executor.add_node(publisher_node)
+        executor.add_node(subscriber_node)
+
+        def spin_until(condition) -> bool:
+            deadline = time.monotonic() + 30.0
+            while not condition() and time.monotonic() < deadline:
+                executor.spin_once(timeout_sec=0.05)
+            return condition()
+
+        assert spin_until(lambda: publisher.get_subscription_count() == 1), "the subscriber was not matched in 30 s"
+        publisher.publish(transforms_to_tf_message(TRANSFORMS, RclpyMessageFactory()))
+        assert spin_until(lambda: received), "no TFMessage arrived within 30 s"
         assert_same_transforms(tf_message_to_transforms(received[0]), TRANSFORMS)
         endpoint = subscriber_node.get_publishers_info_by_topic("/tf")[0]
         assert endpoint.topic_type == TF_MESSAGE

@@ -2,7 +2,7 @@
 frame give the same estimates as the same inputs in world_frame (core/world_frame.py, replay)."""
 import numpy as np
 import pytest
-from offline_helpers import NOISE_SIGMA, TOOL_RADIUS, tiny_scenario
+from offline_helpers import BASE, NOISE_SIGMA, OPTICAL, TOOL_RADIUS, robot_statics, tiny_scenario
 from scipy.spatial.transform import Rotation
 
 from meshfg_ros.core.frames import StampedTransform, TransformBuffer
@@ -19,7 +19,6 @@ from meshfg_ros.topics import INITIAL_MESH_TOPIC, POINTS_TOPIC, TOOL_POSE_TOPIC
 
 PARAMS = {"max_iterations": 3, "tool_radius": TOOL_RADIUS, "measurement_sigma": NOISE_SIGMA,
           "simulator_substeps": 4, "simulator_iterations": 4}
-BASE = np.array([0.3, -0.2, 0.1, *Rotation.from_euler("xyz", [0.0, 0.0, 40.0], degrees=True).as_quat()])
 
 
 def arm_pose(stamp_ns: int) -> np.ndarray:
@@ -29,19 +28,9 @@ def arm_pose(stamp_ns: int) -> np.ndarray:
     return np.array([0.02 * t, 0.1 - 0.01 * t, 0.25, *rotation.as_quat()])
 
 
-OPTICAL = np.array([0.0, 0.0, 0.05, *Rotation.from_euler("xyz", [-90.0, 0.0, -90.0], degrees=True).as_quat()])
-
-
 def optical_pose(stamp_ns: int) -> np.ndarray:
     """world -> endoscope_optical_frame at a stamp, composed by hand."""
     return pose_in(pose_matrix(arm_pose(stamp_ns)), OPTICAL)
-
-
-def inverse(matrix: np.ndarray) -> np.ndarray:
-    result = np.eye(4)
-    result[:3, :3] = matrix[:3, :3].T
-    result[:3, 3] = -matrix[:3, :3].T @ matrix[:3, 3]
-    return result
 
 
 def write(path, scenario, framed: bool) -> None:
@@ -52,9 +41,7 @@ def write(path, scenario, framed: bool) -> None:
         writer.write(INITIAL_MESH_TOPIC, MeshState(FIRST_STAMP_NS, "world", 0, mesh.vertices, mesh.tetrahedra,
                                                    mesh.surface_triangles, mesh.fixed_vertices))
         if framed:
-            statics = [StampedTransform("ecm_link", "endoscope_optical_frame", 0, OPTICAL[:3], OPTICAL[3:]),
-                       StampedTransform("world", "psm1_base", 0, BASE[:3], BASE[3:])]
-            writer.write(TF_STATIC_TOPIC, transforms_to_tf_message(statics), FIRST_STAMP_NS)
+            writer.write(TF_STATIC_TOPIC, transforms_to_tf_message(robot_statics()), FIRST_STAMP_NS)
         poses = [(FIRST_STAMP_NS, scenario.initial_tool_pose)] + [(s.stamp_ns, s.tool_pose) for s in scenario.steps]
         last = scenario.steps[-1].stamp_ns
         for stamp in range(FIRST_STAMP_NS, last + 200_000_000, 100_000_000):
@@ -65,14 +52,14 @@ def write(path, scenario, framed: bool) -> None:
         for index, (stamp, tool_pose) in enumerate(poses):
             frame, pose = "world", np.asarray(tool_pose, dtype=np.float64)
             if framed:
-                frame, pose = "psm1_base", pose_in(inverse(pose_matrix(BASE)), pose)
+                frame, pose = "psm1_base", pose_in(np.linalg.inv(pose_matrix(BASE)), pose)
             writer.write(TOOL_POSE_TOPIC, PoseRecord(stamp, frame, pose), stamp)
             if index == 0:
                 continue
             points = scenario.steps[index - 1].points
             frame = "world"
             if framed:
-                to_optical = inverse(pose_matrix(optical_pose(stamp)))
+                to_optical = np.linalg.inv(pose_matrix(optical_pose(stamp)))
                 points, frame = points @ to_optical[:3, :3].T + to_optical[:3, 3], "endoscope_optical_frame"
             # the cloud is logged 150 ms after its stamp (camera latency): the /tf around it is in
             writer.write(POINTS_TOPIC, PointCloudRecord(stamp, frame, points), stamp + 150_000_000)
