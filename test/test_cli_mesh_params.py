@@ -1,6 +1,4 @@
 """`meshfg mesh info`, `meshfg mesh export` and `meshfg params`, run in-process through cli.main."""
-from pathlib import Path
-
 import meshio
 import numpy as np
 import pytest

@@ -102,7 +102,6 @@ from meshfg_ros.core.settings import check_settings, dynamic_fields, setting
 from meshfg_ros.core.simulator import (
     POISSON_RATIO_SETTING,
     TOOL_MODE_SETTING,
-    TOOL_MODES,
     TOOL_RADIUS_SETTING,
     YOUNGS_MODULUS_SETTING,
 )
