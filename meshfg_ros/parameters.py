@@ -198,8 +198,9 @@ class EstimatorNodeConfig:
     """Settings of the estimator node beyond the estimator's: the camera, input QoS and timing, markers."""
 
     camera_frame: str = setting(
-        "camera", "Frame placed in world_frame by the static camera_pose when /tf does not know it (clouds in "
-        "every other frame are placed through /tf and /tf_static).")
+        "camera", "The depth camera's frame, placed in world_frame by the static camera_pose when /tf does not "
+        "know it (clouds in every other frame are placed through /tf and /tf_static). Its origin is the "
+        "viewpoint of every cloud: points against faces turned away from it are dropped as leaks.")
     camera_pose: tuple[float, ...] = setting(
         (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0), "Static pose of camera_frame in world_frame: [x, y, z, qx, qy, qz, qw] "
         "(the fallback when /tf does not know camera_frame).", range=(-1e3, 1e3), length=7)
@@ -488,12 +489,13 @@ def load_mesh_file(params: Mapping[str, Any]) -> TetMesh:
 def world_frame_inputs(params: Mapping[str, Any]) -> WorldFrameInputs:
     """The placement of inputs into world_frame (core/world_frame.py) of the nodes and the replay:
     /tf and /tf_static, with the static camera_pose as the fallback for camera_frame where the
-    parameters have it (the estimator's)."""
-    fallback = {}
-    if "camera_frame" in params:
-        fallback[params["camera_frame"]] = pose_matrix(np.asarray(params["camera_pose"], dtype=np.float64))
+    parameters have it (the estimator's); camera_frame's origin is then each cloud's viewpoint
+    (the estimator's back-face test)."""
+    fallback, camera_frame = {}, params.get("camera_frame")
+    if camera_frame is not None:
+        fallback[camera_frame] = pose_matrix(np.asarray(params["camera_pose"], dtype=np.float64))
     return WorldFrameInputs(params["world_frame"], TransformBuffer(jump_back_s=params["clock_jump_threshold"]),
-                            fallback=fallback, wait_s=params["transform_timeout"])
+                            fallback=fallback, wait_s=params["transform_timeout"], viewpoint_frame=camera_frame)
 
 
 def parameters_help(nodes: Iterable[str]) -> str:

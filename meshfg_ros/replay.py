@@ -249,8 +249,8 @@ def iterate_replay(inputs: ReplayInputs, params: Mapping[str, Any],
         yield ReplayStep(step.stamp_ns, step.points, step.predicted, step.simulation_only, step.result)
 
 
-def _world_frame_events(inputs: ReplayInputs, params: Mapping[str, Any]) -> Iterator[tuple[str, int, np.ndarray]]:
-    """("pose" | "cloud", stamp, world-frame array) of the inputs the nodes would take, in arrival
+def _world_frame_events(inputs: ReplayInputs, params: Mapping[str, Any]) -> Iterator[tuple]:
+    """("pose" | "cloud", stamp, world-frame array, cloud viewpoint or None) of the inputs the nodes would take, in arrival
     order: moved into world_frame through the recorded /tf and /tf_static (or camera_pose) as
     the nodes do (core/world_frame.py, with the log time as the clock); clouds without points and
     inputs that cannot be placed are dropped."""
@@ -267,9 +267,9 @@ def _world_frame_events(inputs: ReplayInputs, params: Mapping[str, Any]) -> Iter
             placed, _ = placer.add(FramedInput(CLOUD, record.stamp_ns, record.frame_id, record.points, now_s), now_s)
         else:
             placed = []
-        yield from ((item.kind, item.stamp_ns, item.data) for item in placed)
+        yield from ((item.kind, item.stamp_ns, item.data, item.viewpoint) for item in placed)
     placed, _ = placer.release(flush=True)
-    yield from ((item.kind, item.stamp_ns, item.data) for item in placed)
+    yield from ((item.kind, item.stamp_ns, item.data, item.viewpoint) for item in placed)
 
 
 def replay_recording(

@@ -192,6 +192,27 @@ def test_gating_rejects_far_points(cube):
     np.testing.assert_array_equal(factor.points, points[[0, 3]])
 
 
+def test_points_against_back_faces_are_dropped_as_leaks(cube):
+    """A camera above the cube (side 0.1 m, bottom at z = 0) sees its top face; a leak onto the
+    table beside it lies just outside a side face whose closest point faces down and away."""
+    state = cube.vertices
+    top = np.array([[0.02, 0.03, 0.1005], [0.07, 0.05, 0.0995], [0.05, 0.08, 0.1002]])
+    table = np.array([[0.101, 0.05, -0.0005], [0.05, -0.0008, -0.0002]])  # beside the bottom edges
+    points = np.concatenate([top, table])
+    camera = np.array([0.05, 0.05, 0.5])
+    factor = PointToSurfaceFactor(0, points, cube.surface_triangles, state, gating_distance=0.01, viewpoint=camera)
+    assert factor.num_points_back_facing == 2 and factor.num_points_rejected == 2
+    assert not factor.back_facing_test_skipped
+    np.testing.assert_array_equal(factor.points, top)
+    # Without a viewpoint the distance gate alone keeps them (they are within a millimetre).
+    assert PointToSurfaceFactor(0, points, cube.surface_triangles, state, gating_distance=0.01).num_points == 5
+    # Seen from below, most points would face away: the viewpoint is not the sensor's, nothing is dropped.
+    below = PointToSurfaceFactor(0, points, cube.surface_triangles, state, viewpoint=np.array([0.05, 0.05, -0.5]))
+    assert below.back_facing_test_skipped and below.num_points == 5 and below.num_points_back_facing == 0
+    with pytest.raises(FactorError):
+        PointToSurfaceFactor(0, points, cube.surface_triangles, state, viewpoint=np.array([0.0, np.nan, 1.0]))
+
+
 def test_association_follows_the_surface_exactly(cube):
     start = cube.vertices
     points = noisy_points(deformed(cube, 2.0), cube.surface_triangles, 400, seed=6)

@@ -114,6 +114,21 @@ def test_an_input_waits_for_its_transform_then_is_set_aside_with_the_reason():
     assert placed == [] and len(set_aside) == 1 and "beyond" in set_aside[0].reason
 
 
+def test_a_cloud_carries_the_camera_origin_as_its_viewpoint():
+    """Whatever frame a cloud comes in, its viewpoint is camera_frame's origin at its stamp; a
+    camera frame nothing places gives none."""
+    camera = np.array([0.1, -0.2, 0.3, 1.0, 0.0, 0.0, 0.0])
+    placer = WorldFrameInputs("world", fallback={"camera": pose_matrix(camera)}, viewpoint_frame="camera")
+    for frame in ("camera", "world"):
+        placed, _ = placer.add(FramedInput(CLOUD, 1, frame, np.zeros((2, 3))))
+        np.testing.assert_allclose(placed[0].viewpoint, camera[:3], atol=1e-15)
+    pose, _ = placer.add(FramedInput(POSE, 2, "world", np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])))
+    assert pose[0].viewpoint is None
+    unknown = WorldFrameInputs("world", viewpoint_frame="endoscope")
+    placed, _ = unknown.add(FramedInput(CLOUD, 1, "world", np.zeros((2, 3))))
+    assert placed[0].viewpoint is None
+
+
 def test_a_static_fallback_serves_a_frame_no_transform_names():
     camera = np.array([0.0, 0.0, 0.1, 1.0, 0.0, 0.0, 0.0])  # looking down
     placer = WorldFrameInputs("world", fallback={"camera": pose_matrix(camera)})

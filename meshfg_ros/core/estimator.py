@@ -77,6 +77,7 @@ import scipy.linalg
 from meshfg_ros.core.closest_point import ClosestPointIndex
 from meshfg_ros.core.factor_graph import FactorGraph
 from meshfg_ros.core.factors import (
+    MAX_BACK_FACING_SHARE,
     PhysicsPriorFactor,
     PointToSurfaceFactor,
     TemporalFactor,
@@ -305,11 +306,14 @@ class PendingStep:
     start: float                   # perf_counter() at prepare, for solve_time_ms
     num_points: int = 0
     num_points_rejected: int = 0   # non-finite or on the tool
-    num_points_gated: int = 0      # farther from the predicted surface than the gate
+    num_points_gated: int = 0      # farther from the predicted surface than the gate, or against a back face
+    num_points_back_facing: int = 0
+    back_facing_test_skipped: bool = False  # more than MAX_BACK_FACING_SHARE back-facing: not the sensor's viewpoint
     degraded: bool = False
     messages: list = field(default_factory=list)
     points: np.ndarray | None = None      # the cloud after the tool gate
     prediction: np.ndarray | None = None  # (N, 3) the prior's mean, fixed vertices reset
+    viewpoint: np.ndarray | None = None   # (3,) the sensor's centre, for the back-face test
 
 
 class _PendingChanges:
@@ -457,10 +461,12 @@ class SlidingWindowEstimator:
         return points, predicted, tool_pose, dropped
 
     # ----------------------------------------------------------------------------- update
-    def update(self, stamp_ns: int, points=None, predicted=None, tool_pose=None) -> StepResult:
+    def update(self, stamp_ns: int, points=None, predicted=None, tool_pose=None, viewpoint=None) -> StepResult:
         """Add a state for `stamp_ns` with cloud `points` (K, 3) and simulator prediction
         `predicted` (N, 3) (either may be None), optimise the window, return the newest state.
         tool_pose (7,) (optional): where the tool is, to drop the cloud's points on it.
+        viewpoint (3,) (optional): the sensor's centre, to drop the points against back faces
+        of the predicted surface (PointToSurfaceFactor).
 
         Raises only EstimatorInputError (EstimatorStampError: stamps must be integer nanoseconds
         in [0, 2**63), each newer than the last update's) and EstimatorStepError; after either,
@@ -472,7 +478,7 @@ class SlidingWindowEstimator:
         self._apply_pending_changes()
         saved = (_saved(self), _saved(self.graph), _saved(self.noise))
         try:
-            result = self.solve(self._prepare(stamp_ns, points, predicted, tool_pose))
+            result = self.solve(self._prepare(stamp_ns, points, predicted, tool_pose, viewpoint))
             if not _finite_result(result):
                 raise EstimatorStepError("the update produced non-finite values")
             return result
@@ -488,19 +494,23 @@ class SlidingWindowEstimator:
             raise EstimatorStepError(f"update at {stamp_ns} ns failed: {type(error).__name__}: "
                                      f"{' '.join(str(error).split())[:300]}") from error
 
-    def prepare(self, stamp_ns: int, points=None, predicted=None, tool_pose=None) -> PendingStep:
+    def prepare(self, stamp_ns: int, points=None, predicted=None, tool_pose=None, viewpoint=None) -> PendingStep:
         """First half of `update`: validate the input, append the new state and its factors and
         slide the window, without optimising (benchmarks hand the same problem to other solvers).
         Input errors are raised before anything changes; `update` undoes a later failure."""
         self._apply_pending_changes()
-        return self._prepare(stamp_ns, points, predicted, tool_pose)
+        return self._prepare(stamp_ns, points, predicted, tool_pose, viewpoint)
 
-    def _prepare(self, stamp_ns, points, predicted, tool_pose) -> PendingStep:
+    def _prepare(self, stamp_ns, points, predicted, tool_pose, viewpoint=None) -> PendingStep:
         """`prepare` with the settings as they are (`update` applied the pending changes before
         it saved the state a failure restores)."""
         start = time.perf_counter()
         cfg = self.config
         stamp_ns, points, predicted, tool_pose, dropped = self._check_inputs(stamp_ns, points, predicted, tool_pose)
+        if viewpoint is not None:
+            viewpoint = _real_array("viewpoint", viewpoint)
+            if viewpoint.shape != (3,) or not np.all(np.isfinite(viewpoint)):
+                raise EstimatorInputError(f"viewpoint must be 3 finite coordinates, got shape {viewpoint.shape}")
         messages = [f"{dropped} non-finite point(s) dropped"] if dropped else []
         if "simulation" not in self.enabled:
             predicted = None  # a configuration without the physics prior starts from the copy-forward
@@ -508,7 +518,8 @@ class SlidingWindowEstimator:
         self.step += 1
         self.last_stamp_ns = stamp_ns
         self.deadline = None if cfg.update_time_budget is None else start + cfg.update_time_budget
-        pending = PendingStep(self.step, stamp_ns, start, num_points_rejected=dropped + far, messages=messages)
+        pending = PendingStep(self.step, stamp_ns, start, num_points_rejected=dropped + far, messages=messages,
+                              viewpoint=viewpoint)
         points = self._outside_tool(points, tool_pose, pending)
         predicted = self._innovation_test(points, predicted, pending)
         prediction = predicted
@@ -592,8 +603,10 @@ class SlidingWindowEstimator:
             gate = cfg.gating_distance or (lambda distances: GATE_SIGMAS * float(np.clip(
                 _MEDIAN_ABSOLUTE_TO_SIGMA * np.median(distances), sigma, GATE_SPREAD_CAP * sigma)))
             factor = PointToSurfaceFactor(key, points, graph.surface_triangles, pending.prediction,
-                                          IsotropicNoise(sigma), robust, gate)
+                                          IsotropicNoise(sigma), robust, gate, pending.viewpoint)
             pending.num_points, pending.num_points_gated = factor.num_points, factor.num_points_rejected
+            pending.num_points_back_facing = factor.num_points_back_facing
+            pending.back_facing_test_skipped = factor.back_facing_test_skipped
             if factor.num_points:
                 factors.append(factor)
         return factors
@@ -621,6 +634,11 @@ class SlidingWindowEstimator:
             iterations += result["iterations"]
             solve_times += result["solve_times_ms"]
         messages.extend(lm_messages)
+        if pending.num_points_back_facing:
+            messages.append(f"{pending.num_points_back_facing} point(s) against back faces dropped")
+        if pending.back_facing_test_skipped:
+            messages.append(f"back-face test skipped: over {MAX_BACK_FACING_SHARE:.0%} of the points face away from "
+                            "the cloud frame's origin, which is then not the sensor's centre")
         if rounds:
             messages.append(f"solved again with the re-estimated measurement sigma {rounds} time(s)")
         if self.config.estimate_weights:

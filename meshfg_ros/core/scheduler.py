@@ -254,6 +254,7 @@ class CloudStep:
     predicted: np.ndarray | None
     tool_pose: np.ndarray | None
     restart: bool = False  # the estimator restarts from the initial mesh before this step
+    viewpoint: np.ndarray | None = None  # the sensor's centre (world frame), when known
 
 
 @dataclass(frozen=True)
@@ -284,7 +285,8 @@ class EstimationScheduler:
         self.scene = check_initial_mesh(mesh.vertices)
         self._jump_ns = _jump_ns(clock_jump_threshold)
         self._poses = ToolPoseBuffer(extrapolation_horizon_s=tool_pose_extrapolation)
-        self._clouds: deque[tuple[int, np.ndarray, float, bool]] = deque()  # stamp, points, arrival, restart
+        # stamp, points, arrival, restart, viewpoint
+        self._clouds: deque[tuple[int, np.ndarray, float, bool, np.ndarray | None]] = deque()
         self._answers: dict[int, Prediction] = {}
         self._newest_cloud_ns: int | None = None
         self._newest_answer_ns: int | None = None
@@ -303,8 +305,10 @@ class EstimationScheduler:
         """Clouds waiting to run."""
         return len(self._clouds)
 
-    def add_cloud(self, stamp_ns: int, points: np.ndarray, now_s: float = 0.0) -> list[Rejection]:
-        """Queue a cloud (K, 3) in the world frame. Returns what was set aside: this cloud (a stale
+    def add_cloud(self, stamp_ns: int, points: np.ndarray, now_s: float = 0.0,
+                  viewpoint: np.ndarray | None = None) -> list[Rejection]:
+        """Queue a cloud (K, 3) in the world frame, taken from `viewpoint` (3,: the sensor's
+        centre in the world frame; None when unknown). Returns what was set aside: this cloud (a stale
         or invalid stamp), the oldest queued one (backlog), or the restart a jump back causes
         (counter clock_jumps_back). `cloud_queued` says whether this cloud was queued."""
         order = stamp_order(self._newest_cloud_ns, stamp_ns, self._jump_ns)
@@ -322,7 +326,7 @@ class EstimationScheduler:
             notes.append(Rejection("clock_jumps_back",
                                    f"cloud stamp jumped back by {back_s:.3f} s: restarting from the initial mesh"))
         self._newest_cloud_ns = stamp_ns
-        self._clouds.append((stamp_ns, points, now_s, restart))
+        self._clouds.append((stamp_ns, points, now_s, restart, viewpoint))
         if len(self._clouds) > MAX_QUEUED_CLOUDS:
             dropped = self._clouds.popleft()
             notes.append(Rejection("clouds_dropped_backlog", f"cloud at {dropped[0]} ns dropped: "
@@ -379,7 +383,7 @@ class EstimationScheduler:
         """The oldest cloud if it is ready to run (module docstring), else None."""
         if not self._clouds:
             return None
-        stamp, points, arrival_s, restart = self._clouds[0]
+        stamp, points, arrival_s, restart, viewpoint = self._clouds[0]
         waited = flush or now_s - max(arrival_s, self._solver_free_s) >= self.timeouts.prediction_timeout
         answer = self._answers.get(stamp)
         later_answer = any(stamp < other <= self._newest_cloud_ns for other in self._answers)
@@ -394,7 +398,7 @@ class EstimationScheduler:
         self._last_step_ns = stamp
         tool_pose = answer.tool_pose if answer is not None and answer.tool_pose is not None else self._tool_pose(stamp)
         predicted = answer.positions if answer is not None else None
-        return CloudStep(stamp, points, arrival_s, predicted, tool_pose, restart)
+        return CloudStep(stamp, points, arrival_s, predicted, tool_pose, restart, viewpoint)
 
     def _tool_pose(self, stamp_ns: int) -> np.ndarray | None:
         try:
@@ -408,7 +412,7 @@ class EstimationScheduler:
         if step.restart:
             self.estimator = SlidingWindowEstimator(self.mesh, self.config)
         try:
-            result = self.estimator.update(step.stamp_ns, step.points, step.predicted, step.tool_pose)
+            result = self.estimator.update(step.stamp_ns, step.points, step.predicted, step.tool_pose, step.viewpoint)
         except (EstimatorInputError, EstimatorStepError) as error:
             outcome = StepOutcome(step, None, str(error), "failed_steps")
         else:
@@ -467,9 +471,9 @@ class OfflinePipeline:
         self.estimation.add_tool_pose(stamp_ns, pose)
         return self._pump(False)
 
-    def cloud(self, stamp_ns: int, points: np.ndarray) -> list[PipelineStep]:
-        """Take a cloud (K, 3) in the world frame."""
-        if cloud_queued(self.estimation.add_cloud(stamp_ns, points)):
+    def cloud(self, stamp_ns: int, points: np.ndarray, viewpoint: np.ndarray | None = None) -> list[PipelineStep]:
+        """Take a cloud (K, 3) in the world frame, taken from `viewpoint` (None: unknown)."""
+        if cloud_queued(self.estimation.add_cloud(stamp_ns, points, viewpoint=viewpoint)):
             self.simulation.request(stamp_ns)
             self.open_loop.request(stamp_ns)
         return self._pump(False)
@@ -507,10 +511,14 @@ class OfflinePipeline:
                 step = self.estimation.next_step(flush=flush)
 
 
-def run_offline(pipeline: OfflinePipeline, events: Iterator[tuple[str, int, np.ndarray]]) -> Iterator[PipelineStep]:
-    """Drive `pipeline` with ("pose" | "cloud", stamp_ns, array) events in arrival order."""
-    for kind, stamp_ns, data in events:
-        yield from (pipeline.tool_pose if kind == "pose" else pipeline.cloud)(stamp_ns, data)
+def run_offline(pipeline: OfflinePipeline, events: Iterator[tuple]) -> Iterator[PipelineStep]:
+    """Drive `pipeline` with ("pose" | "cloud", stamp_ns, array) events in arrival order; a cloud's
+    event may carry its viewpoint (3,) or None as a fourth item."""
+    for kind, stamp_ns, data, *viewpoint in events:
+        if kind == "pose":
+            yield from pipeline.tool_pose(stamp_ns, data)
+        else:
+            yield from pipeline.cloud(stamp_ns, data, *viewpoint)
     yield from pipeline.finish()
 
 

@@ -27,13 +27,17 @@ CLOUD, POSE = "cloud", "pose"
 
 @dataclass(frozen=True, eq=False)
 class FramedInput:
-    """A cloud (K, 3) or a tool pose (7,) in `frame_id` at `stamp_ns`, received at `arrival_s`."""
+    """A cloud (K, 3) or a tool pose (7,) in `frame_id` at `stamp_ns`, received at `arrival_s`.
+
+    A placed cloud carries `viewpoint`, the sensor's centre in world_frame at its stamp (the
+    origin of WorldFrameInputs' `viewpoint_frame`), or None where that frame cannot be placed."""
 
     kind: str
     stamp_ns: int
     frame_id: str
     data: np.ndarray
     arrival_s: float = 0.0
+    viewpoint: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -59,8 +63,10 @@ class WorldFrameInputs:
     """The FIFO of inputs waiting for their frame (module docstring)."""
 
     def __init__(self, world_frame: str, transforms: TransformBuffer | None = None,
-                 fallback: dict[str, np.ndarray] | None = None, wait_s: float = DEFAULT_TRANSFORM_WAIT_S) -> None:
+                 fallback: dict[str, np.ndarray] | None = None, wait_s: float = DEFAULT_TRANSFORM_WAIT_S,
+                 viewpoint_frame: str | None = None) -> None:
         self.world_frame = world_frame
+        self.viewpoint_frame = viewpoint_frame  # the sensor's frame: its origin is each cloud's viewpoint
         self.transforms = transforms if transforms is not None else TransformBuffer()
         self.fallback = dict(fallback or {})  # frame -> 4x4 (its points into world_frame)
         self.wait_s = wait_s
@@ -96,14 +102,32 @@ class WorldFrameInputs:
         self._queues = {key: queue for key, queue in self._queues.items() if queue}
         return [item for _, item in sorted(placed, key=lambda entry: entry[0])], set_aside
 
-    def _placed(self, item: FramedInput) -> FramedInput:
-        if item.frame_id == self.world_frame:
-            return item
+    def _matrix(self, frame_id: str, stamp_ns: int) -> np.ndarray | None:
+        """frame_id's points into world_frame at stamp_ns (None: the identity), or FrameLookupError."""
+        if frame_id == self.world_frame:
+            return None
         try:
-            matrix = self.transforms.lookup(self.world_frame, item.frame_id, item.stamp_ns)
+            return self.transforms.lookup(self.world_frame, frame_id, stamp_ns)
         except FrameLookupError as error:
-            if item.frame_id not in self.fallback or error.reason != FrameLookupError.UNKNOWN_FRAME:
+            if frame_id not in self.fallback or error.reason != FrameLookupError.UNKNOWN_FRAME:
                 raise
-            matrix = self.fallback[item.frame_id]
-        data = transform_points(matrix, item.data) if item.kind == CLOUD else pose_in(matrix, item.data)
-        return FramedInput(item.kind, item.stamp_ns, self.world_frame, data, item.arrival_s)
+            return self.fallback[frame_id]
+
+    def _viewpoint(self, stamp_ns: int) -> np.ndarray | None:
+        if self.viewpoint_frame is None:
+            return None
+        try:
+            matrix = self._matrix(self.viewpoint_frame, stamp_ns)
+        except FrameLookupError:
+            return None
+        return np.zeros(3) if matrix is None else np.array(matrix[:3, 3], dtype=np.float64)
+
+    def _placed(self, item: FramedInput) -> FramedInput:
+        matrix = self._matrix(item.frame_id, item.stamp_ns)
+        if item.kind == CLOUD:
+            points = item.data if matrix is None else transform_points(matrix, item.data)
+            return FramedInput(CLOUD, item.stamp_ns, self.world_frame, points, item.arrival_s,
+                               viewpoint=self._viewpoint(item.stamp_ns))
+        if matrix is None:
+            return item
+        return FramedInput(POSE, item.stamp_ns, self.world_frame, pose_in(matrix, item.data), item.arrival_s)

@@ -125,7 +125,7 @@ class EstimatorNode(Node):
                 return
             if item.kind == POSE:
                 return self._scheduler.add_tool_pose(item.stamp_ns, item.data)
-            notes = self._scheduler.add_cloud(item.stamp_ns, item.data, item.arrival_s)
+            notes = self._scheduler.add_cloud(item.stamp_ns, item.data, item.arrival_s, item.viewpoint)
         if cloud_queued(notes):
             self._requests.publish(header_msg(item.stamp_ns, self._frame, RCLPY_FACTORY))
         self.outputs.note(notes)
