@@ -273,6 +273,10 @@ class PlaybackConfig:
         10.0, "At most this many seconds to wait, before playing, until the played topics are matched: those "
         "named with --topics, or, when the whole recording plays, those some node subscribes to.",
         range=(0.0, 3600.0))
+    subscribers: int = setting(
+        1, "Matched subscribers each waited-for topic needs before playing: set it to the number of nodes that "
+        "take a topic, so that none of them misses the start when it joins later than the others.",
+        range=(1, 1000))
     clock_frequency: float = setting(100.0, "Rate of /clock messages between recorded ones (Hz).", range=(1.0, 1e4))
     delay: float = setting(
         0.5, "Seconds between finding the subscribers and playing: best-effort readers drop messages of a "

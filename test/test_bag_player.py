@@ -87,22 +87,24 @@ def test_messages_are_due_at_their_recorded_offsets_over_the_rate(context, recor
 class FakeGraph:
     """Who subscribes to which topic, as the player's node would see it on the ROS graph."""
 
-    def __init__(self, clock: VirtualClock, subscribed: dict[str, float]) -> None:
-        self.clock, self.subscribed = clock, subscribed  # topic -> virtual time its subscriber appears
+    def __init__(self, clock: VirtualClock, subscribed: dict[str, float | tuple[float, ...]]) -> None:
+        # topic -> virtual time its subscriber appears, or the times of each of its subscribers
+        self.clock = clock
+        self.subscribed = {topic: np.atleast_1d(times) for topic, times in subscribed.items()}
 
     def count(self, topic: str) -> int:
-        return int(self.clock.now >= self.subscribed.get(topic, float("inf")))
+        return int(np.count_nonzero(self.subscribed.get(topic, np.zeros(0)) <= self.clock.now))
 
 
-def wait_with(recording, monkeypatch, subscribed: dict[str, float], wait_s: float = 60.0,
-              topics: list[str] | None = None) -> float:
+def wait_with(recording, monkeypatch, subscribed: dict[str, float | tuple[float, ...]], wait_s: float = 60.0,
+              topics: list[str] | None = None, subscribers: int = 1) -> float:
     """The virtual time the player's wait for subscribers takes."""
     clock = VirtualClock()
     monkeypatch.setattr(bag_player, "time", clock)
     graph = FakeGraph(clock, subscribed)
     with RecordingReader(recording) as reader:
         player = BagPlayer(reader, topics)
-        player.wait_for_subscribers = wait_s
+        player.wait_for_subscribers, player.subscribers = wait_s, subscribers
         monkeypatch.setattr(player, "count_subscribers", graph.count)
         for name, publisher in player._topic_publishers.items():
             monkeypatch.setattr(publisher, "get_subscription_count", lambda name=name: graph.count(name))
@@ -126,3 +128,14 @@ def test_the_player_waits_only_for_topics_that_nodes_subscribe_to(context, recor
         5.0, abs=poll)
     assert wait_with(recording, monkeypatch, {"/rec/points": 0.0, "/rec/tool_pose": 2.0},
                      topics=named) == pytest.approx(2.0 + settle, abs=poll)
+
+
+def test_the_player_waits_for_the_number_of_subscribers_it_is_told(context, recording, monkeypatch):
+    """With subscribers=2 a topic one node has matched is not ready: the player waits for the
+    second node (1.5 s late here), where with the default it would have started without it."""
+    settle, poll = bag_player._SETTLE_S, 2 * bag_player._POLL_S
+    named = ["/rec/points", "/rec/tool_pose"]
+    two_each = {"/rec/points": (0.0, 1.5), "/rec/tool_pose": (0.0, 0.2)}
+    assert wait_with(recording, monkeypatch, two_each, topics=named) == pytest.approx(settle, abs=poll)
+    assert wait_with(recording, monkeypatch, two_each, topics=named, subscribers=2) == pytest.approx(
+        1.5 + settle, abs=poll)

@@ -169,3 +169,29 @@ def test_bad_input_and_nan_points(scene):
 def test_config_validation(field, value):
     with pytest.raises(EstimatorConfigError, match=field):
         EstimatorConfig(**{field: value})
+
+
+def test_leaks_behind_the_silhouette_are_dropped_with_the_camera_viewpoint(scene):
+    """Leaks 1-3 mm behind the box's -x face (which the camera at +x+y+z cannot see) pass the
+    distance gate; with the viewpoint they are dropped and the estimate is the clean cloud's."""
+    mesh, sequence = scene
+    step = sequence[2]
+    low, high = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
+    rng = np.random.default_rng(5)
+    leaks = np.column_stack([low[0] - rng.uniform(1e-3, 3e-3, 200), rng.uniform(low[1], high[1], 200),
+                             rng.uniform(low[2], high[2], 200)])
+    leaky = np.concatenate([step.points, leaks])
+    camera = 0.5 * (low + high) + 1.0
+    config = EstimatorConfig(factors="simulation+measurement")
+
+    def estimate(points, viewpoint=None):
+        return SlidingWindowEstimator(mesh, config).update(1, points, step.predicted, viewpoint=viewpoint)
+
+    clean, blind, seeing = estimate(step.points), estimate(leaky), estimate(leaky, camera)
+    assert seeing.num_points_rejected - clean.num_points_rejected >= 200
+    assert "point(s) against back faces dropped" in seeing.message
+    assert blind.num_points > clean.num_points  # the gate alone keeps leaks
+    assert rmse(seeing.positions, step.truth) < rmse(blind.positions, step.truth)
+    assert rmse(seeing.positions, clean.positions) < 0.1 * rmse(blind.positions, clean.positions)
+    with pytest.raises(EstimatorInputError, match="viewpoint"):
+        SlidingWindowEstimator(mesh, config).update(1, step.points, step.predicted, viewpoint=[0.0, np.nan, 1.0])

@@ -208,7 +208,7 @@ def test_each_node_declares_the_parameters_of_the_configurations_it_reads():
                                       "tool_pose_horizon"}
     assert simulation | estimator == {parameter.name for parameter in PARAMETERS}
     assert [parameter.name for parameter in node_parameters("bag_player")] == [
-        "rate", "wait_for_subscribers", "clock_frequency", "delay", "loop"]
+        "rate", "wait_for_subscribers", "subscribers", "clock_frequency", "delay", "loop"]
 
 
 def test_a_parameter_of_two_configurations_must_be_described_alike():

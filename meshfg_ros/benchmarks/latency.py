@@ -51,6 +51,7 @@ READY_FILE = "recorder.ready"
 # transport (2 to 4 of 15 clouds at 4x playback, in full-suite runs).
 LIVE_OVERRIDES = {"prediction_timeout": 10.0, "estimate_timeout": 10.0, "transform_timeout": 10.0,
                   "points_reliable": True}
+PLAYED_TOPIC_READERS = 2
 _SHUTDOWN_TIMEOUT_S = 20.0
 _POLL_S = 0.05
 
@@ -141,7 +142,10 @@ def run_live_pipeline(
         played = [TOOL_POSE_TOPIC, POINTS_TOPIC] + [TF_STATIC_TOPIC] * (True in statics) + [TF_TOPIC] * (False in statics)
         if not params["mesh_file"]:
             played.insert(0, INITIAL_MESH_TOPIC)
-        player_command = [executable("bag_player"), str(bag), "--rate", str(rate), "--topics", *played]
+        # Each played topic has two readers (both nodes; points: the estimator and the recorder):
+        # the player waits for both, or a node that joins late misses the first messages.
+        player_command = [executable("bag_player"), str(bag), "--rate", str(rate), "--topics", *played,
+                          "--ros-args", "-p", f"subscribers:={PLAYED_TOPIC_READERS}"]
         processes["bag_player"] = _start(player_command, logs["bag_player"], workdir, env)
         exit_codes = _wait_for_recorder(processes, timeout_s)
         for name in nodes:

@@ -637,8 +637,8 @@ class SlidingWindowEstimator:
         if pending.num_points_back_facing:
             messages.append(f"{pending.num_points_back_facing} point(s) against back faces dropped")
         if pending.back_facing_test_skipped:
-            messages.append(f"back-face test skipped: over {MAX_BACK_FACING_SHARE:.0%} of the points face away from "
-                            "the cloud frame's origin, which is then not the sensor's centre")
+            messages.append(f"back-face test skipped: over {MAX_BACK_FACING_SHARE:.0%} of the points lie against faces "
+                            "turned away from the viewpoint (camera_frame's origin), which cannot be the camera's")
         if rounds:
             messages.append(f"solved again with the re-estimated measurement sigma {rounds} time(s)")
         if self.config.estimate_weights:

@@ -33,12 +33,12 @@ from meshfg_ros.core.noise import IdentityNoise, InformationMatrixNoise, PointNo
 from meshfg_ros.core.robust import RobustKernel
 
 __all__ = [
-    "MAX_BACK_FACING_SHARE",
     "BARRIER_VOLUME_RATIO",
     "ElementBlocks",
     "Factor",
     "FactorError",
     "FactorLinearization",
+    "MAX_BACK_FACING_SHARE",
     "PhysicsPriorFactor",
     "PointBlocks",
     "PointToSurfaceFactor",
@@ -407,7 +407,7 @@ class PointToSurfaceFactor(Factor):
     and such points are the segmentation's leaks onto what lies behind the silhouette (the
     table, neighbouring tissue), close enough to the surface to pass a distance gate. When more
     than MAX_BACK_FACING_SHARE of the gated points would go, the viewpoint is not the sensor's
-    (a cloud published in another frame than the camera's) and the test is skipped
+    (a camera pose left at a default) and the test is skipped
     (back_facing_test_skipped). Cost: 0.5 sum_k w_k rho(|r_k|^2), w_k = 1/sigma_k^2, rho the robust kernel
     (identity without one), applied as IRLS weights w_k rho'(|r_k|^2).
     """

@@ -8,8 +8,8 @@ with RecordingReader and converted to rclpy messages (PointCloud2 re-encoded as 
 x, y, z: other point fields are not replayed). A topic with a single message (initial_mesh,
 scenario metadata, camera pose) is published first, reliable and transient-local, like a latched
 topic; the player then waits (at most --wait-for-subscribers seconds) until every topic given
-with --topics, or (playing everything) every topic some node subscribes to, has a matched
-subscriber, and `delay` seconds more for those subscribers to match the player
+with --topics, or (playing everything) every topic some node subscribes to, has `subscribers`
+matched subscribers (default 1), and `delay` seconds more for those subscribers to match the player
 in turn (a best-effort reader drops samples of unmatched writers), and plays the others at
 their recorded rate times --rate, publishing /clock (rosgraph_msgs/Clock) at clock_frequency
 for nodes with use_sim_time. It exits when done (or loops with --loop). Its parameters
@@ -53,6 +53,7 @@ class BagPlayer(Node):
         super().__init__("bag_player", **kwargs)
         params = declare_parameters(self, "bag_player")
         self.rate, self.wait_for_subscribers = params["rate"], params["wait_for_subscribers"]
+        self.subscribers = params["subscribers"]
         self.clock_frequency, self.delay, self.loop = params["clock_frequency"], params["delay"], params["loop"]
         self._reader = reader
         names = list(dict.fromkeys(topics)) if topics else sorted(reader.topics)
@@ -83,8 +84,8 @@ class BagPlayer(Node):
         return self.published
 
     def _wait_for_subscribers(self) -> None:
-        """Wait (at most wait_for_subscribers) until the topics to wait for are matched and that set
-        has not changed for _SETTLE_S. Topics named with --topics are all waited for; when the whole
+        """Wait (at most wait_for_subscribers) until the topics to wait for are matched (each by
+        `subscribers` readers) and that set has not changed for _SETTLE_S. Topics named with --topics are all waited for; when the whole
         recording plays, only those some node subscribes to (not the ground truth, the metadata)."""
         deadline = time.monotonic() + self.wait_for_subscribers
         last, settled_since = None, time.monotonic()
@@ -92,7 +93,7 @@ class BagPlayer(Node):
             wanted = frozenset(name for name in self._topic_publishers
                                if self._chosen or self.count_subscribers(name))
             matched = frozenset(name for name, publisher in self._topic_publishers.items()
-                                if publisher.get_subscription_count())
+                                if publisher.get_subscription_count() >= self.subscribers)
             if (wanted, matched) != last:
                 last, settled_since = (wanted, matched), time.monotonic()
             elif wanted and wanted <= matched and time.monotonic() - settled_since >= _SETTLE_S:
