@@ -108,3 +108,19 @@ def test_points_on_the_tool_are_leaks_in_sphere_mode_only(scene, tool_mode, drop
     assert on_tool >= 1
     assert ("point(s) on the tool dropped" in with_tool.message) is dropped
     assert with_tool.num_points_rejected - without.num_points_rejected == (on_tool if dropped else 0)
+
+
+def test_a_restart_keeps_applied_settings_and_changes_still_pending(scene):
+    """A change made while the estimator restarts (the node's parameter callback against its
+    solver thread) reaches the restarted estimator, as do the changes applied before."""
+    mesh, sequence = scene
+    estimator = SlidingWindowEstimator(mesh, replace(BASE, estimate_weights=False))
+    estimator.reconfigure(temporal_sigma=2e-2)
+    updates(estimator, sequence[:1])
+    estimator.reconfigure(measurement_sigma=1e-3)  # pending when the restart begins
+    restarted = estimator.restarted()
+    assert restarted.step == 0 and restarted.config.temporal_sigma == 2e-2
+    estimator.reconfigure(robust_scale=3e-3)  # reaches the old object after the restart began
+    updates(restarted, sequence[:1])
+    assert (restarted.config.temporal_sigma, restarted.config.measurement_sigma, restarted.config.robust_scale) == (
+        2e-2, 1e-3, 3e-3)

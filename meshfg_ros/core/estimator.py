@@ -1,7 +1,7 @@
 """Sliding-window factor-graph estimator of a deforming tetrahedral mesh.
 
-Each `update(stamp_ns, points, predicted, tool_pose)` appends a state X_t to the window with the factors
-of the configuration (by name, FACTOR_CONFIGURATIONS): the physics prior (simulator
+Each `update(stamp_ns, points, predicted, tool_pose, viewpoint)` appends a state X_t to the
+window with the factors of the configuration (by name, FACTOR_CONFIGURATIONS): the physics prior (simulator
 prediction Xhat_t, information scale * K(X_t)), the point-to-surface measurements of the
 new cloud, and the temporal factor to the previous state; then Levenberg-Marquardt optimises
 every state of the window jointly, and the newest state is returned with its per-vertex
@@ -9,8 +9,9 @@ posterior standard deviation.
 
 Design decisions (see also factors.py, factor_graph.py, levenberg_marquardt.py, linear_solvers.py):
 - Initial value of a new state: the prediction when given and the configuration has the
-  physics prior, else the previous estimate (copy-forward). A configuration with the physics prior but no prediction uses the
-  copy-forward state as the prediction and flags the step degraded.
+  physics prior, else the previous estimate (copy-forward). A configuration with the physics
+  prior but no prediction uses the copy-forward state as the prediction and flags the step
+  degraded.
 - What leaves the window is *conditioned on*, not marginalised: the dropped state's estimate
   becomes a constant anchor of the temporal factor of the oldest remaining state (the
   initial mesh anchors the first state). Marginalisation would turn the dropped state's
@@ -23,8 +24,8 @@ Design decisions (see also factors.py, factor_graph.py, levenberg_marquardt.py, 
   iteration that re-linearises the state, and held for that update's remaining iterations;
   K is the information, not differentiated. Re-evaluating it at every LM iteration moves the
   objective itself between iterations (K(X) changes the cost at the same X), and on weakly
-  determined (smooth, unobserved) modes the optimum moves by up to ~mm with it: LM then
-  stalled at max_iterations rejecting steps (measured on the synthetic box). Held per update,
+  determined (smooth, unobserved) modes the optimum moves by up to ~mm with it, and LM
+  stalls at max_iterations rejecting steps (on the synthetic box). Held per update,
   the objective is fixed and LM provably decreases it, and K still follows X_t from one update
   to the next.
 - Old states are re-linearised only when they moved more than the nominal measurement_sigma
@@ -385,6 +386,14 @@ class SlidingWindowEstimator:
         replace(self.config, **changes)  # validates the values
         self._pending_changes.add(changes)
 
+    def restarted(self) -> SlidingWindowEstimator:
+        """A new estimator from the initial mesh with this one's settings. It shares the queue of
+        changes not yet applied, so a `reconfigure` that reaches this estimator while the restart
+        is under way (from another thread) still applies to the new one."""
+        fresh = SlidingWindowEstimator(self.mesh, self.config)
+        fresh._pending_changes = self._pending_changes
+        return fresh
+
     def _apply_pending_changes(self) -> None:
         """Start using the settings `reconfigure` changed: a new nominal measurement sigma restarts
         the noise estimate and the re-linearisation threshold from it (a new simulation sigma
@@ -398,9 +407,9 @@ class SlidingWindowEstimator:
             self.graph.relinearize_threshold = self.config.measurement_sigma
 
     # ----------------------------------------------------------------------------- input
-    def _check_inputs(self, stamp_ns, points, predicted, tool_pose):
-        """(stamp, finite points, predicted, tool pose, count of non-finite points dropped), or
-        EstimatorInputError / EstimatorStampError; nothing is changed."""
+    def _check_inputs(self, stamp_ns, points, predicted, tool_pose, viewpoint):
+        """(stamp, finite points, predicted, tool pose, viewpoint, count of non-finite points
+        dropped), or EstimatorInputError / EstimatorStampError; nothing is changed."""
         try:
             stamp_ns = check_stamp(stamp_ns)
         except StampError as error:
@@ -420,6 +429,10 @@ class SlidingWindowEstimator:
             if tool_pose.shape != (7,) or not np.all(np.isfinite(tool_pose)):
                 raise EstimatorInputError(f"tool_pose must be 7 finite values [x y z qx qy qz qw], "
                                           f"got shape {tool_pose.shape}")
+        if viewpoint is not None:
+            viewpoint = _real_array("viewpoint", viewpoint)
+            if viewpoint.shape != (3,) or not np.all(np.isfinite(viewpoint)):
+                raise EstimatorInputError(f"viewpoint must be 3 finite coordinates, got shape {viewpoint.shape}")
         dropped = 0
         if points is not None:
             points = _real_array("points", points)
@@ -428,7 +441,7 @@ class SlidingWindowEstimator:
             finite = np.all(np.isfinite(points), axis=1)
             dropped = int(np.count_nonzero(~finite))
             points = points[finite]
-        return stamp_ns, points, predicted, tool_pose, dropped
+        return stamp_ns, points, predicted, tool_pose, viewpoint, dropped
 
     def _far_input(self, points, predicted, tool_pose, messages):
         """Far cloud points dropped, a far or inverted prediction and a far tool pose set aside
@@ -506,11 +519,8 @@ class SlidingWindowEstimator:
         it saved the state a failure restores)."""
         start = time.perf_counter()
         cfg = self.config
-        stamp_ns, points, predicted, tool_pose, dropped = self._check_inputs(stamp_ns, points, predicted, tool_pose)
-        if viewpoint is not None:
-            viewpoint = _real_array("viewpoint", viewpoint)
-            if viewpoint.shape != (3,) or not np.all(np.isfinite(viewpoint)):
-                raise EstimatorInputError(f"viewpoint must be 3 finite coordinates, got shape {viewpoint.shape}")
+        stamp_ns, points, predicted, tool_pose, viewpoint, dropped = self._check_inputs(
+            stamp_ns, points, predicted, tool_pose, viewpoint)
         messages = [f"{dropped} non-finite point(s) dropped"] if dropped else []
         if "simulation" not in self.enabled:
             predicted = None  # a configuration without the physics prior starts from the copy-forward
@@ -638,7 +648,7 @@ class SlidingWindowEstimator:
             messages.append(f"{pending.num_points_back_facing} point(s) against back faces dropped")
         if pending.back_facing_test_skipped:
             messages.append(f"back-face test skipped: over {MAX_BACK_FACING_SHARE:.0%} of the points lie against faces "
-                            "turned away from the viewpoint (camera_frame's origin), which cannot be the camera's")
+                            "turned away from the viewpoint, which cannot be the camera's")
         if rounds:
             messages.append(f"solved again with the re-estimated measurement sigma {rounds} time(s)")
         if self.config.estimate_weights:

@@ -241,7 +241,7 @@ class PhysicsPriorFactor(Factor):
 def _six_volume_gradients(corners: np.ndarray) -> np.ndarray:
     """Gradient (P, 12) of 6 V w.r.t. the corners (P, 4, 3) of tetrahedra: u x v etc."""
     u, v, w = (corners[:, k] - corners[:, 0] for k in (1, 2, 3))
-    by_corner = np.stack([np.cross(v, w), np.cross(w, u), np.cross(u, v)], axis=1)  # d(6V)/dx_1..3
+    by_corner = np.stack([cross(v, w), cross(w, u), cross(u, v)], axis=1)  # d(6V)/dx_1..3
     return np.concatenate([-by_corner.sum(axis=1, keepdims=True), by_corner], axis=1).reshape(-1, 12)
 
 

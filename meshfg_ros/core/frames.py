@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from meshfg_ros.core.input_checks import DEFAULT_CLOCK_JUMP_THRESHOLD_S, NS_PER_S
+from meshfg_ros.core.input_checks import DEFAULT_CLOCK_JUMP_THRESHOLD_S, JUMP_BACK, NS_PER_S, stamp_order
 from meshfg_ros.core.pose_history import (
     InvalidPoseError,
     OutsideHistory,
@@ -46,7 +46,6 @@ from meshfg_ros.core.pose_history import (
 
 __all__ = [
     "DEFAULT_BUFFER_DURATION_S",
-    "DEFAULT_JUMP_BACK_S",
     "FrameLookupError",
     "InvalidTransformError",
     "StampedTransform",
@@ -55,7 +54,6 @@ __all__ = [
 ]
 
 DEFAULT_BUFFER_DURATION_S = 10.0  # tf2's default cache time
-DEFAULT_JUMP_BACK_S = DEFAULT_CLOCK_JUMP_THRESHOLD_S  # as the nodes' other streams
 # Per edge: 10 s of a 1 kHz /tf stream (a robot arm's joint states), 0.6 MB.
 DEFAULT_MAX_SAMPLES_PER_EDGE = 10_000
 
@@ -120,7 +118,7 @@ class TransformBuffer:
     def __init__(self, buffer_duration_s: float = DEFAULT_BUFFER_DURATION_S,
                  extrapolation_horizon_s: float = 0.0,
                  max_samples_per_edge: int = DEFAULT_MAX_SAMPLES_PER_EDGE,
-                 jump_back_s: float = DEFAULT_JUMP_BACK_S):
+                 jump_back_s: float = DEFAULT_CLOCK_JUMP_THRESHOLD_S):
         if not buffer_duration_s > 0.0:
             raise ValueError(f"buffer_duration_s must be > 0, got {buffer_duration_s}")
         if not extrapolation_horizon_s >= 0.0:
@@ -183,8 +181,8 @@ class TransformBuffer:
         if static:
             self._edges[child] = _Edge(parent, pose, None)
             return True
-        jumped_back = (edge is not None and edge.history is not None and edge.history.newest_ns is not None
-                       and stamp < edge.history.newest_ns - self.jump_back_ns)
+        jumped_back = (edge is not None and edge.history is not None
+                       and stamp_order(edge.history.newest_ns, stamp, self.jump_back_ns) == JUMP_BACK)
         if edge is None or edge.parent != parent or edge.history is None or jumped_back:
             edge = _Edge(parent, None, PoseHistory(self.buffer_duration_ns, self.max_samples_per_edge))
             self._edges[child] = edge

@@ -338,7 +338,7 @@ class TetMesh:
 
     def _triangle_area_normals(self, vertices: np.ndarray) -> np.ndarray:
         corners = vertices[self.surface_triangles]
-        return np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        return cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
 
     def _state(self, vertices) -> np.ndarray:
         if vertices is None:

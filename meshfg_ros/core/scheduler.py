@@ -28,7 +28,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -279,7 +279,6 @@ class EstimationScheduler:
                  tool_pose_extrapolation: float = TOOL_POSE_HORIZON_S,
                  timeouts: SchedulingTimeouts = SchedulingTimeouts()) -> None:
         self.mesh = mesh
-        self.config = config
         self.timeouts = timeouts
         self.estimator = SlidingWindowEstimator(mesh, config)
         self.scene = check_initial_mesh(mesh.vertices)
@@ -296,9 +295,9 @@ class EstimationScheduler:
 
     def reconfigure(self, changes: dict) -> None:
         """Apply changed dynamic settings (field name -> value) from the next update on, also after
-        a restart; EstimatorConfigError, and nothing changed, for a value the estimator refuses."""
+        a restart (SlidingWindowEstimator.restarted); EstimatorConfigError, and nothing changed,
+        for a value the estimator refuses."""
         self.estimator.reconfigure(**changes)
-        self.config = replace(self.config, **changes)
 
     @property
     def queued(self) -> int:
@@ -410,7 +409,7 @@ class EstimationScheduler:
         """Run one step on the estimator. A failed update leaves the window as it was; a
         non-finite result (never returned) restarts the estimator from the initial mesh."""
         if step.restart:
-            self.estimator = SlidingWindowEstimator(self.mesh, self.config)
+            self.estimator = self.estimator.restarted()
         try:
             result = self.estimator.update(step.stamp_ns, step.points, step.predicted, step.tool_pose, step.viewpoint)
         except (EstimatorInputError, EstimatorStepError) as error:
@@ -419,7 +418,7 @@ class EstimationScheduler:
             if _finite(result):
                 outcome = StepOutcome(step, result)
             else:
-                self.estimator = SlidingWindowEstimator(self.mesh, self.config)
+                self.estimator = self.estimator.restarted()
                 outcome = StepOutcome(step, None, "the estimate is not finite: the estimator restarts from the "
                                       "initial mesh", "nonfinite_estimates")
         self._solver_free_s = now() if now is not None else 0.0

@@ -113,13 +113,16 @@ class WorldFrameInputs:
                 raise
             return self.fallback[frame_id]
 
-    def _viewpoint(self, stamp_ns: int) -> np.ndarray | None:
+    def _viewpoint(self, item: FramedInput, matrix: np.ndarray | None) -> np.ndarray | None:
+        """viewpoint_frame's origin at the cloud's stamp (`matrix`: the cloud frame's, reused when
+        the cloud comes in viewpoint_frame), or None where it cannot be placed."""
         if self.viewpoint_frame is None:
             return None
-        try:
-            matrix = self._matrix(self.viewpoint_frame, stamp_ns)
-        except FrameLookupError:
-            return None
+        if item.frame_id != self.viewpoint_frame:
+            try:
+                matrix = self._matrix(self.viewpoint_frame, item.stamp_ns)
+            except FrameLookupError:
+                return None
         return np.zeros(3) if matrix is None else np.array(matrix[:3, 3], dtype=np.float64)
 
     def _placed(self, item: FramedInput) -> FramedInput:
@@ -127,7 +130,7 @@ class WorldFrameInputs:
         if item.kind == CLOUD:
             points = item.data if matrix is None else transform_points(matrix, item.data)
             return FramedInput(CLOUD, item.stamp_ns, self.world_frame, points, item.arrival_s,
-                               viewpoint=self._viewpoint(item.stamp_ns))
+                               viewpoint=self._viewpoint(item, matrix))
         if matrix is None:
             return item
         return FramedInput(POSE, item.stamp_ns, self.world_frame, pose_in(matrix, item.data), item.arrival_s)
