@@ -42,6 +42,7 @@ from meshfg_ros.core.scheduler import SchedulingTimeouts
 from meshfg_ros.core.world_frame import DEFAULT_TRANSFORM_WAIT_S, WorldFrameInputs
 from meshfg_ros.core.settings import setting, settings_of
 from meshfg_ros.core.simulator import SimulatorConfig
+from meshfg_ros.core.tool_poses import DEFAULT_EXTRAPOLATION_HORIZON_S
 
 __all__ = [
     "NODE_CONFIGURATIONS",
@@ -252,7 +253,7 @@ class SharedNodeConfig:
         DEFAULT_TRANSFORM_WAIT_S, "Seconds (wall time) a cloud or tool pose in another frame than world_frame waits for /tf to place "
         "it at its stamp; then it is rejected with the reason.", range=(0.0, 60.0))
     tool_pose_horizon: float = setting(
-        0.05, "Seconds past the newest tool pose within which the pose at a cloud's stamp is extrapolated "
+        DEFAULT_EXTRAPOLATION_HORIZON_S, "Seconds past the newest tool pose within which the pose at a cloud's stamp is extrapolated "
         "(tool poses are interpolated at each cloud's stamp); beyond it the step has no tool pose.",
         range=(0.0, 10.0))
 

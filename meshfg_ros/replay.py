@@ -143,9 +143,11 @@ class ReplayResult:
 
 def load_inputs(path: str | Path, mesh_path: str | Path | None = None,
                 overrides: Mapping[str, Any] | None = None) -> ReplayInputs:
-    """Read the replay's inputs; the initial mesh comes from `mesh_path` if given, scaled, placed
-    and with the fixed vertices that the replay's parameters select (mesh_scale, mesh_pose,
-    fixed_*, from the recording's defaults and `overrides`), as the nodes load mesh_file."""
+    """Read the replay's inputs; the initial mesh comes from `mesh_path`, else from the mesh_file
+    of `overrides`, if either is given, scaled, placed and with the fixed vertices that the
+    replay's parameters select (mesh_scale, mesh_pose, fixed_*, from the recording's defaults
+    and `overrides`), as the nodes load mesh_file."""
+    mesh_path = mesh_path or (overrides or {}).get("mesh_file") or None
     with RecordingReader(path) as reader:
         reader.require(TOOL_POSE_TOPIC, PoseRecord)
         reader.require(POINTS_TOPIC, PointCloudRecord)

@@ -10,10 +10,9 @@ import yaml
 from rcl_interfaces.msg import ParameterType
 
 from meshfg_ros.core.estimator import EstimatorConfig
-from meshfg_ros.core.settings import setting, settings_of
+from meshfg_ros.core.settings import setting
 from meshfg_ros.core.world_frame import CLOUD, FramedInput
 from meshfg_ros.parameters import (
-    NODE_CONFIGURATIONS,
     PARAMETERS,
     ParameterError,
     check_parameter_names,
@@ -184,12 +183,6 @@ def test_the_parameters_are_the_setting_fields_of_the_configurations():
     assert internal == {"damping", "gravity", "deterministic"}
     assert set(parameter_names(EstimatorConfig)) == {item.name for item in fields(EstimatorConfig)}
     by_name = {parameter.name: parameter for parameter in PARAMETERS}
-    for config_class in {c for configurations in NODE_CONFIGURATIONS.values() for c in configurations}:
-        for field_name, default, spec in settings_of(config_class):
-            parameter = node_parameters("bag_player" if config_class.__name__ == "PlaybackConfig" else None)
-            parameter = {p.name: p for p in parameter}[spec.parameter or field_name]
-            assert (parameter.default, parameter.description, parameter.range) == (default, spec.description,
-                                                                                   spec.range), field_name
     assert by_name["camera_pose"].type == "double_array" and by_name["grasped_vertices"].type == "integer_array"
     assert {name for name, parameter in by_name.items() if parameter.dynamic} == {
         "measurement_sigma", "simulation_sigma", "temporal_sigma", "robust_scale", "gating_distance", "marker_std_max"}

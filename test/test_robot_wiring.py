@@ -91,7 +91,7 @@ def wired(tmp_path_factory):
     overrides = {**scenario_parameters(source.metadata, source.camera_pose), "mesh_file": str(mesh_mm),
                  "mesh_scale": 1e-3}
     live = run_live_pipeline(workdir / "robot", workdir / "live", rate=RATE, overrides=overrides)
-    replayed = replay_recording(workdir / "robot", {**LIVE_OVERRIDES, **overrides}, mesh_path=mesh_mm)
+    replayed = replay_recording(workdir / "robot", {**LIVE_OVERRIDES, **overrides})  # mesh_file, as live
     return live, replayed, original
 
 

@@ -139,7 +139,11 @@ def run_live_pipeline(
             processes[name] = _start(command, logs[name], workdir, env)
         _wait_until_ready(workdir / READY_FILE, processes, timeout_s)
         statics = {static for _, static, _ in inputs.transforms}  # the recording's transform topics
-        played = [TOOL_POSE_TOPIC, POINTS_TOPIC] + [TF_STATIC_TOPIC] * (True in statics) + [TF_TOPIC] * (False in statics)
+        played = [TOOL_POSE_TOPIC, POINTS_TOPIC]
+        if True in statics:
+            played.append(TF_STATIC_TOPIC)
+        if False in statics:
+            played.append(TF_TOPIC)
         if not params["mesh_file"]:
             played.insert(0, INITIAL_MESH_TOPIC)
         # Each played topic has two readers (both nodes; points: the estimator and the recorder):

@@ -90,8 +90,9 @@ class BagPlayer(Node):
         deadline = time.monotonic() + self.wait_for_subscribers
         last, settled_since = None, time.monotonic()
         while time.monotonic() < deadline:
-            wanted = frozenset(name for name in self._topic_publishers
-                               if self._chosen or self.count_subscribers(name))
+            # by the publisher's own (remapped) topic name: count_subscribers does not remap
+            wanted = frozenset(name for name, publisher in self._topic_publishers.items()
+                               if self._chosen or self.count_subscribers(publisher.topic_name))
             matched = frozenset(name for name, publisher in self._topic_publishers.items()
                                 if publisher.get_subscription_count() >= self.subscribers)
             if (wanted, matched) != last:

@@ -124,9 +124,11 @@ class EstimatorNode(Node):
             if self._scheduler is None:
                 return
             if item.kind == POSE:
-                return self._scheduler.add_tool_pose(item.stamp_ns, item.data)
-            notes = self._scheduler.add_cloud(item.stamp_ns, item.data, item.arrival_s, item.viewpoint)
-        if cloud_queued(notes):
+                self._scheduler.add_tool_pose(item.stamp_ns, item.data)
+                notes = []
+            else:
+                notes = self._scheduler.add_cloud(item.stamp_ns, item.data, item.arrival_s, item.viewpoint)
+        if item.kind == CLOUD and cloud_queued(notes):
             self._requests.publish(header_msg(item.stamp_ns, self._frame, RCLPY_FACTORY))
         self.outputs.note(notes)
         self._solver.wake()
