@@ -195,3 +195,17 @@ def test_leaks_behind_the_silhouette_are_dropped_with_the_camera_viewpoint(scene
     assert rmse(seeing.positions, clean.positions) < 0.1 * rmse(blind.positions, clean.positions)
     with pytest.raises(EstimatorInputError, match="viewpoint"):
         SlidingWindowEstimator(mesh, config).update(1, step.points, step.predicted, viewpoint=[0.0, np.nan, 1.0])
+
+
+def test_an_update_solved_again_after_re_weighting_reports_every_run(scene):
+    """A nominal sigma 10x the real noise makes the first update re-weight and solve again; the
+    steps its first run accepted still count, and each run's summary is in the message."""
+    import re
+
+    mesh, sequence = scene
+    step = sequence[0]
+    estimator = SlidingWindowEstimator(mesh, EstimatorConfig(measurement_sigma=5e-3))
+    result = estimator.update(step.stamp_ns, step.points, step.predicted)
+    runs = [int(accepted) for accepted in re.findall(r"(\d+) of \d+ steps accepted", result.message)]
+    assert "re-weighted (measurement sigma" in result.message and len(runs) >= 2
+    assert result.accepted_steps == sum(runs) and runs[0] >= 1

@@ -282,17 +282,17 @@ class StepResult:
     positions: np.ndarray          # (N, 3) newest state
     position_std: np.ndarray       # (N,) sqrt(trace(Sigma_ii) / 3), 0 on fixed vertices
     iterations: int
-    initial_cost: float
-    final_cost: float
-    converged: bool
+    initial_cost: float            # of the last LM run (after any re-weighting: costs at the final weights)
+    final_cost: float              # of the last LM run
+    converged: bool                # whether the last LM run passed an optimality test
     degraded: bool
     solve_time_ms: float
     num_points: int
     num_points_rejected: int
     window_size: int
     message: str = ""
-    cost_history: list = field(default_factory=list)
-    accepted_steps: int = 0
+    cost_history: list = field(default_factory=list)  # of the last LM run
+    accepted_steps: int = 0        # over all LM runs of the update (iterations too)
     measurement_sigma: float = 0.0   # m, the measurement noise the update was weighted with (estimated)
     simulation_sigma: float = 0.0    # m, the simulation sigma the prior's weight corresponds to (estimated)
     linear_solve_ms: list = field(default_factory=list)  # wall time of each linear solve of the update's LM runs
@@ -630,27 +630,25 @@ class SlidingWindowEstimator:
         most MAX_REWEIGHT_ROUNDS times: typically the first update, from the nominal sigma)."""
         graph = self.graph
         messages = pending.messages
-        lm_messages = []
-        result = self._optimise(lm_messages)
-        iterations, rounds, solve_times = result["iterations"], 0, list(result["solve_times_ms"])
+        result = self._optimise(messages)
+        iterations, accepted, rounds = result["iterations"], result["accepted_steps"], 0
+        solve_times = list(result["solve_times_ms"])
         while self.config.estimate_weights:
             distances = self._residual_distances(pending.key)
             if distances is None or self.noise.observe(distances) <= REWEIGHT_CHANGE or rounds == MAX_REWEIGHT_ROUNDS:
                 break
             rounds += 1
             graph.replace_state_factors(pending.key, self._state_factors(pending))
-            lm_messages = []
-            result = self._optimise(lm_messages)
+            messages.append(f"re-weighted (measurement sigma {1e3 * self.noise.sigma:.3g} mm):")
+            result = self._optimise(messages)
             iterations += result["iterations"]
+            accepted += result["accepted_steps"]
             solve_times += result["solve_times_ms"]
-        messages.extend(lm_messages)
         if pending.num_points_back_facing:
             messages.append(f"{pending.num_points_back_facing} point(s) against back faces dropped")
         if pending.back_facing_test_skipped:
             messages.append(f"back-face test skipped: over {MAX_BACK_FACING_SHARE:.0%} of the points lie against faces "
                             "turned away from the viewpoint, which cannot be the camera's")
-        if rounds:
-            messages.append(f"solved again with the re-estimated measurement sigma {rounds} time(s)")
         if self.config.estimate_weights:
             messages.append(f"weights: measurement sigma {1e3 * self.noise.sigma:.3g} mm, "
                             f"simulation sigma {1e3 * self.simulation_sigma:.3g} mm")
@@ -664,7 +662,7 @@ class SlidingWindowEstimator:
             solve_time_ms=1e3 * (time.perf_counter() - pending.start), num_points=pending.num_points,
             num_points_rejected=pending.num_points_rejected + pending.num_points_gated, window_size=len(graph.keys),
             message="; ".join(messages), cost_history=result["cost_history"],
-            accepted_steps=result["accepted_steps"], measurement_sigma=self.noise.sigma,
+            accepted_steps=accepted, measurement_sigma=self.noise.sigma,
             simulation_sigma=self.simulation_sigma, linear_solve_ms=solve_times,
         )
 
