@@ -163,7 +163,8 @@ def test_bad_input_and_nan_points(scene):
     assert result.num_points == 0 and result.num_points_rejected == 1
 
 
-@pytest.mark.parametrize("field, value", [("factors", "all"), ("window_size", 0), ("measurement_sigma", -1.0),
+@pytest.mark.parametrize("field, value", [("factors", "all"), ("window_size", 0), ("window_size", 2.0),
+                                          ("max_iterations", True), ("measurement_sigma", -1.0),
                                           ("robust_kernel", "tukey"), ("linear_solver", "qr"),
                                           ("stiffness_kind", "stvk"), ("tool_mode", "scalpel")])
 def test_config_validation(field, value):

@@ -271,6 +271,7 @@ def test_diverging_xpbd_is_reported_not_returned():
         ({"solver": "pbd"}, "solver"),
         ({"substeps": 0}, "substeps"),
         ({"solver_iterations": 2.5}, "solver_iterations"),
+        ({"substeps": 2.0}, "substeps must be an integer"),
         ({"damping": 1.5}, "damping"),
         ({"gravity": (0.0, 9.81)}, "gravity"),
         ({"deterministic": False}, "deterministic"),

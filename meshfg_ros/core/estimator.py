@@ -268,9 +268,6 @@ class EstimatorConfig:
 
     def __post_init__(self):
         check_settings(self, EstimatorConfigError)
-        for name in ("window_size", "max_iterations"):
-            if not isinstance(getattr(self, name), (int, np.integer)):
-                raise EstimatorConfigError(f"{name} must be an integer, got {getattr(self, name)!r}")
 
 
 @dataclass

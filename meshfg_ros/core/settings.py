@@ -65,12 +65,15 @@ def dynamic_fields(config_class: type) -> frozenset[str]:
 
 def check_settings(config: Any, error: type[Exception] = ValueError) -> None:
     """Check each set field of the dataclass instance `config` against its Setting: a string among
-    the choices, a number (each element of an array) finite and within the range. None passes
-    (a field whose None means "not set"). Raises `error` naming the field."""
-    for name, _, spec in settings_of(type(config)):
+    the choices, an integer where the default is one, a number (each element of an array) finite
+    and within the range. None passes (a field whose None means "not set"). Raises `error`
+    naming the field."""
+    for name, default, spec in settings_of(type(config)):
         value = getattr(config, name)
         if value is None:
             continue
+        if _is_integer(default) and not _is_integer(value):
+            raise error(f"{name} must be an integer, got {value!r}")
         if spec.choices is not None and value not in spec.choices:
             raise error(f"{name} must be one of {', '.join(spec.choices)}; got {value!r}")
         if spec.range is None:
@@ -80,3 +83,7 @@ def check_settings(config: Any, error: type[Exception] = ValueError) -> None:
             if (isinstance(item, bool) or not isinstance(item, numbers.Real) or not math.isfinite(item)
                     or (low is not None and item < low) or (high is not None and item > high)):
                 raise error(f"{name} must be finite and within [{low}, {high}], got {value!r}")
+
+
+def _is_integer(value: Any) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)

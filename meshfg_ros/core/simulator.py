@@ -144,11 +144,6 @@ class SimulatorConfig:
     def __post_init__(self):
         check_settings(self, SimulatorConfigError)
         checks = [
-            (int(self.substeps) == self.substeps and self.substeps >= 1, "substeps must be an integer >= 1"),
-            (
-                int(self.solver_iterations) == self.solver_iterations and self.solver_iterations >= 1,
-                "solver_iterations must be an integer >= 1",
-            ),
             (0.0 <= self.damping <= 1.0, "damping must lie in [0, 1]"),
             (
                 np.shape(self.gravity) == (3,) and bool(np.all(np.isfinite(self.gravity))),
