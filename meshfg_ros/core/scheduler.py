@@ -28,7 +28,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -284,8 +284,7 @@ class EstimationScheduler:
         self.scene = check_initial_mesh(mesh.vertices)
         self._jump_ns = _jump_ns(clock_jump_threshold)
         self._poses = ToolPoseBuffer(extrapolation_horizon_s=tool_pose_extrapolation)
-        # stamp, points, arrival, restart, viewpoint
-        self._clouds: deque[tuple[int, np.ndarray, float, bool, np.ndarray | None]] = deque()
+        self._clouds: deque[CloudStep] = deque()  # prediction and tool pose filled in by next_step
         self._answers: dict[int, Prediction] = {}
         self._newest_cloud_ns: int | None = None
         self._newest_answer_ns: int | None = None
@@ -325,10 +324,10 @@ class EstimationScheduler:
             notes.append(Rejection("clock_jumps_back",
                                    f"cloud stamp jumped back by {back_s:.3f} s: restarting from the initial mesh"))
         self._newest_cloud_ns = stamp_ns
-        self._clouds.append((stamp_ns, points, now_s, restart, viewpoint))
+        self._clouds.append(CloudStep(stamp_ns, points, now_s, None, None, restart, viewpoint))
         if len(self._clouds) > MAX_QUEUED_CLOUDS:
             dropped = self._clouds.popleft()
-            notes.append(Rejection("clouds_dropped_backlog", f"cloud at {dropped[0]} ns dropped: "
+            notes.append(Rejection("clouds_dropped_backlog", f"cloud at {dropped.stamp_ns} ns dropped: "
                                    f"{MAX_QUEUED_CLOUDS} clouds wait for the solver"))
         return notes
 
@@ -382,8 +381,9 @@ class EstimationScheduler:
         """The oldest cloud if it is ready to run (module docstring), else None."""
         if not self._clouds:
             return None
-        stamp, points, arrival_s, restart, viewpoint = self._clouds[0]
-        waited = flush or now_s - max(arrival_s, self._solver_free_s) >= self.timeouts.prediction_timeout
+        queued = self._clouds[0]
+        stamp = queued.stamp_ns
+        waited = flush or now_s - max(queued.arrival_s, self._solver_free_s) >= self.timeouts.prediction_timeout
         answer = self._answers.get(stamp)
         later_answer = any(stamp < other <= self._newest_cloud_ns for other in self._answers)
         if answer is None and not (later_answer or waited):
@@ -397,7 +397,7 @@ class EstimationScheduler:
         self._last_step_ns = stamp
         tool_pose = answer.tool_pose if answer is not None and answer.tool_pose is not None else self._tool_pose(stamp)
         predicted = answer.positions if answer is not None else None
-        return CloudStep(stamp, points, arrival_s, predicted, tool_pose, restart, viewpoint)
+        return replace(queued, predicted=predicted, tool_pose=tool_pose)
 
     def _tool_pose(self, stamp_ns: int) -> np.ndarray | None:
         try:
