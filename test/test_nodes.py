@@ -294,6 +294,47 @@ def test_simulation_node_predicts_from_the_latest_estimate(probe, processes, tmp
     assert_clean_exit(node, node.interrupt())
 
 
+@pytest.mark.slow
+def test_simulation_node_answers_the_requests_and_poses_that_came_before_its_mesh(probe, processes, tmp_path):
+    mesh = pushed_cube()
+    node = Process(tmp_path, "simulation_node", *ros_args("/simearly", "tool_radius:=0.01"))
+    processes.append(node)
+    predictions, reports = [], []
+
+    def on_diagnostics(msg):
+        reports.extend((status.message, {kv.key: kv.value for kv in status.values})
+                       for status in msg.status if status.name == "/simearly/simulation_node: simulation")
+
+    prediction_subscription = probe.create_subscription(TetraMesh, "/simearly/predicted_mesh", predictions.append,
+                                                        KEEP)
+    probe.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, KEEP)
+    mesh_publisher = probe.create_publisher(TetraMesh, "/simearly/initial_mesh", LATCHED)
+    pose_publisher = probe.create_publisher(PoseStamped, "/simearly/tool_pose", KEEP)
+    request_publisher = probe.create_publisher(Header, "/simearly/prediction_request", KEEP)
+    assert spin_until(probe, lambda: pose_publisher.get_subscription_count() == 1
+                      and request_publisher.get_subscription_count() == 1
+                      and prediction_subscription.get_publisher_count() == 1 and reports)
+    centre = np.array([SIDE / 3, SIDE / 3, SIDE + 0.011])  # above a vertex of the top face
+    pushed = centre - [0.0, 0.0, 2e-3]
+    pose_publisher.publish(tool_pose_msg(centre, 1 * S))
+    pose_publisher.publish(tool_pose_msg(pushed, 2 * S))
+    request_publisher.publish(header_msg(2 * S, "world", FACTORY))
+    assert spin_until(probe, lambda: reports[-1][1].get("inputs_held_before_mesh") == "3"), reports[-1]
+    assert reports[-1][0] == "waiting for initial_mesh; 3 inputs held until it comes"
+    assert not predictions
+    mesh_publisher.publish(mesh_msg(mesh))
+    assert spin_until(probe, lambda: predictions), node.output()
+    simulator = ElasticSimulator(mesh, simulator_config(load_parameters({"tool_radius": 0.01})))
+    simulator.reset(np.concatenate([centre, [0.0, 0.0, 0.0, 1.0]]))
+    expected = simulator.predict(mesh.vertices, np.concatenate([pushed, [0.0, 0.0, 0.0, 1.0]]), 1.0)
+    assert stamp_ns_from_msg(predictions[0].header.stamp) == 2 * S
+    np.testing.assert_allclose(np.asarray(predictions[0].positions).reshape(-1, 3), expected, rtol=0, atol=1e-12)
+    assert not np.allclose(expected, mesh.vertices, rtol=0, atol=1e-4)  # the held poses did push the cube
+    assert spin_until(probe, lambda: reports[-1][1].get("predictions") == "1"
+                      and reports[-1][1].get("inputs_dropped_before_mesh") == "0"), reports[-1]
+    assert_clean_exit(node, node.interrupt())
+
+
 # ---------------------------------------------------------------------------- estimator node
 class EstimatorProbe:
     """Publishes the estimator node's inputs and collects its outputs."""
@@ -403,6 +444,24 @@ def test_estimator_node_survives_bad_input_and_recovers_from_a_missing_simulator
     top = np.isclose(mesh.vertices[:, 2], SIDE)
     assert np.abs(np.asarray(io.estimates[2].positions).reshape(-1, 3)[top, 2] - SIDE).max() < 2e-3
     assert node.alive()
+    assert_clean_exit(node, node.interrupt())
+
+
+@pytest.mark.slow
+def test_estimator_node_estimates_a_cloud_that_came_before_its_mesh(probe, processes, tmp_path):
+    node = Process(tmp_path, "estimator_node", *ros_args("/estearly", "prediction_timeout:=0.3", "window_size:=3"))
+    processes.append(node)
+    io = EstimatorProbe(probe, "/estearly")
+    assert spin_until(probe, lambda: io.cloud.get_subscription_count() == 1
+                      and io.status_subscription.get_publisher_count() == 1)
+    io.wait_for(clouds_received=0)
+    io.send(cloud_msg(top_points(), 1 * S), clouds_received=1, inputs_held_before_mesh=1)
+    assert io.diagnostics[-1][0] == "waiting for initial_mesh; 1 inputs held until it comes"
+    io.mesh.publish(mesh_msg(pushed_cube()))
+    io.wait_for(steps=1, degraded_steps=1, inputs_dropped_before_mesh=0)  # no simulator here: degraded
+    assert spin_until(probe, lambda: io.statuses)
+    assert stamp_ns_from_msg(io.statuses[0].header.stamp) == 1 * S
+    assert io.statuses[0].num_points == len(top_points())
     assert_clean_exit(node, node.interrupt())
 
 

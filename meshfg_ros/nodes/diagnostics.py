@@ -51,6 +51,8 @@ class EstimatorCounters(_Counters):
     predictions_rejected_inverted: int = 0
     predictions_rejected_innovation: int = 0
     tool_poses_ignored_far: int = 0
+    inputs_held_before_mesh: int = 0    # clouds and tool poses kept until the mesh came
+    inputs_dropped_before_mesh: int = 0  # the oldest of those, beyond what is kept (nodes/held_inputs.py)
     steps: int = 0
     degraded_steps: int = 0
     failed_steps: int = 0
@@ -104,6 +106,8 @@ class SimulatorCounters(_Counters):
     predictions: int = 0
     predictions_failed: int = 0
     estimates_ignored: int = 0          # wrong vertex count, not finite, or far outside the scene
+    inputs_held_before_mesh: int = 0    # tool poses, requests and estimates kept until the mesh came
+    inputs_dropped_before_mesh: int = 0  # the oldest of those, beyond what is kept (nodes/held_inputs.py)
     last_prediction_ms: float = float("nan")
     # requests answered without a prediction for want of a tool pose, by reason (core/tool_poses.py)
     tool_pose_unavailable_empty: int = 0
@@ -121,6 +125,14 @@ class SimulatorCounters(_Counters):
         values = {name: _text(value) for name, value in asdict(self).items()}
         values["tool_poses_rejected"] = str(self.tool_poses_rejected)
         return values
+
+
+def waiting_for_mesh_message(counters: EstimatorCounters | SimulatorCounters) -> str:
+    """What a node without its mesh says, with the inputs it holds until the mesh comes."""
+    held, dropped = counters.inputs_held_before_mesh, counters.inputs_dropped_before_mesh
+    if not held:
+        return "waiting for initial_mesh"
+    return f"waiting for initial_mesh; {held} inputs held until it comes" + (f", {dropped} dropped" if dropped else "")
 
 
 def _text(value) -> str:
@@ -170,7 +182,7 @@ class EstimatorHealth:
             if unanswered_s > self.stalled_after_s:
                 return ERROR, (f"clouds arrive for {unanswered_s:.0f} s but there is no mesh: set mesh_file "
                                "or publish initial_mesh")
-            return WARN, "waiting for initial_mesh"
+            return WARN, waiting_for_mesh_message(counters)
         if unanswered_s > self.stalled_after_s:
             if new_rejections or counters.steps == 0 and counters.clouds_rejected:
                 why = f"every cloud is rejected; the last: {last_rejection}" if last_rejection else (

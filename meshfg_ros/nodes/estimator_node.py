@@ -7,7 +7,8 @@ the tool are segmentation leaks), `predicted_mesh` and `prediction_failed` (the 
 answers), `initial_mesh` (or parameter mesh_file), /tf and /tf_static. Each accepted cloud is
 announced on `prediction_request` (std_msgs/Header). Publishes the estimate, its status, markers
 and diagnostics (nodes/estimator_outputs.py). Updates run in their own thread, so a long solve
-does not make DDS drop input.
+does not make DDS drop input. Clouds and tool poses that arrive before the mesh are held until
+it comes (nodes/held_inputs.py).
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from __future__ import annotations
 import sys
 import threading
 import time
+from dataclasses import replace
 
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
@@ -25,6 +27,7 @@ from std_msgs.msg import Header
 from meshfg_msgs.msg import PredictionFailure, TetraMesh
 from meshfg_ros import blas
 from meshfg_ros.core.scheduler import (
+    MAX_QUEUED_CLOUDS,
     EstimationScheduler,
     Prediction,
     Rejection,
@@ -32,11 +35,13 @@ from meshfg_ros.core.scheduler import (
     StepOutcome,
     cloud_queued,
 )
+from meshfg_ros.core.tool_poses import DEFAULT_MAX_SAMPLES
 from meshfg_ros.core.world_frame import CLOUD, POSE, FramedInput, Unplaceable
 from meshfg_ros.io.messages import MessageValidationError, header_msg, pose_from_msg, stamp_ns_from_msg
 from meshfg_ros.io.pointcloud import PointCloudError, cloud_record_from_msg
 from meshfg_ros.nodes.estimator_outputs import EstimatorOutputs
 from meshfg_ros.nodes.frame_inputs import FrameInputs
+from meshfg_ros.nodes.held_inputs import HeldUntilMesh
 from meshfg_ros.nodes.ros_conversions import PREDICTION_QOS, RCLPY_FACTORY, REQUEST_QOS, STREAM_QOS
 from meshfg_ros.nodes.ros_conversions import InitialMeshSource, positions_from_msg
 from meshfg_ros.nodes.ros_parameters import declare_parameters
@@ -61,6 +66,8 @@ class EstimatorNode(Node):
         self.outputs = EstimatorOutputs(self, self._frame, stalled_after_s, lambda: self.params["marker_std_max"],
                                         self._queued)
         self._requests = self.create_publisher(Header, "prediction_request", REQUEST_QOS)
+        self._held = {POSE: HeldUntilMesh("tool pose", DEFAULT_MAX_SAMPLES),
+                      CLOUD: HeldUntilMesh("cloud", MAX_QUEUED_CLOUDS)}
         self._mesh = InitialMeshSource(self, self._frame, self._set_mesh)
         self._inputs = FrameInputs(self, world_frame_inputs(self.params), self._on_placed, self._on_unplaceable)
         self.create_subscription(TetraMesh, "predicted_mesh", self._on_prediction, PREDICTION_QOS)
@@ -95,6 +102,11 @@ class EstimatorNode(Node):
         with self._lock:
             self._scheduler = scheduler
         self.get_logger().info(f"sparse Cholesky BLAS: {blas.backend().name}, {blas.backend().threads} thread(s)")
+        # Poses first, so the held clouds' leak test sees them; a held cloud's prediction wait
+        # counts from now, when it could first be requested.
+        self._held[POSE].release(self._on_placed)
+        now_s = time.monotonic()
+        self._held[CLOUD].release(lambda item: self._on_placed(replace(item, arrival_s=now_s)))
 
     def _on_cloud(self, msg: PointCloud2) -> None:
         arrival_s = time.monotonic()
@@ -122,7 +134,7 @@ class EstimatorNode(Node):
         """A cloud or tool pose in world_frame: to the scheduler (a cloud also to the simulator)."""
         with self._lock:
             if self._scheduler is None:
-                return
+                return self._hold(item)
             if item.kind == POSE:
                 self._scheduler.add_tool_pose(item.stamp_ns, item.data)
                 notes = []
@@ -132,6 +144,13 @@ class EstimatorNode(Node):
             self._requests.publish(header_msg(item.stamp_ns, self._frame, RCLPY_FACTORY))
         self.outputs.note(notes)
         self._solver.wake()
+
+    def _hold(self, item: FramedInput) -> None:
+        """Keep an input that came before the mesh (counted; an overflow drops the oldest)."""
+        self.outputs.count("inputs_held_before_mesh")
+        dropped = self._held[item.kind].hold(item)
+        if dropped is not None:
+            self.outputs.note([Rejection("inputs_dropped_before_mesh", dropped)])
 
     def _on_unplaceable(self, unplaceable: Unplaceable) -> None:
         if unplaceable.item.kind == CLOUD:

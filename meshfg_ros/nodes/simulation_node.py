@@ -8,6 +8,8 @@ Subscribes `tool_pose` (geometry_msgs/PoseStamped, any rate, any frame placed th
 previous request to the tool pose interpolated at the cloud's stamp), or `prediction_failed`
 (meshfg_msgs/PredictionFailure, same stamp, with the reason) so that the estimator runs that step
 at once without one. The waits and the stamp rule are the scheduler's; counters go to /diagnostics.
+Tool poses, requests and estimates that arrive before the mesh are held until it comes
+(nodes/held_inputs.py).
 """
 
 from __future__ import annotations
@@ -22,11 +24,13 @@ from rclpy.node import Node
 from std_msgs.msg import Header
 
 from meshfg_msgs.msg import PredictionFailure, TetraMesh
-from meshfg_ros.core.scheduler import PredictionScheduler, SchedulingTimeouts
+from meshfg_ros.core.scheduler import MAX_QUEUED_CLOUDS, PredictionScheduler, SchedulingTimeouts
+from meshfg_ros.core.tool_poses import DEFAULT_MAX_SAMPLES
 from meshfg_ros.core.world_frame import POSE, FramedInput, Unplaceable
 from meshfg_ros.io.messages import MessageValidationError, header_msg, pose_from_msg, stamp_ns_from_msg
-from meshfg_ros.nodes.diagnostics import SimulatorCounters, diagnostic_array
+from meshfg_ros.nodes.diagnostics import SimulatorCounters, diagnostic_array, waiting_for_mesh_message
 from meshfg_ros.nodes.frame_inputs import FrameInputs
+from meshfg_ros.nodes.held_inputs import HeldUntilMesh
 from meshfg_ros.nodes.ros_conversions import (
     LATCHED_QOS,
     PREDICTION_QOS,
@@ -58,6 +62,9 @@ class SimulationNode(Node):
         self._last_failure: str | None = None
         self._rejected_at_last_report = 0
         self._ignored_at_last_report = 0
+        self._held_poses = HeldUntilMesh("tool pose", DEFAULT_MAX_SAMPLES)
+        self._held_estimates = HeldUntilMesh("estimated_mesh", MAX_QUEUED_CLOUDS)
+        self._held_requests = HeldUntilMesh("prediction request", MAX_QUEUED_CLOUDS)
         self._publisher = self.create_publisher(TetraMesh, "predicted_mesh", PREDICTION_QOS)
         self._failure_publisher = self.create_publisher(PredictionFailure, "prediction_failed", PREDICTION_QOS)
         self._diagnostics_publisher = self.create_publisher(DiagnosticArray, "/diagnostics", STREAM_QOS)
@@ -79,10 +86,21 @@ class SimulationNode(Node):
             clock_jump_threshold=self.params["clock_jump_threshold"],
             tool_pose_extrapolation=self.params["tool_pose_horizon"])
         self._messages = MeshMessages(state)
+        # Poses first: the requests held with them are then answered from every pose that came.
+        self._held_poses.release(self._on_placed)
+        self._held_estimates.release(self._on_estimate)
+        self._held_requests.release(self._on_request)
+
+    def _hold(self, held: HeldUntilMesh, item) -> None:
+        """Keep an input that came before the mesh (counted; an overflow drops the oldest)."""
+        self.counters.inputs_held_before_mesh += 1
+        dropped = held.hold(item)
+        if dropped is not None:
+            self._count("inputs_dropped_before_mesh", dropped)
 
     def _on_estimate(self, msg: TetraMesh) -> None:
         if self._scheduler is None:
-            return
+            return self._hold(self._held_estimates, msg)
         stamp_ns = stamp_ns_from_msg(msg.header.stamp)
         positions = positions_from_msg(msg, self._scheduler.mesh.vertex_count)
         # A malformed estimate is no estimate: the next request does not wait for it.
@@ -105,7 +123,7 @@ class SimulationNode(Node):
     def _on_placed(self, item: FramedInput) -> None:
         """A tool pose in world_frame."""
         if self._scheduler is None:
-            return
+            return self._hold(self._held_poses, item)
         rejection = self._scheduler.add_tool_pose(item.stamp_ns, item.data)
         if rejection is not None:
             return self._count(rejection.counter, rejection.reason)
@@ -118,10 +136,13 @@ class SimulationNode(Node):
         self._count("tool_poses_rejected_frame", f"tool_pose rejected: {unplaceable.reason}")
 
     def _on_request(self, msg: Header) -> None:
-        if self._scheduler is not None:
-            self.counters.requests += 1
-            self._scheduler.request(stamp_ns_from_msg(msg.stamp), time.monotonic())
-            self._answer()
+        """A cloud's stamp to predict; a held one waits for its estimate and pose from the mesh's
+        arrival on (the estimate_timeout counts from then)."""
+        if self._scheduler is None:
+            return self._hold(self._held_requests, msg)
+        self.counters.requests += 1
+        self._scheduler.request(stamp_ns_from_msg(msg.stamp), time.monotonic())
+        self._answer()
 
     def _answer(self) -> None:
         if self._scheduler is None:
@@ -161,7 +182,7 @@ class SimulationNode(Node):
         self._ignored_at_last_report = counters.estimates_ignored
         level, message = DiagnosticStatus.OK, "predicting"
         if self._scheduler is None:
-            level, message = DiagnosticStatus.WARN, "waiting for initial_mesh"
+            level, message = DiagnosticStatus.WARN, waiting_for_mesh_message(counters)
         elif new_rejections:
             level, message = DiagnosticStatus.WARN, f"{new_rejections} tool poses rejected since the last report"
         elif new_ignored:
