@@ -257,6 +257,50 @@ def test_stale_factors_are_refreshed_and_pcg_resumes_from_its_iterate(cube, mode
     np.testing.assert_allclose(x, reference, rtol=1e-8, atol=1e-10 * np.abs(reference).max())
 
 
+def _solved_blocks(monkeypatch):
+    """Counts of the block factors' solves (one per block per preconditioner application)."""
+    solves = []
+    original = sparse_cholesky.SparseCholesky.solve
+    monkeypatch.setattr(sparse_cholesky.SparseCholesky, "solve",
+                        lambda factor, rhs: solves.append(1) or original(factor, rhs))
+    return solves
+
+
+def test_blocks_with_a_negligible_part_of_the_right_hand_side_are_left_out_of_a_solve(cube, model, monkeypatch):  # noqa: F811
+    """A right-hand side that lives in the newest state (the others' parts 1e-6 of it: states
+    earlier updates converged) and couplings as weak as the estimator's (1e-4 of the blocks'
+    diagonal): PCG solves the newest block alone, its step elsewhere is zero, and the whole
+    residual still meets the tolerance; the decrement matches the one over every block."""
+    damped, rhs = window_system(cube, model)
+    system = WindowSystem(damped.blocks, 3e-3 * damped.couplings, damped.keys, damped.diagonal_index)
+    rhs = rhs.copy()
+    parts = system.split(rhs)
+    parts[:-1] *= 1e-6 * np.linalg.norm(parts[-1]) / np.linalg.norm(parts[:-1])
+    every_block = PCGSolver(tolerance=1e-12, preconditioner="block").decrement(system, -rhs)  # nothing left out
+    solves = _solved_blocks(monkeypatch)
+    pcg = PCGSolver(tolerance=1e-3, preconditioner="block")
+    decrement = pcg.decrement(system, -rhs)
+    assert len(solves) == 1
+    assert decrement == pytest.approx(every_block, rel=1e-9)
+    x, stats = pcg.solve(system, rhs)
+    assert stats.factorizations == 0 and len(solves) == stats.iterations  # the first M^-1 b is the decrement's
+    assert not system.split(x)[:-1].any()
+    assert np.linalg.norm(rhs - system.matvec(x)) <= 1e-3 * np.linalg.norm(rhs)
+
+
+def test_a_left_out_block_that_the_couplings_pull_is_solved_after_all(cube, model):  # noqa: F811
+    """When the kept block's step, through couplings stronger than the estimator's (3.5 % of the
+    diagonal), leaves the left-out rows a residual above the tolerance, PCG goes on over every
+    block from there and meets it."""
+    system, rhs = window_system(cube, model)
+    rhs = rhs.copy()
+    system.split(rhs)[:-1] = 0.0
+    x, stats = PCGSolver(tolerance=1e-6, preconditioner="block").solve(system, rhs)
+    assert stats.factorizations == len(system.keys)
+    assert system.split(x)[:-1].any()
+    assert np.linalg.norm(rhs - system.matvec(x)) <= 1e-6 * np.linalg.norm(rhs)
+
+
 def test_newton_decrement_estimates(cube, model):  # noqa: F811
     """decrement = 0.5 g^T A^-1 g: exact for direct solvers, and for PCG on one block (its
     preconditioner is that block's Cholesky factor); on a window PCG's block-Jacobi estimate

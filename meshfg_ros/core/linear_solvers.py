@@ -43,6 +43,12 @@ __all__ = [
 
 LINEAR_SOLVERS = ("pcg", "cholesky", "superlu")
 PRECONDITIONERS = ("auto", "block", "vertex")
+# PCGSolver leaves out of a solve the blocks whose parts of the right-hand side together are at
+# most this share of its tolerance (times |b|): see the class doc.
+LEFT_OUT_SHARE = 0.5
+# ... and solves the rest to this share of the tolerance, so that the whole residual (the
+# left-out parts included) usually meets it without a second pass.
+KEPT_SHARE = 0.8
 
 
 class LinearSolveError(RuntimeError):
@@ -170,6 +176,14 @@ class PCGSolver(LinearSolver):
     the two newest states and vertex blocks for the rest (some updates take 40 or more),
     x/y/z-separated scalar blocks (a 9 times smaller factor, 25-29 iterations); MKL PARDISO's
     OpenMP threads slow numpy down.
+    Blocks whose parts of b are together at most LEFT_OUT_SHARE of the tolerance (times |b|)
+    are left out: their part of x is zero and the others are solved on their own rows and
+    columns (to KEPT_SHARE of the tolerance); when the whole residual then misses the
+    tolerance, PCG goes on over every block from there. In a sliding window the states that
+    earlier updates converged carry a part of the gradient 1e-3 to 1e-12 of the newest state's
+    (the temporal coupling to it is weak), so a solve and the decrement work on the newest two
+    or three states' factors instead of all W (iSAM2's "wildfire" threshold does the like for
+    variables whose updates are negligible).
     tolerance: relative residual |b - A x| / |b|; max_iterations: cap (LinearSolveError).
     reserved_factors: when the first factor of a sparsity pattern is made, this many in all are
     made at once (the extra ones spares), so that later updates never factor into fresh memory:
@@ -206,6 +220,7 @@ class PCGSolver(LinearSolver):
         self._revision = 0               # counts changes of the preconditioner
         self._preconditioned = None      # (system, revision, b, M^-1 b) of the last `decrement`
         self._prepared = None            # (system, revision) the preconditioner was last made to fit
+        self._kept = None                # (system, kept block indices, their restricted system)
 
     def _mode(self, system: WindowSystem) -> str:
         if self.preconditioner != "auto":
@@ -256,11 +271,30 @@ class PCGSolver(LinearSolver):
         self._refresh(system, mode, force)
         self._prepared = (system, self._revision)
 
+    def _evict(self, window: WindowSystem) -> None:
+        """Factors of states that left the window become spares."""
+        for key in list(self._block_factors):
+            if key not in window.keys:
+                self._spare.append(self._block_factors.pop(key).factor)
+
+    def _solved_part(self, window: WindowSystem, b: np.ndarray) -> tuple[WindowSystem, np.ndarray, np.ndarray | None]:
+        """(system, right-hand side, kept block indices or None for all) of a solve for b on
+        `window`: the blocks whose parts of b are together at most LEFT_OUT_SHARE of the
+        tolerance are left out. One restricted system per (window, kept blocks), so the
+        decrement and the step after it share it."""
+        squared = np.sum(window.split(b) ** 2, axis=1)
+        order = np.argsort(squared, kind="stable")
+        left_out = np.cumsum(squared[order]) <= (LEFT_OUT_SHARE * self.tolerance) ** 2 * squared.sum()
+        if not left_out.any() or left_out.all():
+            return window, b, None
+        kept = np.sort(order[~left_out])
+        cached = self._kept
+        if cached is None or cached[0] is not window or not np.array_equal(cached[1], kept):
+            cached = self._kept = (window, kept, window.restricted(kept))
+        return cached[2], window.split(b)[kept].reshape(-1), kept
+
     def _refresh(self, system: WindowSystem, mode: str, force: bool) -> None:
         if mode == "block":
-            for key in list(self._block_factors):
-                if key not in system.keys:
-                    self._spare.append(self._block_factors.pop(key).factor)
             for t, key in enumerate(system.keys):
                 cached = self._block_factors.get(key)
                 if not force and cached is not None and cached.change(system, t) <= self.refresh_change:
@@ -304,38 +338,58 @@ class PCGSolver(LinearSolver):
         start = time.perf_counter()
         before = self.factorizations
         mode = self._mode(system)
-        self._prepare(system, mode, force=False)
+        self._evict(system)
         b = np.asarray(rhs, dtype=np.float64)
-        x = np.zeros_like(b)
-        total, refreshed = 0, before != self.factorizations
-        first = self._known_preconditioned(system, b)
-        while True:
-            limit = self.max_iterations - total if refreshed else min(self.refresh_iterations, self.max_iterations)
-            x, iterations, converged = self._pcg(system, mode, b, x, limit, first)
-            first = None
-            total += iterations
-            if converged:
-                break
-            if refreshed or total >= self.max_iterations:
-                raise LinearSolveError(f"PCG did not reach relative residual {self.tolerance:g} in {total} iterations")
-            self._prepare(system, mode, force=True)
-            refreshed = True
+        target = self.tolerance * float(np.linalg.norm(b))
+        kept_system, kept_b, kept = self._solved_part(system, b)
+        x, total = np.zeros_like(b), 0
+        if kept is not None:
+            kept_x, total = self._solve_to(kept_system, mode, kept_b, KEPT_SHARE * target)
+            system.split(x)[kept] = kept_x.reshape(len(kept), -1)
+            if np.linalg.norm(b - system.matvec(x)) > target:
+                x, more = self._solve_to(system, mode, b, target, x)
+                total += more
+        else:
+            x, total = self._solve_to(system, mode, b, target)
         stats = SolveStats(f"{self.name}/{mode}", 1e3 * (time.perf_counter() - start), total,
                            self.factorizations - before)
         return x, stats
 
+    def _solve_to(self, system: WindowSystem, mode: str, b: np.ndarray, target: float,
+                  x: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+        """PCG from x (default 0) until |b - A x| <= target: (x, iterations). Factors that
+        fail to get there within refresh_iterations are refreshed once, and PCG goes on."""
+        before = self.factorizations
+        self._prepare(system, mode, force=False)
+        x = np.zeros_like(b) if x is None else x
+        total, refreshed = 0, before != self.factorizations
+        first = self._known_preconditioned(system, b)
+        while True:
+            limit = self.max_iterations - total if refreshed else min(self.refresh_iterations, self.max_iterations)
+            x, iterations, converged = self._pcg(system, mode, b, x, limit, target, first)
+            first = None
+            total += iterations
+            if converged:
+                return x, total
+            if refreshed or total >= self.max_iterations:
+                raise LinearSolveError(f"PCG did not reach relative residual {self.tolerance:g} in {total} iterations")
+            self._prepare(system, mode, force=True)
+            refreshed = True
+
     def decrement(self, system, gradient):
         """0.5 g^T M^-1 g with the preconditioner M (cached factors, block Jacobi: exact in each
-        state's block, blind to the weak temporal coupling): one preconditioner application
-        instead of a PCG solve.
+        state's block, blind to the weak temporal coupling) over the blocks a solve for -g keeps
+        (the others' parts of g are below the tolerance: see the class doc): one preconditioner
+        application instead of a PCG solve.
 
         Levenberg-Marquardt solves for the step on the same system with -g when the test fails,
         and PCG's first iteration applies M to that very -g: M^-1 (-g) = -(M^-1 g) exactly in
         floating point (every operation of the triangular solves is odd in its input), so it is
         kept for `solve` (`_known_preconditioned`) while the system and M stay the same."""
         mode = self._mode(system)
+        self._evict(system)
+        system, gradient, _ = self._solved_part(system, np.asarray(gradient, dtype=np.float64))
         self._prepare(system, mode, force=False)
-        gradient = np.asarray(gradient, dtype=np.float64)
         preconditioned = self._precondition(system, mode, gradient)
         self._preconditioned = (system, self._revision, -gradient, -preconditioned)
         return 0.5 * float(gradient @ preconditioned)
@@ -347,16 +401,15 @@ class PCGSolver(LinearSolver):
             return None
         return known[3]
 
-    def _pcg(self, system: WindowSystem, mode: str, b: np.ndarray, x: np.ndarray, limit: int,
+    def _pcg(self, system: WindowSystem, mode: str, b: np.ndarray, x: np.ndarray, limit: int, target: float,
              first: np.ndarray | None = None):
-        """Preconditioned CG from x for at most `limit` iterations: (x, iterations, converged).
-        `first`: M^-1 b when it is known (for a cold start, x = 0, only)."""
-        norm_b = np.linalg.norm(b)
-        if norm_b == 0.0:
+        """Preconditioned CG from x for at most `limit` iterations, until |b - A x| <= target:
+        (x, iterations, converged). `first`: M^-1 b when it is known (for a cold start, x = 0, only)."""
+        if not b.any():
             return np.zeros_like(b), 0, True
         cold = not x.any()
         residual = b if cold else b - system.matvec(x)  # a cold start needs no product
-        if np.linalg.norm(residual) <= self.tolerance * norm_b:
+        if np.linalg.norm(residual) <= target:
             return x, 0, True
         z = first if cold and first is not None else self._precondition(system, mode, residual)
         direction = z.copy()
@@ -371,7 +424,7 @@ class PCGSolver(LinearSolver):
             step = rz / curvature
             x = x + step * direction
             residual = residual - step * product
-            if np.linalg.norm(residual) <= self.tolerance * norm_b:
+            if np.linalg.norm(residual) <= target:
                 return x, iteration, True
             z = self._precondition(system, mode, residual)
             rz_new = residual @ z

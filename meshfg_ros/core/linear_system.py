@@ -112,14 +112,16 @@ class WindowSystem:
         matrix.sort_indices()
         return cls([matrix], [], [key], diagonal_positions(matrix))
 
-    def _split(self, x: np.ndarray) -> np.ndarray:
+    def split(self, x: np.ndarray) -> np.ndarray:
         return x.reshape(len(self.keys), self.block_size)
 
     def matvec(self, x: np.ndarray) -> np.ndarray:
-        parts = self._split(x)
-        out = np.empty_like(parts)
+        """A x; blocks of x that are zero cost no sparse product (PCGSolver's partial solves)."""
+        parts = self.split(x)
+        out = np.zeros_like(parts)
         for t, block in enumerate(self._base_blocks):
-            out[t] = block @ parts[t]
+            if parts[t].any():
+                out[t] = block @ parts[t]
         if self.diagonal_shift is not None:
             out += self.diagonal_shift * parts
         if len(self.couplings):
@@ -127,13 +129,23 @@ class WindowSystem:
             out[1:] += self.couplings[:, None] * parts[:-1]
         return out.reshape(-1)
 
+    def restricted(self, blocks) -> WindowSystem:
+        """The system of the blocks `blocks` (increasing indices) alone: their rows and columns,
+        with the couplings between those that are neighbours; shares the blocks."""
+        index = np.asarray(blocks, dtype=np.int64)
+        couplings = [self.couplings[t] if s == t + 1 else 0.0 for t, s in zip(index[:-1], index[1:])]
+        shift = None if self.diagonal_shift is None else self.diagonal_shift[index]
+        return WindowSystem([self._base_blocks[t] for t in index], couplings, [self.keys[t] for t in index],
+                            self.diagonal_index, self.coupling_diagonal[index], self._vertex_block_index,
+                            [self.revisions[t] for t in index], shift)
+
     def diagonal(self) -> np.ndarray:
         return np.concatenate([self.block_diagonal(t) for t in range(len(self.keys))])
 
     def with_added_diagonal(self, values: np.ndarray) -> WindowSystem:
         """A new system with `values` (size,) added to the diagonal (the damping); shares the
         blocks with this one."""
-        shift = self._split(np.asarray(values, dtype=np.float64))
+        shift = self.split(np.asarray(values, dtype=np.float64))
         if self.diagonal_shift is not None:
             shift = shift + self.diagonal_shift
         return WindowSystem(self._base_blocks, self.couplings, self.keys, self.diagonal_index, self.coupling_diagonal,
