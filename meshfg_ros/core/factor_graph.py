@@ -300,30 +300,26 @@ class FactorGraph:
         threshold = 0.0 if key in self.exact_keys else self.relinearize_threshold
         return (cached.rebased and threshold == 0.0) or self._moved(cached, state) > threshold
 
-    def _window_geometry(self, states: dict) -> tuple[np.ndarray, np.ndarray]:
-        """Signed volumes and longest edges at corner 0, each (W, M), of the window's states.
+    def _window_geometry(self, states: dict, keys: list) -> tuple[np.ndarray, np.ndarray]:
+        """Signed volumes and longest edges at corner 0, each (len(keys), M), of those states.
         Each state's last result is kept: LM asks at one x repeatedly (`step_fraction` at every
         proposal from x), and a new update finds its older states where the last one left them."""
-        kept_values = [None] * len(self.keys)
+        kept_values = [None] * len(keys)
         missing = []
-        for t, key in enumerate(self.keys):
+        for t, key in enumerate(keys):
             kept = self._state_volumes.get(key)
             if kept is not None and np.array_equal(kept[0], states[key]):
                 kept_values[t] = kept[1]
             else:
                 missing.append(t)
         if missing:
-            volumes, edges = signed_volumes(np.stack([states[self.keys[t]] for t in missing]), self.tetrahedra,
+            volumes, edges = signed_volumes(np.stack([states[keys[t]] for t in missing]), self.tetrahedra,
                                             longest_edges=True)
             for t, values, longest in zip(missing, volumes, edges):
-                key = self.keys[t]
+                key = keys[t]
                 self._state_volumes[key] = (states[key].copy(), (values, longest))
                 kept_values[t] = (values, longest)
         return np.stack([v[0] for v in kept_values]), np.stack([v[1] for v in kept_values])
-
-    def _window_volumes(self, states: dict) -> np.ndarray:
-        """Signed volumes (W, M) of the window's states (kept per state, see _window_geometry)."""
-        return self._window_geometry(states)[0]
 
     def _identity_factors(self) -> list:
         """The identity_blocks factors: evaluated directly, their terms go into the diagonal
@@ -440,22 +436,28 @@ class FactorGraph:
         the edge vectors at corner 0. With L the longest of u, v, w and delta the largest move of
         the element's corners, |6 V(alpha) - 6 V(0)| <= (L + 2 delta)^3 - L^3, which clears most
         elements at once; for the rest the cubic's first crossing of the margin is bracketed on a
-        grid of alpha and refined by bisection, and the result is checked on exact volumes."""
+        grid of alpha and refined by bisection, and the result is checked on exact volumes. States
+        the step leaves alone (PCGSolver's left-out blocks) are not looked at."""
+        step = np.asarray(step, dtype=np.float64)
+        moved = np.flatnonzero(step.reshape(len(self.keys), self.block_size).any(axis=1))
+        if not moved.size:
+            return 1.0
+        keys = [self.keys[t] for t in moved]
         states = self.states_from_x(x)
-        volumes, longest = self._window_geometry(states)
-        moves = np.zeros((len(self.keys), self.dof_count))
-        moves[:, self.free_dofs] = np.asarray(step, dtype=np.float64).reshape(len(self.keys), self.block_size)
-        moves = moves.reshape(len(self.keys), -1, 3)
+        volumes, longest = self._window_geometry(states, keys)
+        moves = np.zeros((len(keys), self.dof_count))
+        moves[:, self.free_dofs] = step.reshape(len(self.keys), self.block_size)[moved]
+        moves = moves.reshape(len(keys), -1, 3)
         squared = np.einsum("wni,wni->wn", moves, moves)
         first, second, third, fourth = self._corner_columns
         largest = np.sqrt(np.maximum(np.maximum(squared[:, first], squared[:, second]),
-                                     np.maximum(squared[:, third], squared[:, fourth])))  # (W, M)
+                                     np.maximum(squared[:, third], squared[:, fourth])))  # (moved states, M)
         margin = MIN_VOLUME_RATIO_PER_STEP * 6.0 * volumes
         candidates = (volumes > 0.0) & ((longest + 2.0 * largest) ** 3 - longest**3 >= 6.0 * volumes - margin)
         if not candidates.any():
             return 1.0
         state_index, element = np.nonzero(candidates)
-        window = np.stack([states[key] for key in self.keys])
+        window = np.stack([states[key] for key in keys])
         corners = window[state_index[:, None], self.tetrahedra[element]]      # (P, 4, 3)
         corner_moves = moves[state_index[:, None], self.tetrahedra[element]]  # (P, 4, 3)
         u, v, w = (corners[:, k] - corners[:, 0] for k in (1, 2, 3))
@@ -486,8 +488,7 @@ class FactorGraph:
         fraction = float(low.min())
         positive = volumes > 0.0
         for _ in range(_STEP_FRACTION_HALVINGS):
-            trial = x + fraction * np.asarray(step, dtype=np.float64)
-            trial_volumes = self._window_volumes(self.states_from_x(trial))
+            trial_volumes = self._window_geometry(self.states_from_x(x + fraction * step), keys)[0]
             if not np.any(positive & (6.0 * trial_volumes < margin)):
                 return fraction
             fraction *= 0.5
