@@ -241,7 +241,7 @@ def format_report(result: dict) -> str:
         lines.append(f"Live pipeline (separate node processes, real DDS, rate {live['rate']:g}): cloud arrival to "
                      f"estimate received downstream, median {live['latency_ms_median']:.0f} ms, p95 "
                      f"{live['latency_ms_p95']:.0f} ms over {live['steps']} steps (solve {live['solve_time_ms_median']:.0f} ms, "
-                     f"ROS overhead {live['overhead_ms_median']:.0f} ms, {live['degraded_steps']} degraded){_on(live)}")
+                     f"prediction, transport and pairing {live['overhead_ms_median']:.0f} ms, {live['degraded_steps']} degraded){_on(live)}")
     return "\n".join(lines)
 
 
