@@ -180,10 +180,10 @@ class PCGSolver(LinearSolver):
     are left out: their part of x is zero and the others are solved on their own rows and
     columns (to KEPT_SHARE of the tolerance); when the whole residual then misses the
     tolerance, PCG goes on over every block from there. In a sliding window the states that
-    earlier updates converged carry a part of the gradient 1e-3 to 1e-12 of the newest state's
-    (the temporal coupling to it is weak), so a solve and the decrement work on the newest two
-    or three states' factors instead of all W (iSAM2's "wildfire" threshold does the like for
-    variables whose updates are negligible).
+    earlier updates converged carry a part of the gradient 1e-13 to 7e-2 of the newest state's
+    (the temporal coupling to it is weak; docs/design-notes.md has the measurements), so a
+    solve and the decrement work on two to four states' factors instead of all W (iSAM2's
+    "wildfire" threshold does the like for variables whose updates are negligible).
     tolerance: relative residual |b - A x| / |b|; max_iterations: cap (LinearSolveError).
     reserved_factors: when the first factor of a sparsity pattern is made, this many in all are
     made at once (the extra ones spares), so that later updates never factor into fresh memory:
