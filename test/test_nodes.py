@@ -163,6 +163,19 @@ def get_parameters(probe, node_name: str, names: list[str]) -> dict:
         probe.destroy_client(client)
 
 
+def simulation_reports(probe, namespace: str) -> list:
+    """(message, counters) of each /diagnostics status of the simulation node in `namespace`,
+    appended as they arrive."""
+    reports = []
+
+    def on_diagnostics(msg):
+        reports.extend((status.message, {kv.key: kv.value for kv in status.values})
+                       for status in msg.status if status.name == f"{namespace}/simulation_node: simulation")
+
+    probe.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, KEEP)
+    return reports
+
+
 # ---------------------------------------------------------------------------- start, parameters, stop
 @pytest.mark.slow
 def test_executables_read_parameters_and_stop_cleanly_on_sigint(probe, processes, tmp_path):
@@ -299,15 +312,9 @@ def test_simulation_node_answers_the_requests_and_poses_that_came_before_its_mes
     mesh = pushed_cube()
     node = Process(tmp_path, "simulation_node", *ros_args("/simearly", "tool_radius:=0.01"))
     processes.append(node)
-    predictions, reports = [], []
-
-    def on_diagnostics(msg):
-        reports.extend((status.message, {kv.key: kv.value for kv in status.values})
-                       for status in msg.status if status.name == "/simearly/simulation_node: simulation")
-
+    predictions, reports = [], simulation_reports(probe, "/simearly")
     prediction_subscription = probe.create_subscription(TetraMesh, "/simearly/predicted_mesh", predictions.append,
                                                         KEEP)
-    probe.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, KEEP)
     mesh_publisher = probe.create_publisher(TetraMesh, "/simearly/initial_mesh", LATCHED)
     pose_publisher = probe.create_publisher(PoseStamped, "/simearly/tool_pose", KEEP)
     request_publisher = probe.create_publisher(Header, "/simearly/prediction_request", KEEP)

@@ -27,6 +27,7 @@ from test_nodes import (  # noqa: F401 - probe and processes are fixtures
     processes,
     pushed_cube,
     ros_args,
+    simulation_reports,
     spin_until,
     tool_pose_msg,
     top_points,
@@ -72,13 +73,7 @@ def test_simulation_node_counts_rejected_tool_poses_in_its_diagnostics(probe, pr
     mesh = pushed_cube()
     node = Process(tmp_path, "simulation_node", *ros_args("/simhostile", "estimate_timeout:=0.0"))
     processes.append(node)
-    reports = []
-
-    def on_diagnostics(msg):
-        reports.extend((status.message, {kv.key: kv.value for kv in status.values})
-                       for status in msg.status if status.name == "/simhostile/simulation_node: simulation")
-
-    probe.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, KEEP)
+    reports = simulation_reports(probe, "/simhostile")
     mesh_publisher = probe.create_publisher(TetraMesh, "/simhostile/initial_mesh", LATCHED)
     poses = probe.create_publisher(PoseStamped, "/simhostile/tool_pose", KEEP)
     assert spin_until(probe, lambda: poses.get_subscription_count() == 1 and reports)
