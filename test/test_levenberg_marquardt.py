@@ -288,6 +288,18 @@ def test_blocks_with_a_negligible_part_of_the_right_hand_side_are_left_out_of_a_
     assert np.linalg.norm(rhs - system.matvec(x)) <= 1e-3 * np.linalg.norm(rhs)
 
 
+def test_the_vertex_preconditioner_leaves_out_blocks_alike(cube, model):  # noqa: F811
+    """The factorisation-free preconditioner (large states) solves the kept blocks' restricted
+    system (its own time Laplacian) and meets the tolerance over the whole window."""
+    damped, rhs = window_system(cube, model)
+    system = WindowSystem(damped.blocks, 3e-3 * damped.couplings, damped.keys, damped.diagonal_index)
+    rhs = rhs.copy()
+    system.split(rhs)[:-1] *= 1e-6 * np.linalg.norm(system.split(rhs)[-1]) / np.linalg.norm(system.split(rhs)[:-1])
+    x, _ = PCGSolver(tolerance=1e-3, preconditioner="vertex").solve(system, rhs)
+    assert not system.split(x)[:-1].any()
+    assert np.linalg.norm(rhs - system.matvec(x)) <= 1e-3 * np.linalg.norm(rhs)
+
+
 def test_a_left_out_block_that_the_couplings_pull_is_solved_after_all(cube, model):  # noqa: F811
     """When the kept block's step, through couplings stronger than the estimator's (3.5 % of the
     diagonal), leaves the left-out rows a residual above the tolerance, PCG goes on over every
