@@ -401,8 +401,8 @@ class PCGSolver(LinearSolver):
             return None
         return known[3]
 
-    def _pcg(self, system: WindowSystem, mode: str, b: np.ndarray, x: np.ndarray, limit: int, target: float,
-             first: np.ndarray | None = None):
+    def _pcg(self, system: WindowSystem, mode: str, b: np.ndarray, x: np.ndarray, limit: int,
+             target: float, first: np.ndarray | None = None):
         """Preconditioned CG from x for at most `limit` iterations, until |b - A x| <= target:
         (x, iterations, converged). `first`: M^-1 b when it is known (for a cold start, x = 0, only)."""
         if not b.any():
