@@ -5,20 +5,33 @@ from meshfg_ros.nodes.diagnostics import EstimatorCounters, SimulatorCounters, w
 from meshfg_ros.nodes.held_inputs import HeldUntilMesh
 
 
-def test_held_inputs_come_back_oldest_first_and_an_overflow_drops_the_oldest():
-    held = HeldUntilMesh("tool pose", capacity=3)
-    assert [held.hold(k) for k in range(3)] == [None, None, None]
-    assert held.hold(3) == "tool pose dropped: 3 of them wait for the initial mesh"
-    assert len(held) == 3
-    released = []
-    assert held.release(released.append) == 3
-    assert released == [1, 2, 3]
-    assert len(held) == 0 and held.release(released.append) == 0
+def test_held_inputs_go_to_their_handlers_in_arrival_order_and_an_overflow_drops_the_oldest_of_its_kind():
+    held = HeldUntilMesh({"pose": 2, "request": 5})
+    handed = []
+
+    def pose(item):
+        handed.append(("pose", item))
+
+    def request(item):
+        handed.append(("request", item))
+
+    assert held.hold("pose", pose, 1) is None
+    assert held.hold("request", request, 10) is None
+    assert held.hold("pose", pose, 2) is None
+    assert held.hold("pose", pose, 3) == "pose dropped: 2 of them wait for the initial mesh"
+    assert held.hold("request", request, 11) is None
+    held.release()
+    # Arrival order across kinds: an estimate must follow the request it answers.
+    assert handed == [("request", 10), ("pose", 2), ("pose", 3), ("request", 11)]
+    handed.clear()
+    held.release()
+    assert handed == []
+    assert held.hold("pose", pose, 4) is None and held.hold("pose", pose, 5) is None  # counts start again
 
 
-def test_a_holder_needs_room_for_one():
+def test_every_kind_needs_room_for_one():
     with pytest.raises(ValueError, match="capacity"):
-        HeldUntilMesh("cloud", 0)
+        HeldUntilMesh({"cloud": 0})
 
 
 def test_the_waiting_message_counts_what_is_held_and_dropped():

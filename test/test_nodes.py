@@ -309,35 +309,47 @@ def test_simulation_node_predicts_from_the_latest_estimate(probe, processes, tmp
 
 @pytest.mark.slow
 def test_simulation_node_answers_the_requests_and_poses_that_came_before_its_mesh(probe, processes, tmp_path):
+    """Tool poses, two requests and the estimate answering the first, all before the mesh: once
+    it comes, both requests are predicted, the second from that estimate, at once (handed on out
+    of arrival order, the estimate would come before its request and be ignored, and the second
+    request would wait estimate_timeout, here longer than the test waits)."""
     mesh = pushed_cube()
-    node = Process(tmp_path, "simulation_node", *ros_args("/simearly", "tool_radius:=0.01"))
+    node = Process(tmp_path, "simulation_node", *ros_args("/simearly", "tool_radius:=0.01", "estimate_timeout:=60.0"))
     processes.append(node)
     predictions, reports = [], simulation_reports(probe, "/simearly")
     prediction_subscription = probe.create_subscription(TetraMesh, "/simearly/predicted_mesh", predictions.append,
                                                         KEEP)
     mesh_publisher = probe.create_publisher(TetraMesh, "/simearly/initial_mesh", LATCHED)
+    estimate_publisher = probe.create_publisher(TetraMesh, "/simearly/estimated_mesh", LATCHED)
     pose_publisher = probe.create_publisher(PoseStamped, "/simearly/tool_pose", KEEP)
     request_publisher = probe.create_publisher(Header, "/simearly/prediction_request", KEEP)
     assert spin_until(probe, lambda: pose_publisher.get_subscription_count() == 1
                       and request_publisher.get_subscription_count() == 1
+                      and estimate_publisher.get_subscription_count() == 1
                       and prediction_subscription.get_publisher_count() == 1 and reports)
     centre = np.array([SIDE / 3, SIDE / 3, SIDE + 0.011])  # above a vertex of the top face
-    pushed = centre - [0.0, 0.0, 2e-3]
-    pose_publisher.publish(tool_pose_msg(centre, 1 * S))
-    pose_publisher.publish(tool_pose_msg(pushed, 2 * S))
+    poses = [np.concatenate([centre - [0.0, 0.0, depth], [0.0, 0.0, 0.0, 1.0]]) for depth in (0.0, 2e-3, 3e-3)]
+    estimate = mesh.vertices + [1e-4, 0.0, 0.0]
+    pose_publisher.publish(tool_pose_msg(poses[0][:3], 1 * S))
+    pose_publisher.publish(tool_pose_msg(poses[1][:3], 2 * S))
     request_publisher.publish(header_msg(2 * S, "world", FACTORY))
     assert spin_until(probe, lambda: reports[-1][1].get("inputs_held_before_mesh") == "3"), reports[-1]
-    assert reports[-1][0] == "waiting for initial_mesh; 3 inputs held until it comes"
+    estimate_publisher.publish(mesh_msg(mesh, 2 * S, estimate))  # the estimator ran that step without one
+    pose_publisher.publish(tool_pose_msg(poses[2][:3], 3 * S))
+    request_publisher.publish(header_msg(3 * S, "world", FACTORY))
+    assert spin_until(probe, lambda: reports[-1][1].get("inputs_held_before_mesh") == "6"), reports[-1]
+    assert reports[-1][0] == "waiting for initial_mesh; 6 inputs held until it comes"
     assert not predictions
     mesh_publisher.publish(mesh_msg(mesh))
-    assert spin_until(probe, lambda: predictions), node.output()
+    assert spin_until(probe, lambda: len(predictions) == 2), node.output()
     simulator = ElasticSimulator(mesh, simulator_config(load_parameters({"tool_radius": 0.01})))
-    simulator.reset(np.concatenate([centre, [0.0, 0.0, 0.0, 1.0]]))
-    expected = simulator.predict(mesh.vertices, np.concatenate([pushed, [0.0, 0.0, 0.0, 1.0]]), 1.0)
-    assert stamp_ns_from_msg(predictions[0].header.stamp) == 2 * S
-    np.testing.assert_allclose(np.asarray(predictions[0].positions).reshape(-1, 3), expected, rtol=0, atol=1e-12)
-    assert not np.allclose(expected, mesh.vertices, rtol=0, atol=1e-4)  # the held poses did push the cube
-    assert spin_until(probe, lambda: reports[-1][1].get("predictions") == "1"
+    simulator.reset(poses[0])
+    expected = [simulator.predict(mesh.vertices, poses[1], 1.0), simulator.predict(estimate, poses[2], 1.0)]
+    assert [stamp_ns_from_msg(p.header.stamp) for p in predictions] == [2 * S, 3 * S]
+    for message, positions in zip(predictions, expected, strict=True):
+        np.testing.assert_allclose(np.asarray(message.positions).reshape(-1, 3), positions, rtol=0, atol=1e-12)
+    assert not np.allclose(expected[0], mesh.vertices, rtol=0, atol=1e-4)  # the held poses did push the cube
+    assert spin_until(probe, lambda: reports[-1][1].get("predictions") == "2"
                       and reports[-1][1].get("inputs_dropped_before_mesh") == "0"), reports[-1]
     assert_clean_exit(node, node.interrupt())
 

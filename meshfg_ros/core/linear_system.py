@@ -113,6 +113,7 @@ class WindowSystem:
         return cls([matrix], [], [key], diagonal_positions(matrix))
 
     def split(self, x: np.ndarray) -> np.ndarray:
+        """x (size,) as (W, block_size), one row per state: a view, so writing to a row writes x."""
         return x.reshape(len(self.keys), self.block_size)
 
     def matvec(self, x: np.ndarray) -> np.ndarray:

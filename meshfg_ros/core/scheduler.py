@@ -113,7 +113,8 @@ class PredictionScheduler:
     """The simulator's timeline over tool poses and prediction requests (module docstring)."""
 
     def __init__(self, mesh: TetMesh, model: SimulatorConfig, grasped_vertices: np.ndarray | None = None, *,
-                 clock_jump_threshold: float = DEFAULT_CLOCK_JUMP_THRESHOLD_S, tool_pose_extrapolation: float = TOOL_POSE_HORIZON_S,
+                 clock_jump_threshold: float = DEFAULT_CLOCK_JUMP_THRESHOLD_S,
+                 tool_pose_extrapolation: float = TOOL_POSE_HORIZON_S,
                  timeouts: SchedulingTimeouts = SchedulingTimeouts()) -> None:
         self.mesh = mesh
         self.scene = check_initial_mesh(mesh.vertices)
@@ -451,7 +452,8 @@ class OfflinePipeline:
     """
 
     def __init__(self, mesh: TetMesh, model: SimulatorConfig, config: EstimatorConfig,
-                 grasped_vertices: np.ndarray | None = None, *, clock_jump_threshold: float = DEFAULT_CLOCK_JUMP_THRESHOLD_S,
+                 grasped_vertices: np.ndarray | None = None, *,
+                 clock_jump_threshold: float = DEFAULT_CLOCK_JUMP_THRESHOLD_S,
                  tool_pose_extrapolation: float = TOOL_POSE_HORIZON_S,
                  alter_prediction: Callable[[int, np.ndarray], np.ndarray] | None = None) -> None:
         shared = dict(clock_jump_threshold=clock_jump_threshold, tool_pose_extrapolation=tool_pose_extrapolation)

@@ -66,9 +66,8 @@ class EstimatorNode(Node):
         self.outputs = EstimatorOutputs(self, self._frame, stalled_after_s, lambda: self.params["marker_std_max"],
                                         self._queued)
         self._requests = self.create_publisher(Header, "prediction_request", REQUEST_QOS)
-        self._held = {POSE: HeldUntilMesh("tool pose", DEFAULT_MAX_SAMPLES),
-                      CLOUD: HeldUntilMesh("cloud", MAX_QUEUED_CLOUDS)}
-        self._mesh = InitialMeshSource(self, self._frame, self._set_mesh)
+        self._held = HeldUntilMesh({POSE: DEFAULT_MAX_SAMPLES, CLOUD: MAX_QUEUED_CLOUDS})
+        self._mesh = InitialMeshSource(self, self._frame, self._set_mesh, self._held.release)
         self._inputs = FrameInputs(self, world_frame_inputs(self.params), self._on_placed, self._on_unplaceable)
         self.create_subscription(TetraMesh, "predicted_mesh", self._on_prediction, PREDICTION_QOS)
         self.create_subscription(PredictionFailure, "prediction_failed", self._on_failure, PREDICTION_QOS)
@@ -102,11 +101,6 @@ class EstimatorNode(Node):
         with self._lock:
             self._scheduler = scheduler
         self.get_logger().info(f"sparse Cholesky BLAS: {blas.backend().name}, {blas.backend().threads} thread(s)")
-        # Poses first, so the held clouds' leak test sees them; a held cloud's prediction wait
-        # counts from now, when it could first be requested.
-        self._held[POSE].release(self._on_placed)
-        now_s = time.monotonic()
-        self._held[CLOUD].release(lambda item: self._on_placed(replace(item, arrival_s=now_s)))
 
     def _on_cloud(self, msg: PointCloud2) -> None:
         arrival_s = time.monotonic()
@@ -133,22 +127,27 @@ class EstimatorNode(Node):
     def _on_placed(self, item: FramedInput) -> None:
         """A cloud or tool pose in world_frame: to the scheduler (a cloud also to the simulator)."""
         with self._lock:
-            if self._scheduler is None:
-                return self._hold(item)
-            if item.kind == POSE:
-                self._scheduler.add_tool_pose(item.stamp_ns, item.data)
+            scheduler = self._scheduler
+            if scheduler is not None and item.kind == POSE:
+                scheduler.add_tool_pose(item.stamp_ns, item.data)
                 notes = []
-            else:
-                notes = self._scheduler.add_cloud(item.stamp_ns, item.data, item.arrival_s, item.viewpoint)
+            elif scheduler is not None:
+                notes = scheduler.add_cloud(item.stamp_ns, item.data, item.arrival_s, item.viewpoint)
+        if scheduler is None:
+            return self._hold(item)
         if item.kind == CLOUD and cloud_queued(notes):
             self._requests.publish(header_msg(item.stamp_ns, self._frame, RCLPY_FACTORY))
         self.outputs.note(notes)
         self._solver.wake()
 
     def _hold(self, item: FramedInput) -> None:
-        """Keep an input that came before the mesh (counted; an overflow drops the oldest)."""
+        """Keep an input that came before the mesh (counted; an overflow drops the oldest of its
+        kind). A held cloud's wait for its prediction counts from its release, when it can first
+        be requested (its latency too)."""
         self.outputs.count("inputs_held_before_mesh")
-        dropped = self._held[item.kind].hold(item)
+        handler = self._on_placed if item.kind == POSE else (
+            lambda cloud: self._on_placed(replace(cloud, arrival_s=time.monotonic())))
+        dropped = self._held.hold(item.kind, handler, item)
         if dropped is not None:
             self.outputs.note([Rejection("inputs_dropped_before_mesh", dropped)])
 

@@ -53,8 +53,12 @@ class EstimatorOutputs:
         node.create_timer(_REPORT_PERIOD_S, self.report, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def set_mesh(self, state: MeshState) -> None:
-        """The topology of the estimates to come."""
+        """The topology of the estimates to come. Clouds that came before it (held until now)
+        are awaited from now on: the stall test does not count the wait for the mesh."""
         self._mesh = (state, MeshMessages(state), surface_edges(state.surface_triangles))
+        with self._lock:
+            if self._unanswered_since_s is not None:
+                self._unanswered_since_s = time.monotonic()
 
     def cloud_received(self, arrival_s: float, dropped_nonfinite: int = 0) -> None:
         with self._lock:

@@ -4,44 +4,47 @@ The schedulers of both nodes need the mesh, and a node may see its first tool po
 prediction requests before it: `initial_mesh` is latched, but the discovery of its publisher
 can come seconds after that of the streams (in one live run the simulation node got its mesh
 2.5 s after the estimator and would have lost the first tool poses and requests). What arrives
-first is good data, so it is kept, in arrival order, and handed to the scheduler when the mesh
-comes. Beyond `capacity` inputs of one kind the oldest is dropped: the nodes count both.
+first is good data, so it is kept and handed on when the mesh comes, in arrival order (an
+estimate answers the request before it: handed on first, the simulator would ignore it). Each
+kind has a capacity (a cloud or a mesh is large, a pose small); beyond it the oldest input of
+that kind is dropped, and the nodes count what is held and dropped.
 """
 
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 __all__ = ["HeldUntilMesh"]
 
 
 class HeldUntilMesh:
-    """At most `capacity` inputs of one kind (`what`, for messages), oldest first."""
+    """Inputs in arrival order, each with the handler that takes it once the mesh is there;
+    `capacities`: kind -> how many of that kind are kept at most."""
 
-    def __init__(self, what: str, capacity: int) -> None:
-        if capacity < 1:
-            raise ValueError(f"capacity must be >= 1, got {capacity}")
-        self.what = what
-        self.capacity = int(capacity)
-        self._inputs: deque = deque()
+    def __init__(self, capacities: Mapping[str, int]) -> None:
+        if any(capacity < 1 for capacity in capacities.values()):
+            raise ValueError(f"every capacity must be >= 1, got {dict(capacities)}")
+        self.capacities = dict(capacities)
+        self._inputs: deque[tuple[str, Callable[[Any], object], Any]] = deque()
+        self._counts = dict.fromkeys(self.capacities, 0)
 
-    def __len__(self) -> int:
-        return len(self._inputs)
-
-    def hold(self, item: Any) -> str | None:
-        """Keep `item`; when that overflows the capacity, drop the oldest and say why."""
-        self._inputs.append(item)
-        if len(self._inputs) <= self.capacity:
+    def hold(self, kind: str, handler: Callable[[Any], object], item: Any) -> str | None:
+        """Keep `item` for `handler`; when that makes more of `kind` than its capacity, drop the
+        oldest of that kind and say so."""
+        self._inputs.append((kind, handler, item))
+        self._counts[kind] += 1
+        if self._counts[kind] <= self.capacities[kind]:
             return None
-        self._inputs.popleft()
-        return f"{self.what} dropped: {self.capacity} of them wait for the initial mesh"
+        oldest = next(index for index, (held_kind, _, _) in enumerate(self._inputs) if held_kind == kind)
+        del self._inputs[oldest]  # O(held), only on overflow
+        self._counts[kind] -= 1
+        return f"{kind} dropped: {self.capacities[kind]} of them wait for the initial mesh"
 
-    def release(self, handler: Callable[[Any], object]) -> int:
-        """Hand every held input to `handler`, oldest first; how many there were."""
-        count = 0
+    def release(self) -> None:
+        """Hand every held input to its handler, oldest first."""
         while self._inputs:
-            handler(self._inputs.popleft())
-            count += 1
-        return count
+            kind, handler, item = self._inputs.popleft()
+            self._counts[kind] -= 1
+            handler(item)

@@ -115,10 +115,12 @@ def same_mesh(a: MeshState, b: MeshState) -> bool:
 class InitialMeshSource:
     """The initial mesh of a node: from parameter mesh_file (read at start-up; an unreadable file
     is a ParameterError, which stops the program) or from the latched `initial_mesh` topic.
-    Calls on_mesh(TetMesh, MeshState) for each new mesh (a repeated message is ignored)."""
+    Calls on_mesh(TetMesh, MeshState) for each new mesh (a repeated message is ignored; a
+    ValueError from it refuses the mesh), then on_installed() once the mesh is in place (the
+    nodes hand on what they held until then, nodes/held_inputs.py)."""
 
-    def __init__(self, node: Node, frame: str, on_mesh) -> None:
-        self._node, self._frame, self._on_mesh = node, frame, on_mesh
+    def __init__(self, node: Node, frame: str, on_mesh, on_installed=None) -> None:
+        self._node, self._frame, self._on_mesh, self._on_installed = node, frame, on_mesh, on_installed
         self._state: MeshState | None = None
         node.create_subscription(RCLPY_FACTORY.message_class(TETRA_MESH), "initial_mesh", self._on_message,
                                  LATCHED_QOS)
@@ -133,6 +135,7 @@ class InitialMeshSource:
                                     mesh.fixed_vertices), mesh)
         except ValueError as error:  # a mesh the schedulers refuse (far from the world origin, ...)
             raise ParameterError(f"mesh_file {params['mesh_file']}: {error}") from None
+        self._installed()
 
     def _on_message(self, msg: Any) -> None:
         logger = self._node.get_logger()
@@ -150,6 +153,12 @@ class InitialMeshSource:
             self._install(state, state.tet_mesh())
         except ValueError as error:
             logger.error(f"initial_mesh rejected: {error}")
+            return
+        self._installed()
+
+    def _installed(self) -> None:
+        if self._on_installed is not None:
+            self._on_installed()
 
     def _install(self, state: MeshState, mesh: TetMesh) -> None:
         restart = self._state is not None

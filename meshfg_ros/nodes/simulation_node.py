@@ -62,13 +62,12 @@ class SimulationNode(Node):
         self._last_failure: str | None = None
         self._rejected_at_last_report = 0
         self._ignored_at_last_report = 0
-        self._held_poses = HeldUntilMesh("tool pose", DEFAULT_MAX_SAMPLES)
-        self._held_estimates = HeldUntilMesh("estimated_mesh", MAX_QUEUED_CLOUDS)
-        self._held_requests = HeldUntilMesh("prediction request", MAX_QUEUED_CLOUDS)
+        self._held = HeldUntilMesh({"tool pose": DEFAULT_MAX_SAMPLES, "estimated_mesh": MAX_QUEUED_CLOUDS,
+                                    "prediction request": MAX_QUEUED_CLOUDS})
         self._publisher = self.create_publisher(TetraMesh, "predicted_mesh", PREDICTION_QOS)
         self._failure_publisher = self.create_publisher(PredictionFailure, "prediction_failed", PREDICTION_QOS)
         self._diagnostics_publisher = self.create_publisher(DiagnosticArray, "/diagnostics", STREAM_QOS)
-        self._mesh = InitialMeshSource(self, self._frame, self._set_mesh)
+        self._mesh = InitialMeshSource(self, self._frame, self._set_mesh, self._held.release)
         self._inputs = FrameInputs(self, world_frame_inputs(self.params), self._on_placed, self._on_unplaceable)
         self.create_subscription(TetraMesh, "estimated_mesh", self._on_estimate, LATCHED_QOS)
         self.create_subscription(PoseStamped, "tool_pose", self._on_tool_pose, STREAM_QOS)
@@ -86,21 +85,18 @@ class SimulationNode(Node):
             clock_jump_threshold=self.params["clock_jump_threshold"],
             tool_pose_extrapolation=self.params["tool_pose_horizon"])
         self._messages = MeshMessages(state)
-        # Poses first: the requests held with them are then answered from every pose that came.
-        self._held_poses.release(self._on_placed)
-        self._held_estimates.release(self._on_estimate)
-        self._held_requests.release(self._on_request)
 
-    def _hold(self, held: HeldUntilMesh, item) -> None:
-        """Keep an input that came before the mesh (counted; an overflow drops the oldest)."""
-        self.counters.inputs_held_before_mesh += 1
-        dropped = held.hold(item)
+    def _hold(self, kind: str, handler, item) -> None:
+        """Keep an input that came before the mesh for `handler` (counted; an overflow drops the
+        oldest of its kind)."""
+        self.counters.count("inputs_held_before_mesh")
+        dropped = self._held.hold(kind, handler, item)
         if dropped is not None:
             self._count("inputs_dropped_before_mesh", dropped)
 
     def _on_estimate(self, msg: TetraMesh) -> None:
         if self._scheduler is None:
-            return self._hold(self._held_estimates, msg)
+            return self._hold("estimated_mesh", self._on_estimate, msg)
         stamp_ns = stamp_ns_from_msg(msg.header.stamp)
         positions = positions_from_msg(msg, self._scheduler.mesh.vertex_count)
         # A malformed estimate is no estimate: the next request does not wait for it.
@@ -123,7 +119,7 @@ class SimulationNode(Node):
     def _on_placed(self, item: FramedInput) -> None:
         """A tool pose in world_frame."""
         if self._scheduler is None:
-            return self._hold(self._held_poses, item)
+            return self._hold("tool pose", self._on_placed, item)
         rejection = self._scheduler.add_tool_pose(item.stamp_ns, item.data)
         if rejection is not None:
             return self._count(rejection.counter, rejection.reason)
@@ -139,7 +135,7 @@ class SimulationNode(Node):
         """A cloud's stamp to predict; a held one waits for its estimate and pose from the mesh's
         arrival on (the estimate_timeout counts from then)."""
         if self._scheduler is None:
-            return self._hold(self._held_requests, msg)
+            return self._hold("prediction request", self._on_request, msg)
         self.counters.requests += 1
         self._scheduler.request(stamp_ns_from_msg(msg.stamp), time.monotonic())
         self._answer()
