@@ -537,13 +537,14 @@ def _hostile_recording(fixture: _Fixture, path: Path, rng) -> tuple[list[int], l
     """Write the fixture's recording with hostile messages added at random steps; returns the
     stamps of the clouds that must become steps, in order (by the stamp, frame and emptiness
     rules: an independent account of what the replay must keep), and the faults added."""
+    from meshfg_ros.core.input_checks import NS_PER_S
     from meshfg_ros.io.messages import PoseRecord
     from meshfg_ros.io.recording import RecordingReader, RecordingWriter
     from meshfg_ros.topics import CAMERA_POSE_TOPIC, INITIAL_MESH_TOPIC, POINTS_TOPIC, SCENARIO_TOPIC, TOOL_POSE_TOPIC
 
     inputs = fixture.inputs
     world = fixture.params["world_frame"]
-    jump_ns = int(fixture.params["clock_jump_threshold"] * 1e9)
+    jump_ns = int(fixture.params["clock_jump_threshold"] * NS_PER_S)
     with RecordingReader(fixture.bag) as reader:
         scenario = [(m.log_time_ns, m.data) for m in reader.messages([SCENARIO_TOPIC])]
     start = inputs.initial_state.stamp_ns

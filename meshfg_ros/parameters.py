@@ -35,7 +35,7 @@ import yaml
 from meshfg_ros.core.estimator import EstimatorConfig
 from meshfg_ros.core.mesh import TetMesh
 from meshfg_ros.core.patient_mesh import Box, FixedSelection, Plane, prepare_mesh
-from meshfg_ros.core.pose_history import pose_matrix
+from meshfg_ros.core.pose_history import InvalidPoseError, as_pose, pose_matrix
 from meshfg_ros.core.frames import TransformBuffer
 from meshfg_ros.core.input_checks import DEFAULT_CLOCK_JUMP_THRESHOLD_S
 from meshfg_ros.core.scheduler import SchedulingTimeouts
@@ -169,9 +169,11 @@ class Parameter:
 
 
 def _check_quaternion(name: str, pose: tuple[float, ...]) -> None:
-    """A pose [x, y, z, qx, qy, qz, qw] whose quaternion cannot be normalised is refused."""
-    if np.linalg.norm(pose[3:]) < 1e-9:
-        raise ParameterError(f"{name} quaternion has zero norm")
+    """A pose [x, y, z, qx, qy, qz, qw] that is not one (pose_history.as_pose) is refused."""
+    try:
+        as_pose(pose)
+    except InvalidPoseError as error:
+        raise ParameterError(f"{name}: {error}") from None
 
 
 def _bound(value: float | None, unbounded: str) -> str:

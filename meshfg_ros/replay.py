@@ -166,7 +166,7 @@ def load_inputs(path: str | Path, mesh_path: str | Path | None = None,
         if mesh.flipped_count:
             raise ReplayError(f"{INITIAL_MESH_TOPIC}: {mesh.flipped_count} tetrahedra have negative volume")
     else:
-        placement = load_parameters({**scenario_parameters(metadata, camera_pose), **(overrides or {})})
+        placement = _parameters(metadata, camera_pose, overrides)
         mesh = placed_mesh_file({**placement, "mesh_file": str(mesh_path)})
         initial_state = MeshState(poses[0].stamp_ns if poses else 0, placement["world_frame"], 0,
                                   mesh.vertices, mesh.tetrahedra, mesh.surface_triangles, mesh.fixed_vertices)
@@ -231,7 +231,11 @@ def config_overrides(path: str | Path) -> dict[str, Any]:
 
 def replay_parameters(inputs: ReplayInputs, overrides: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """Validated parameters: defaults < the recording's scenario metadata < `overrides`."""
-    return load_parameters({**scenario_parameters(inputs.metadata, inputs.camera_pose), **(overrides or {})})
+    return _parameters(inputs.metadata, inputs.camera_pose, overrides)
+
+
+def _parameters(metadata, camera_pose, overrides: Mapping[str, Any] | None) -> dict[str, Any]:
+    return load_parameters({**scenario_parameters(metadata, camera_pose), **(overrides or {})})
 
 
 def iterate_replay(inputs: ReplayInputs, params: Mapping[str, Any],

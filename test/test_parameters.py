@@ -96,7 +96,7 @@ def test_descriptors_carry_type_range_and_choices():
     ({"world_frame": 3}, "world_frame must be a string"),
     ({"camera_pose": [0.0, 0.0, 0.0, 1.0]}, "camera_pose must have 7 values, got 4"),
     ({"camera_pose": "identity"}, "camera_pose must be a list"),
-    ({"camera_pose": [0.0] * 7}, "camera_pose quaternion has zero norm"),
+    ({"camera_pose": [0.0] * 7}, "camera_pose: pose quaternion has zero norm"),
     ({"tool_mode": "grasp", "grasped_vertices": [1, -2]}, r"grasped_vertices\[1\] = -2 is outside \[0, inf\]"),
     ({"tool_mode": "grasp", "grasped_vertices": [1.5]}, r"grasped_vertices\[0\] must be an integer"),
     ({"tool_mode": "grasp"}, "tool_mode 'grasp' needs grasped_vertices"),
@@ -220,7 +220,7 @@ def test_node_scoped_validation_and_unknown_names():
     assert load_parameters({"tool_mode": "grasp"}, node="estimator_node")["tool_mode"] == "grasp"
     with pytest.raises(ParameterError, match="tool_mode 'grasp' needs grasped_vertices"):
         load_parameters({"tool_mode": "grasp"}, node="simulation_node")
-    with pytest.raises(ParameterError, match="camera_pose quaternion has zero norm"):
+    with pytest.raises(ParameterError, match="camera_pose: pose quaternion has zero norm"):
         load_parameters({"camera_pose": [0] * 7}, node="estimator_node")
     assert set(load_parameters(node="simulation_node")) == {p.name for p in node_parameters("simulation_node")}
     # A node accepts (and ignores) the other nodes' parameters and use_sim_time, not a typo.

@@ -31,6 +31,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 
+from meshfg_ros.core.input_checks import NS_PER_S
 from meshfg_ros.io.recording import RecordingError, RecordingReader
 from meshfg_ros.nodes.ros_conversions import RCLPY_FACTORY, rclpy_message
 from meshfg_ros.nodes.ros_parameters import declare_parameters
@@ -100,9 +101,10 @@ class BagPlayer(Node):
             elif wanted and wanted <= matched and time.monotonic() - settled_since >= _SETTLE_S:
                 break
             time.sleep(_POLL_S)
-        lonely = [name for name, publisher in self._topic_publishers.items() if not publisher.get_subscription_count()]
-        if lonely:
-            self.get_logger().info(f"playing without subscribers on {', '.join(lonely)}")
+        short = [f"{name} ({count} of {self.subscribers})" for name, publisher in self._topic_publishers.items()
+                 if (count := publisher.get_subscription_count()) < self.subscribers]
+        if short:
+            self.get_logger().info(f"playing with fewer readers than asked for on {', '.join(short)}")
 
     def _play_streamed(self) -> None:
         if not self._streamed:
@@ -111,11 +113,11 @@ class BagPlayer(Node):
         for message in self._reader.messages(self._streamed):
             if start_ns is None:
                 start_ns = message.log_time_ns
-            due_s = start_s + (message.log_time_ns - start_ns) / 1e9 / self.rate
+            due_s = start_s + (message.log_time_ns - start_ns) / NS_PER_S / self.rate
             while (remaining := due_s - time.monotonic()) > 0.0:
                 time.sleep(min(remaining, 1.0 / self.clock_frequency))
                 elapsed_s = min(time.monotonic(), due_s) - start_s
-                self._publish_clock(start_ns + int(elapsed_s * self.rate * 1e9))
+                self._publish_clock(start_ns + int(elapsed_s * self.rate * NS_PER_S))
             self._publish_clock(message.log_time_ns)
             self._publish(message)
 
@@ -125,7 +127,7 @@ class BagPlayer(Node):
 
     def _publish_clock(self, stamp_ns: int) -> None:
         clock = Clock()
-        clock.clock.sec, clock.clock.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+        clock.clock.sec, clock.clock.nanosec = divmod(int(stamp_ns), NS_PER_S)
         self._clock_publisher.publish(clock)
 
 
@@ -158,8 +160,8 @@ def main(args=None) -> int:
     try:
         load_parameters(overrides, "bag_player")  # the options' values, checked as the parameters are
     except ParameterError as error:
-        print(f"bag_player: {error}", file=sys.stderr)
-        return 2
+        print(f"bag_player: invalid parameters: {error}", file=sys.stderr)
+        return 1
     try:
         reader = RecordingReader(options.bag)
         for topic in options.topics or ():
@@ -171,10 +173,8 @@ def main(args=None) -> int:
     try:
         init_without_signal_handlers(argv)
         player = BagPlayer(reader, options.topics)
-        if options.rate is not None:
-            player.rate = options.rate
-        if options.wait_for_subscribers is not None:
-            player.wait_for_subscribers = options.wait_for_subscribers
+        for name, value in overrides.items():  # the options win over the parameters
+            setattr(player, name, value)
         player.loop = player.loop or options.loop
         count = player.play()
         player.get_logger().info(f"played {count} messages from {options.bag}")

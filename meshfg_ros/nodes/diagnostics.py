@@ -79,11 +79,14 @@ class EstimatorCounters(_Counters):
         self.last_wait_ms, self.last_solve_time_ms, self.last_publish_ms = wait_ms, float(result.solve_time_ms), publish_ms
         self.last_latency_ms, self.median_latency_ms = latencies_ms[-1], float(np.median(latencies_ms))
 
+    # The counters of clouds that did not become a step, whatever the reason.
+    CLOUD_REJECTIONS = ("clouds_rejected_malformed", "clouds_rejected_empty", "clouds_rejected_frame",
+                        "clouds_rejected_stamp", "clouds_rejected_registration", "clouds_dropped_backlog")
+
     @property
     def clouds_rejected(self) -> int:
         """Clouds that did not become a step, whatever the reason."""
-        return (self.clouds_rejected_malformed + self.clouds_rejected_empty + self.clouds_rejected_frame
-                + self.clouds_rejected_stamp + self.clouds_rejected_registration + self.clouds_dropped_backlog)
+        return sum(getattr(self, counter) for counter in self.CLOUD_REJECTIONS)
 
     def values(self) -> dict[str, str]:
         """Counter name -> text value (the rejected total included)."""

@@ -75,7 +75,7 @@ class EstimatorOutputs:
         for rejection in rejections:
             with self._lock:
                 self.counters.count(rejection.counter)
-                if rejection.counter.startswith("clouds_"):  # what the "every cloud is rejected" error names
+                if rejection.counter in EstimatorCounters.CLOUD_REJECTIONS:  # what "every cloud is rejected" names
                     self._last_rejection = rejection.reason
             self._node.get_logger().warning(rejection.reason, throttle_duration_sec=1.0)
         if rejections:
