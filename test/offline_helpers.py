@@ -80,10 +80,12 @@ def tiny_scenario(steps: int = 3, seed: int = 0, camera: bool = False) -> Scenar
 
 
 def write_fake_replay(scenario: Scenario, path: Path, estimate_offset: float = 0.0,
-                      prediction_offset: float | None = None) -> None:
+                      prediction_offset: float | None = None, estimates=None, predictions=None) -> None:
     """A replay output without running the estimator: the estimate is the truth shifted by
     estimate_offset along +z, the open-loop simulation the initial mesh, LM costs made up; with
-    prediction_offset, predictions that are the truth shifted by it along +z."""
+    prediction_offset, predictions that are the truth shifted by it along +z. `estimates` and
+    `predictions` (one (N, 3) array per step; the steps beyond the predictions given have none)
+    replace the shifted truths."""
     from meshfg_ros.io.messages import MeshState, PointCloudRecord, RosbagsMessageFactory, StatusRecord
     from meshfg_ros.io.recording import RecordingWriter
     from meshfg_ros.topics import (
@@ -105,10 +107,13 @@ def write_fake_replay(scenario: Scenario, path: Path, estimate_offset: float = 0
     with RecordingWriter(path) as writer:
         for index, step in enumerate(scenario.steps, start=1):
             writer.write(POINTS_TOPIC, PointCloudRecord(step.stamp_ns, "world", step.points))
-            writer.write(ESTIMATED_MESH_TOPIC, state(step.truth + [0.0, 0.0, estimate_offset], step.stamp_ns, index,
-                                                     np.full(mesh.vertex_count, 1e-4)))
+            estimate = step.truth + [0.0, 0.0, estimate_offset] if estimates is None else estimates[index - 1]
+            writer.write(ESTIMATED_MESH_TOPIC, state(estimate, step.stamp_ns, index, np.full(mesh.vertex_count, 1e-4)))
             writer.write(SIMULATION_ONLY_MESH_TOPIC, state(mesh.vertices, step.stamp_ns, index))
-            if prediction_offset is not None:
+            if predictions is not None:
+                if index <= len(predictions):  # the later steps ran without a prediction
+                    writer.write(PREDICTED_MESH_TOPIC, state(predictions[index - 1], step.stamp_ns, index))
+            elif prediction_offset is not None:
                 writer.write(PREDICTED_MESH_TOPIC, state(step.truth + [0.0, 0.0, prediction_offset], step.stamp_ns, index))
             writer.write(STATUS_TOPIC, StatusRecord(step.stamp_ns, "world", index, 3, 10.0, 1.0, 5.0, len(step.points),
                                                     0, min(index, 3), True, False, ""))

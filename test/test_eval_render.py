@@ -8,6 +8,8 @@ from offline_helpers import tiny_scenario, write_fake_replay
 
 from meshfg_ros.evaluation.metrics import vertex_rmse
 from meshfg_ros.evaluation.evaluate import (
+    CORRECTION_QUANTITIES,
+    CORRECTION_SETS,
     EvaluationError,
     evaluate,
     evaluate_recordings,
@@ -109,18 +111,37 @@ def test_camera_less_scene_splits_by_observed_faces(tmp_path):
 
 
 def test_correction_of_the_prediction_is_compared_with_the_truths(tmp_path):
-    """Predictions 2 mm below the truth, estimates 1 mm above it: on every set the correction
-    (3 mm up) points along the needed one (2 mm up) and overshoots it by half."""
-    scenario = tiny_scenario(steps=2, camera=True)
+    """Predictions off the truth by (1, 0, -2) mm. Where the scene is observed the estimate makes
+    the needed correction's component along the vertex normal only; where it is not (the -x and
+    -y faces of the camera-less scene), none. So: along the normal, alignment and gain 1; across
+    it gain 0; on the unobserved vertices no correction (n/a). Taking the wrong vertex set or the
+    wrong directions gives other values; the second step has no prediction (a degraded step)
+    and keeps its place as n/a."""
+    scenario = tiny_scenario(steps=2, camera=False)
+    mesh = scenario.initial_mesh
+    free = mesh.free_vertices
+    hidden = free[(np.isclose(mesh.vertices[free, 0], 0.0) | np.isclose(mesh.vertices[free, 1], 0.0))
+                  & (mesh.vertices[free, 2] < 0.02 - 1e-9) & (mesh.vertices[free, 0] < 0.02 - 1e-9)
+                  & (mesh.vertices[free, 1] < 0.02 - 1e-9)]
+    truth = scenario.steps[0].truth
+    prediction = truth + [1e-3, 0.0, -2e-3]
+    normals = mesh.vertex_normals(prediction)
+    needed_along = np.einsum("ij,ij->i", truth - prediction, normals)
+    estimate = prediction + needed_along[:, None] * normals
+    estimate[hidden] = prediction[hidden]
     write_scenario(scenario, tmp_path / "truth")
-    write_fake_replay(scenario, tmp_path / "replay", estimate_offset=OFFSET, prediction_offset=-2 * OFFSET)
+    write_fake_replay(scenario, tmp_path / "replay", estimates=[estimate, scenario.steps[1].truth],
+                      predictions=[prediction])
     evaluation = evaluate_recordings(tmp_path / "replay", tmp_path / "truth", samples=SAMPLES)
     correction = evaluation["correction"]
-    assert "unobserved external: alignment 1.00 (1.00), gain 1.50 (1.50)" in format_tables(evaluation)
-    assert set(correction) == {"observed_normal", "observed_tangential", "unobserved_external"}
-    for name, quantities in correction.items():
-        assert quantities["alignment"]["per_step"] == pytest.approx([1.0, 1.0], abs=1e-9), name
-        assert quantities["gain"]["per_step"] == pytest.approx([1.5, 1.5], abs=1e-9), name
+    assert set(correction) == set(CORRECTION_SETS)
+    assert correction["observed_normal"]["alignment"]["per_step"] == [pytest.approx(1.0, abs=1e-9), None]
+    assert correction["observed_normal"]["gain"]["per_step"] == [pytest.approx(1.0, abs=1e-9), None]
+    # Across the normal the correction is rounding noise (its direction, the alignment, too).
+    assert correction["observed_tangential"]["gain"]["per_step"] == [pytest.approx(0.0, abs=1e-9), None]
+    for quantity in CORRECTION_QUANTITIES:
+        assert correction["unobserved_external"][quantity]["per_step"] == [None, None], quantity
+    assert "observed normal: alignment n/a (1.00), gain n/a (1.00)" in format_tables(evaluation)
 
 
 def test_no_correction_without_predictions(evaluation):

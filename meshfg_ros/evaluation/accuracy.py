@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from meshfg_ros.evaluation.evaluate import CORRECTION_SETS, evaluate_recordings
+from meshfg_ros.evaluation.evaluate import CORRECTION_QUANTITIES, CORRECTION_SETS, evaluate_recordings
 from meshfg_ros.io.messages import StatusRecord
 from meshfg_ros.io.recording import RecordingReader
 from meshfg_ros.replay import write_replay
@@ -75,7 +75,7 @@ def scene_result(name: str, recording: Path, replay: Path, seconds: float) -> di
         row[f"{method}_chamfer_final_m"] = surface[method]["full"]["chamfer"]["final"]
     row["ratio_chamfer_final"] = _ratio(row["factor_graph_chamfer_final_m"], row["simulation_chamfer_final_m"])
     for name in CORRECTION_SETS:
-        for quantity in ("alignment", "gain"):
+        for quantity in CORRECTION_QUANTITIES:
             summary = evaluation.get("correction", {}).get(name, {}).get(quantity)
             row[f"correction_{name}_{quantity}_mean"] = None if summary is None else summary["mean"]
     row["converged_share"] = float(np.mean([status.converged for status in statuses])) if statuses else None
@@ -191,7 +191,9 @@ def format_table(result: dict) -> str:
 
 
 def write_plot(result: dict, path: Path) -> None:
-    """PNG: FG / simulation ratios per scene (final vertex RMSE, all and unobserved external)."""
+    """PNG, three panels per scene: FG / simulation ratios (final vertex RMSE, all and unobserved
+    external), the share of converged updates, and the mean correction alignment per
+    CORRECTION_SETS (a missing value is left out, not drawn as 0, which means "unrelated")."""
     from matplotlib.figure import Figure  # drawn by Agg, no pyplot state (as evaluation/render.py)
 
     rows = result["scenes"]
@@ -212,7 +214,8 @@ def write_plot(result: dict, path: Path) -> None:
     axes[1].set_xticks(positions, names, rotation=60, ha="right", fontsize=7)
     axes[1].set_ylabel("LM converged (% of updates)")
     for offset, name in zip((-0.27, 0.0, 0.27), CORRECTION_SETS):
-        axes[2].bar(positions + offset, [row.get(f"correction_{name}_alignment_mean") or 0.0 for row in rows],
+        alignment = [row.get(f"correction_{name}_alignment_mean") for row in rows]
+        axes[2].bar(positions + offset, [np.nan if value is None else value for value in alignment],
                     width=0.27, label=name.replace("_", " "))
     axes[2].axhline(0.0, color="k", lw=1)
     axes[2].set_ylim(-1.0, 1.0)

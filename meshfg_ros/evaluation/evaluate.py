@@ -64,6 +64,7 @@ VERTEX_SETS = ("all", "external", "unobserved_external")
 # (metrics.correction_alignment): observed external vertices along their normal (what the
 # measurements see) and across it, and the unobserved external ones (the prior's extrapolation).
 CORRECTION_SETS = ("observed_normal", "observed_tangential", "unobserved_external")
+CORRECTION_QUANTITIES = ("alignment", "gain")  # the keys of metrics.correction_alignment
 DEFAULT_SAMPLES = 10_000
 _UNDEFINED = {metric: float("nan") for metric in SURFACE_METRICS}  # a region empty at some step
 
@@ -251,7 +252,10 @@ def _cloud_metrics(cloud: np.ndarray, reference: _Surface) -> dict[str, float]:
 
 
 def evaluate_step(inputs: EvaluationInputs, stamp: int, samples: int = DEFAULT_SAMPLES, seed: int = 0) -> dict:
-    """Metrics of one step: {'surface': {method: {region: {metric: m}}}, 'vertex_rmse': {method: {set: m}}}."""
+    """Metrics of one step: {'surface': {method: {region: {metric: m}}}, 'vertex_rmse': {method: {set: m}}},
+    and, where vertices and the observed region are defined and the replay has predictions,
+    'correction': {set: {quantity: value}} (CORRECTION_SETS; NaN for a step without a prediction,
+    so that every step keeps its place in the per-step lists)."""
     cloud = inputs.clouds[stamp]
     reference = _Surface(inputs.truth_mesh, inputs.truth[stamp], samples, seed, inputs.camera_center, cloud,
                          inputs.observed_faces)
@@ -279,8 +283,10 @@ def evaluate_step(inputs: EvaluationInputs, stamp: int, samples: int = DEFAULT_S
                 for name, ids in sets.items()
             }
     step = {"surface": surface, "vertex_rmse": vertex}
-    if inputs.same_topology and reference.observed is not None and stamp in inputs.predictions:
-        step["correction"] = _correction(inputs, stamp, external, sets["unobserved_external"])
+    if inputs.same_topology and reference.observed is not None and inputs.predictions:
+        step["correction"] = (_correction(inputs, stamp, external, sets["unobserved_external"])
+                              if stamp in inputs.predictions else
+                              {name: dict.fromkeys(CORRECTION_QUANTITIES, float("nan")) for name in CORRECTION_SETS})
     return step
 
 
@@ -336,7 +342,7 @@ def evaluate(inputs: EvaluationInputs, samples: int = DEFAULT_SAMPLES, seed: int
     corrected = [s["correction"] for s in steps if "correction" in s]
     if corrected:
         result["correction"] = {
-            name: {quantity: _summary([c[name][quantity] for c in corrected]) for quantity in ("alignment", "gain")}
+            name: {quantity: _summary([c[name][quantity] for c in corrected]) for quantity in CORRECTION_QUANTITIES}
             for name in CORRECTION_SETS
         }
     return result
