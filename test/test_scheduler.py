@@ -161,4 +161,7 @@ def test_a_tool_pose_with_a_zero_quaternion_is_set_aside_with_the_reason(scenari
     broken = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
     rejection = simulation.add_tool_pose(FIRST_STAMP_NS, broken)
     assert rejection.counter == "tool_poses_rejected_malformed" and "zero norm" in rejection.reason
-    estimation(scenario).add_tool_pose(FIRST_STAMP_NS, broken)  # the estimator's side ignores it, no error
+    scheduler = estimation(scenario)
+    scheduler.add_tool_pose(FIRST_STAMP_NS, broken)  # the estimator's side ignores it, no error
+    scheduler.add_cloud(FIRST_STAMP_NS, scenario.steps[0].points)
+    assert scheduler.next_step(flush=True).tool_pose is None  # nothing was buffered

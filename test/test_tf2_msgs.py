@@ -97,7 +97,7 @@ def test_tf_message_published_is_received_over_dds():
     try:
         publisher_node, subscriber_node = rclpy.create_node("tf_publisher"), rclpy.create_node("tf_subscriber")
         received = []
-        subscriber_node.create_subscription(TFMessage, "/tf", received.append, 10)
+        subscription = subscriber_node.create_subscription(TFMessage, "/tf", received.append, 10)
         publisher = publisher_node.create_publisher(TFMessage, "/tf", 10)
         executor = rclpy.executors.SingleThreadedExecutor()
         executor.add_node(publisher_node)
@@ -109,7 +109,8 @@ def test_tf_message_published_is_received_over_dds():
                 executor.spin_once(timeout_sec=0.05)
             return condition()
 
-        assert spin_until(lambda: publisher.get_subscription_count() == 1), "the subscriber was not matched in 30 s"
+        assert spin_until(lambda: publisher.get_subscription_count() == 1 and subscription.get_publisher_count() == 1), (
+            "publisher and subscriber did not match in 30 s")
         publisher.publish(transforms_to_tf_message(TRANSFORMS, RclpyMessageFactory()))
         assert spin_until(lambda: received), "no TFMessage arrived within 30 s"
         assert_same_transforms(tf_message_to_transforms(received[0]), TRANSFORMS)
