@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import sys
 import time
+from collections import Counter
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
@@ -62,6 +63,7 @@ class SimulationNode(Node):
         self._last_failure: str | None = None
         self._rejected_at_last_report = 0
         self._ignored_at_last_report = 0
+        self._unavailable_earlier: Counter[str] = Counter()  # of the schedulers of earlier meshes
         self._held = HeldUntilMesh({"tool pose": DEFAULT_MAX_SAMPLES, "estimated_mesh": MAX_QUEUED_CLOUDS,
                                     "prediction request": MAX_QUEUED_CLOUDS})
         self._publisher = self.create_publisher(TetraMesh, "predicted_mesh", PREDICTION_QOS)
@@ -80,6 +82,8 @@ class SimulationNode(Node):
     def _set_mesh(self, mesh, state) -> None:
         timeouts = SchedulingTimeouts(estimate_timeout=self.params["estimate_timeout"],
                                       tool_pose_timeout=self.params["tool_pose_timeout"])
+        if self._scheduler is not None:  # a new mesh: the counters are since the node started
+            self._unavailable_earlier.update(self._scheduler.tool_pose_unavailable)
         self._scheduler = PredictionScheduler(
             mesh, simulator_config(self.params), self.params["grasped_vertices"] or None, timeouts=timeouts,
             clock_jump_threshold=self.params["clock_jump_threshold"],
@@ -170,7 +174,8 @@ class SimulationNode(Node):
         failed prediction."""
         counters = self.counters
         if self._scheduler is not None:
-            for reason, count in self._scheduler.tool_pose_unavailable.items():
+            totals = self._unavailable_earlier + Counter(self._scheduler.tool_pose_unavailable)
+            for reason, count in totals.items():
                 setattr(counters, f"tool_pose_unavailable_{reason}", count)
         new_rejections = counters.tool_poses_rejected - self._rejected_at_last_report
         new_ignored = counters.estimates_ignored - self._ignored_at_last_report
