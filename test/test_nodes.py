@@ -211,6 +211,28 @@ def test_invalid_parameters_stop_the_node_with_a_message(processes, tmp_path):
 
 
 # ---------------------------------------------------------------------------- simulation node
+class SimulationProbe:
+    """Publishes the simulation node's inputs and collects its predictions and failures."""
+
+    def __init__(self, probe, namespace):
+        self.node = probe
+        self.predictions, self.failures = [], []
+        self._subscriptions = [
+            probe.create_subscription(TetraMesh, f"{namespace}/predicted_mesh", self.predictions.append, KEEP),
+            probe.create_subscription(PredictionFailure, f"{namespace}/prediction_failed", self.failures.append,
+                                      KEEP)]
+        self.mesh = probe.create_publisher(TetraMesh, f"{namespace}/initial_mesh", LATCHED)
+        self.estimate = probe.create_publisher(TetraMesh, f"{namespace}/estimated_mesh", LATCHED)
+        self.pose = probe.create_publisher(PoseStamped, f"{namespace}/tool_pose", KEEP)
+        self.request = probe.create_publisher(Header, f"{namespace}/prediction_request", KEEP)
+
+    def wait_connected(self) -> None:
+        """Until the node's subscriptions and publishers (but initial_mesh's) match the probe's."""
+        assert spin_until(self.node, lambda: all(
+            publisher.get_subscription_count() == 1 for publisher in (self.estimate, self.pose, self.request))
+            and all(subscription.get_publisher_count() == 1 for subscription in self._subscriptions))
+
+
 @pytest.mark.slow
 def test_simulation_node_predicts_from_the_latest_estimate(probe, processes, tmp_path):
     mesh = pushed_cube()
@@ -218,19 +240,10 @@ def test_simulation_node_predicts_from_the_latest_estimate(probe, processes, tmp
     node = Process(tmp_path, "simulation_node",
                    *ros_args("/sim", "tool_radius:=0.01", "estimate_timeout:=1.0"))
     processes.append(node)
-    predictions, failures = [], []
-    prediction_subscription = probe.create_subscription(TetraMesh, "/sim/predicted_mesh", predictions.append, KEEP)
-    failure_subscription = probe.create_subscription(PredictionFailure, "/sim/prediction_failed", failures.append,
-                                                     KEEP)
-    mesh_publisher = probe.create_publisher(TetraMesh, "/sim/initial_mesh", LATCHED)
-    estimate_publisher = probe.create_publisher(TetraMesh, "/sim/estimated_mesh", LATCHED)
-    pose_publisher = probe.create_publisher(PoseStamped, "/sim/tool_pose", KEEP)
-    request_publisher = probe.create_publisher(Header, "/sim/prediction_request", KEEP)
-    assert spin_until(probe, lambda: pose_publisher.get_subscription_count() == 1
-                      and estimate_publisher.get_subscription_count() == 1
-                      and request_publisher.get_subscription_count() == 1
-                      and prediction_subscription.get_publisher_count() == 1
-                      and failure_subscription.get_publisher_count() == 1)
+    io = SimulationProbe(probe, "/sim")
+    predictions, failures = io.predictions, io.failures
+    mesh_publisher, estimate_publisher, pose_publisher, request_publisher = io.mesh, io.estimate, io.pose, io.request
+    io.wait_connected()
     mesh_publisher.publish(mesh_msg(mesh))
     centre = np.array([SIDE / 2, SIDE / 2, SIDE + 0.011])
     poses = [centre - [0.0, 0.0, 1e-3 * k] for k in range(5)]
@@ -316,17 +329,11 @@ def test_simulation_node_answers_the_requests_and_poses_that_came_before_its_mes
     mesh = pushed_cube()
     node = Process(tmp_path, "simulation_node", *ros_args("/simearly", "tool_radius:=0.01", "estimate_timeout:=60.0"))
     processes.append(node)
-    predictions, reports = [], simulation_reports(probe, "/simearly")
-    prediction_subscription = probe.create_subscription(TetraMesh, "/simearly/predicted_mesh", predictions.append,
-                                                        KEEP)
-    mesh_publisher = probe.create_publisher(TetraMesh, "/simearly/initial_mesh", LATCHED)
-    estimate_publisher = probe.create_publisher(TetraMesh, "/simearly/estimated_mesh", LATCHED)
-    pose_publisher = probe.create_publisher(PoseStamped, "/simearly/tool_pose", KEEP)
-    request_publisher = probe.create_publisher(Header, "/simearly/prediction_request", KEEP)
-    assert spin_until(probe, lambda: pose_publisher.get_subscription_count() == 1
-                      and request_publisher.get_subscription_count() == 1
-                      and estimate_publisher.get_subscription_count() == 1
-                      and prediction_subscription.get_publisher_count() == 1 and reports)
+    io, reports = SimulationProbe(probe, "/simearly"), simulation_reports(probe, "/simearly")
+    predictions = io.predictions
+    mesh_publisher, estimate_publisher, pose_publisher, request_publisher = io.mesh, io.estimate, io.pose, io.request
+    io.wait_connected()
+    assert spin_until(probe, lambda: reports)
     centre = np.array([SIDE / 3, SIDE / 3, SIDE + 0.011])  # above a vertex of the top face
     poses = [np.concatenate([centre - [0.0, 0.0, depth], [0.0, 0.0, 0.0, 1.0]]) for depth in (0.0, 2e-3, 3e-3)]
     estimate = mesh.vertices + [1e-4, 0.0, 0.0]
