@@ -49,8 +49,8 @@ def test_every_configuration_runs_and_returns_finite_states(scene, factors):
     if factors == "simulation":
         np.testing.assert_allclose(results[-1].positions, sequence[2].predicted, atol=1e-12)
     if factors == "temporal":
-        # One inexact Newton step (PCG to 1e-3 relative residual) ends the run: 10 micrometres of
-        # a 1 cm temporal sigma is far inside the stopping rule (0.25 chi^2 units).
+        # Inexact Newton steps (PCG to a relative residual of 0.1) end the run within 10
+        # micrometres: of a 1 cm temporal sigma, far inside the stopping rule (0.25 chi^2 units).
         np.testing.assert_allclose(results[-1].positions, mesh.vertices, atol=1e-5)
     if "measurement" in factors:
         assert results[-1].num_points == 800

@@ -53,7 +53,11 @@ Design decisions (see also factors.py, factor_graph.py, levenberg_marquardt.py, 
   deviations), never on a relative decrease: the window's cost grows with W and the clouds,
   and a relative test stopped the newest state short of small, statistically clear
   corrections. Steps are inexact Newton steps: PCG to a relative residual of
-  LINEAR_TOLERANCE (1e-3); the gain ratio judges each step on its true cost.
+  LINEAR_TOLERANCE (0.1, a usual forcing term of truncated Newton methods); the gain ratio
+  judges each step on its true cost. Against 1e-3, an organ-scale update takes 0.6 of the time
+  (PCG's iterations are its largest cost after the newest state's factorisation) with 4.4
+  LM iterations per update against 4.25 and the same vertex RMSE to 0.2 %, and the accuracy
+  suite's ratios move by at most 0.01, its LM iterations per update by at most 0.1.
 - Posterior std (position_std, (N,), sqrt(trace(Sigma_ii)/3), 0 on fixed vertices): up to
   EXACT_COVARIANCE_MAX_DOFS window unknowns the exact marginal of the newest state, diag
   blocks of H^-1 of the undamped Gauss-Newton matrix of the whole window at the solution
@@ -136,7 +140,7 @@ ABSOLUTE_COST_TOLERANCE = 0.25
 # Levenberg-Marquardt's settings; each update sets max_iterations and the time budget from the config.
 LM_CONFIG = LevenbergMarquardtConfig(cost_tolerance=1e-9, absolute_cost_tolerance=ABSOLUTE_COST_TOLERANCE)
 # PCG's relative residual in each LM step (inexact Newton, see the module doc).
-LINEAR_TOLERANCE = 1e-3
+LINEAR_TOLERANCE = 1e-1
 # The physics prior's ridge, relative to its mean information: a free body's rigid modes get a tiny information.
 PRIOR_RIDGE = 1e-6
 # position_std is the exact marginal up to this many window unknowns (a dense factorisation),

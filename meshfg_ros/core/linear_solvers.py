@@ -168,11 +168,11 @@ class PCGSolver(LinearSolver):
     Block Jacobi with a factor per state needs the fewest iterations on the estimator's
     windows: about 20 against 120 for "vertex" on a 512-vertex window (W=10, 13k unknowns,
     tolerance 1e-8), where whole-window Cholesky or SuperLU is over 100 times slower. On an
-    organ-scale window (10.6k vertices, W=5, 152k unknowns, tolerance 1e-3) PCG needs about 3
-    iterations, so one state's factorisation (30k dofs: 0.26 s with CHOLMOD's BLAS on MKL,
+    organ-scale window (10.6k vertices, W=5, 152k unknowns, the estimator's tolerance 0.1) PCG
+    needs 1-3 iterations, so one state's factorisation (30k dofs: 0.26 s with CHOLMOD's BLAS on MKL,
     0.44 s on single-threaded OpenBLAS, blas.py) dominates the update and a solve with a
     factor takes 12-18 ms. What would save factorisations costs more iterations than it saves
-    there: the previous newest state's factor (5-7 iterations, more as it ages), Cholesky for
+    there: the previous newest state's factor (5-7 iterations at tolerance 1e-3, more as it ages), Cholesky for
     the two newest states and vertex blocks for the rest (some updates take 40 or more),
     x/y/z-separated scalar blocks (a 9 times smaller factor, 25-29 iterations); MKL PARDISO's
     OpenMP threads slow numpy down.
