@@ -12,6 +12,7 @@ from meshfg_ros.core.factors import PhysicsPriorFactor, prior_scale
 from meshfg_ros.core.fem import ElasticModel
 from meshfg_ros.core.levenberg_marquardt import LevenbergMarquardtConfig, levenberg_marquardt
 from meshfg_ros.core.linear_solvers import (
+    BORROWED_ITERATIONS,
     CholeskySolver,
     FallbackSolver,
     LinearSolveError,
@@ -254,6 +255,50 @@ def test_stale_factors_are_refreshed_and_pcg_resumes_from_its_iterate(cube, mode
     x, stats = pcg.solve(system, rhs)
     assert stats.factorizations == len(system.blocks)
     assert stats.iterations > 1  # the one stale iteration, then the refreshed ones
+    np.testing.assert_allclose(x, reference, rtol=1e-8, atol=1e-10 * np.abs(reference).max())
+
+
+def test_a_state_that_joins_the_window_borrows_the_newest_factor(cube, model):  # noqa: F811
+    """The newest state of a sliding window starts with the factor of the state before it (one
+    factorisation less per update); with a block close to its predecessor's, as consecutive
+    states of a sequence have (here 2 % more on the diagonal; couplings as weak as the
+    estimator's), PCG meets the tolerance with it (6 iterations against 3 with a factor of its
+    own, measured). The lender's factor is not handed out as a spare while the newcomer still
+    uses it after the lender left."""
+    system, rhs = window_system(cube, model)
+    blocks = list(system.blocks)
+    blocks[2] = blocks[1] + scipy.sparse.diags(0.02 * blocks[1].diagonal())
+    system = WindowSystem(blocks, 3e-3 * system.couplings, system.keys, system.diagonal_index)
+    reference = np.linalg.solve(system.to_csr().toarray(), rhs)
+    pcg = PCGSolver(tolerance=1e-8, preconditioner="block")
+    earlier = system.restricted([0, 1])
+    assert pcg.solve(earlier, system.split(rhs)[:2].reshape(-1))[1].factorizations == 2
+    x, stats = pcg.solve(system, rhs)
+    assert stats.factorizations == 0 and stats.iterations <= BORROWED_ITERATIONS
+    np.testing.assert_allclose(x, reference, rtol=1e-6, atol=1e-7 * np.abs(reference).max())
+    newest, lender = (pcg._block_factors[system.keys[t]] for t in (2, 1))
+    assert newest.borrowed and newest.factor is lender.factor
+    later = system.restricted([2])
+    pcg.solve(later, system.split(rhs)[2])  # states 0 and 1 left the window
+    assert all(spare is not newest.factor for spare in pcg._spare) and len(pcg._spare) == 1
+
+
+def test_a_borrowed_factor_that_does_not_fit_is_replaced_by_the_states_own(cube, model):  # noqa: F811
+    """A joining state whose block is far from the lender's (here 50 times its damping) makes PCG
+    miss the tolerance within BORROWED_ITERATIONS; that state alone gets its own factor and PCG
+    goes on from its iterate to the exact solution."""
+    system, rhs = window_system(cube, model)
+    blocks = list(system.blocks)
+    blocks[2] = blocks[2] + scipy.sparse.diags(50.0 * np.abs(blocks[2].diagonal()))
+    system = WindowSystem(blocks, 3e-3 * system.couplings, system.keys, system.diagonal_index)
+    reference = np.linalg.solve(system.to_csr().toarray(), rhs)
+    pcg = PCGSolver(tolerance=1e-12, preconditioner="block")
+    earlier = system.restricted([0, 1])
+    pcg.solve(earlier, system.split(rhs)[:2].reshape(-1))
+    lent = pcg._block_factors[system.keys[1]].factor
+    x, stats = pcg.solve(system, rhs)
+    assert stats.factorizations == 1 and stats.iterations > BORROWED_ITERATIONS
+    assert pcg._block_factors[system.keys[1]].factor is lent and not pcg._block_factors[system.keys[2]].borrowed
     np.testing.assert_allclose(x, reference, rtol=1e-8, atol=1e-10 * np.abs(reference).max())
 
 

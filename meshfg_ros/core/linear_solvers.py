@@ -28,6 +28,7 @@ from meshfg_ros.core.noise import NotPositiveDefiniteError
 from meshfg_ros.core.sparse_cholesky import SparseCholesky
 
 __all__ = [
+    "BORROWED_ITERATIONS",
     "LINEAR_SOLVERS",
     "CholeskySolver",
     "FallbackSolver",
@@ -49,6 +50,9 @@ LEFT_OUT_SHARE = 0.5
 # ... and solves the rest to this share of the tolerance, so that the whole residual (the
 # left-out parts included) usually meets it without a second pass.
 KEPT_SHARE = 0.8
+# A state that joins a window borrows the newest factor (see PCGSolver); PCG gets this many
+# iterations with a borrowed factor before the state gets its own.
+BORROWED_ITERATIONS = 8
 
 
 class LinearSolveError(RuntimeError):
@@ -128,12 +132,17 @@ class _BlockFactor:
     the distance is computed once per revision and the diagonal (1/36 of the entries) per call.
     """
 
-    def __init__(self, factor: SparseCholesky, reference: np.ndarray, revision):
+    def __init__(self, factor: SparseCholesky, reference: np.ndarray, revision, borrowed: bool = False):
         self.factor = factor
         self.reference = reference
         self.reference_norm = max(float(np.linalg.norm(reference)), 1e-300)
         self.seen_revision = revision    # the revision off_diagonal_squared was computed for
         self.off_diagonal_squared = 0.0
+        self.borrowed = borrowed         # another state's factor (PCGSolver: borrowing)
+
+    def lent(self) -> _BlockFactor:
+        """This factor, borrowed by a state that has none."""
+        return _BlockFactor(self.factor, self.reference, None, borrowed=True)
 
     def change(self, system: WindowSystem, t: int) -> float:
         """Relative distance of block t of `system` to the values this factor was made from."""
@@ -156,7 +165,8 @@ class PCGSolver(LinearSolver):
                 (sparse_cholesky.py) and cached by its key, refreshed when the block drifts by
                 more than `refresh_change` (relative Frobenius norm: a re-linearisation,
                 damping, a new temporal neighbour) or PCG needs more than
-                `refresh_iterations` iterations. Exact without couplings.
+                `refresh_iterations` iterations; a state that joins the window borrows the
+                newest factor (below). Exact without couplings.
       "vertex"  M = I (x) Bbar + T (x) I, Bbar the 3x3 vertex blocks of the states' mean block
                 and T the (W, W) time Laplacian of the couplings. With T = Q diag(mu) Q^T it
                 is block diagonal in the time eigenbasis, so applying it is a batch of 3x3
@@ -169,13 +179,19 @@ class PCGSolver(LinearSolver):
     windows: about 20 against 120 for "vertex" on a 512-vertex window (W=10, 13k unknowns,
     tolerance 1e-8), where whole-window Cholesky or SuperLU is over 100 times slower. On an
     organ-scale window (10.6k vertices, W=5, 152k unknowns, the estimator's tolerance 0.1) PCG
-    needs 1-3 iterations, so one state's factorisation (30k dofs: 0.26 s with CHOLMOD's BLAS on MKL,
-    0.44 s on single-threaded OpenBLAS, blas.py) dominates the update and a solve with a
-    factor takes 12-18 ms. What would save factorisations costs more iterations than it saves
-    there: the previous newest state's factor (5-7 iterations at tolerance 1e-3, more as it ages), Cholesky for
-    the two newest states and vertex blocks for the rest (some updates take 40 or more),
-    x/y/z-separated scalar blocks (a 9 times smaller factor, 25-29 iterations); MKL PARDISO's
-    OpenMP threads slow numpy down.
+    needs 1-3 iterations, and one state's factorisation (30k dofs: 0.26 s with CHOLMOD's BLAS
+    on MKL, 0.45 s on single-threaded OpenBLAS, blas.py) would cost a third of an update, so
+    a state that joins the window borrows the newest factor (that of the state before it, or
+    the one that state borrowed) instead of making its own: consecutive states' blocks differ
+    by what one step moved and saw. With it, PCG needs 2-3 iterations there, and updates
+    take 0.7 of the time with the same LM iterations and vertex RMSE. A borrowing state gets a
+    factor of its own when PCG misses the tolerance within BORROWED_ITERATIONS, so a borrowed
+    factor serves while it is good enough, however old. Only one joining state borrows: a
+    solver facing a window of states without factors factors each (a borrowed factor for a
+    whole window would serve none well). Other ways to save factorisations cost more than
+    they save: Cholesky for the two newest states and vertex blocks for the rest (some
+    updates take 40 or more iterations), x/y/z-separated scalar blocks (a 9 times smaller
+    factor, 25-29 iterations); MKL PARDISO's OpenMP threads slow numpy down.
     Blocks whose parts of b are together at most LEFT_OUT_SHARE of the tolerance (times |b|)
     are left out: their part of x is zero and the others are solved on their own rows and
     columns (to KEPT_SHARE of the tolerance); when the whole residual then misses the
@@ -215,6 +231,7 @@ class PCGSolver(LinearSolver):
         """Drop every cached factor."""
         self._block_factors: dict = {}   # key -> _BlockFactor
         self._spare: list = []           # factors no longer in use, their symbolic analysis reusable
+        self._latest: _BlockFactor | None = None  # the factor last made or borrowed: the one to lend
         self._vertex: dict | None = None  # "vertex": laplacian, eigenvectors, inverse blocks, mean data
         self.factorizations = 0
         self._revision = 0               # counts changes of the preconditioner
@@ -271,11 +288,20 @@ class PCGSolver(LinearSolver):
         self._refresh(system, mode, force)
         self._prepared = (system, self._revision)
 
+    def _in_use(self, factor: SparseCholesky) -> bool:
+        return any(cached.factor is factor for cached in self._block_factors.values())
+
+    def _release(self, key) -> None:
+        """Drop state `key`'s factor; it becomes a spare unless another state borrowed it."""
+        factor = self._block_factors.pop(key).factor
+        if not self._in_use(factor):
+            self._spare.append(factor)
+
     def _evict(self, window: WindowSystem) -> None:
-        """Factors of states that left the window become spares."""
+        """Factors of states that left the window become spares (those still borrowed stay)."""
         for key in list(self._block_factors):
             if key not in window.keys:
-                self._spare.append(self._block_factors.pop(key).factor)
+                self._release(key)
 
     def _solved_part(self, window: WindowSystem, b: np.ndarray) -> tuple[WindowSystem, np.ndarray, np.ndarray | None]:
         """(system, right-hand side, kept block indices or None for all) of a solve for b on
@@ -293,17 +319,39 @@ class PCGSolver(LinearSolver):
             cached = self._kept = (window, kept, window.restricted(kept))
         return cached[2], window.split(b)[kept].reshape(-1), kept
 
-    def _refresh(self, system: WindowSystem, mode: str, force: bool) -> None:
+    def _lender(self, system: WindowSystem) -> _BlockFactor | None:
+        """The factor a state without one borrows: the latest, when exactly one state of
+        `system` has none (a state joined the window) and that factor is still in use."""
+        latest = self._latest
+        if latest is None or not self._in_use(latest.factor) or not latest.factor.same_pattern(system.pattern):
+            return None
+        if sum(key not in self._block_factors for key in system.keys) != 1:
+            return None
+        return latest
+
+    def _refresh(self, system: WindowSystem, mode: str, force: bool, borrowed_only: bool = False) -> None:
+        """Factors that fit `system`: a joining state borrows (see the class doc), a factor of
+        its own is made where a block has none or drifted beyond refresh_change; with `force`,
+        for every block, with `borrowed_only`, for the blocks that borrow."""
         if mode == "block":
+            lender = None if force or borrowed_only else self._lender(system)
             for t, key in enumerate(system.keys):
                 cached = self._block_factors.get(key)
-                if not force and cached is not None and cached.change(system, t) <= self.refresh_change:
+                if cached is None and lender is not None:
+                    self._block_factors[key] = self._latest = lender.lent()
+                    self._revision += 1
                     continue
+                if cached is not None and not force:
+                    if borrowed_only and not cached.borrowed:
+                        continue
+                    if not borrowed_only and (cached.borrowed or cached.change(system, t) <= self.refresh_change):
+                        continue
                 if cached is not None:
-                    self._spare.append(self._block_factors.pop(key).factor)
+                    self._release(key)
                 data = system.block_data(t)
                 self._revision += 1
-                self._block_factors[key] = _BlockFactor(self._factor(data, system.pattern), data, system.revisions[t])
+                self._block_factors[key] = self._latest = _BlockFactor(self._factor(data, system.pattern), data,
+                                                                      system.revisions[t])
             return
         laplacian = system.time_laplacian()
         mean = self._mean_block_data(system)
@@ -365,7 +413,11 @@ class PCGSolver(LinearSolver):
         total, refreshed = 0, before != self.factorizations
         first = self._known_preconditioned(system, b)
         while True:
-            limit = self.max_iterations - total if refreshed else min(self.refresh_iterations, self.max_iterations)
+            borrowing = mode == "block" and any(self._block_factors[key].borrowed for key in system.keys)
+            if refreshed:
+                limit = self.max_iterations - total
+            else:
+                limit = min(BORROWED_ITERATIONS if borrowing else self.refresh_iterations, self.max_iterations - total)
             x, iterations, converged = self._pcg(system, mode, b, x, limit, target, first)
             first = None
             total += iterations
@@ -373,8 +425,12 @@ class PCGSolver(LinearSolver):
                 return x, total
             if refreshed or total >= self.max_iterations:
                 raise LinearSolveError(f"PCG did not reach relative residual {self.tolerance:g} in {total} iterations")
-            self._prepare(system, mode, force=True)
-            refreshed = True
+            if borrowing:  # the borrowing states get factors of their own, the others keep theirs
+                self._refresh(system, mode, force=False, borrowed_only=True)
+            else:
+                self._refresh(system, mode, force=True)
+                refreshed = True
+            self._prepared = (system, self._revision)
 
     def decrement(self, system, gradient):
         """0.5 g^T M^-1 g with the preconditioner M (cached factors, block Jacobi: exact in each
