@@ -119,7 +119,8 @@ def project_onto_triangles(points, a, b, c) -> TriangleProjection:
     # region's on its own points.
     inverse = 1.0 / safe(va + vb + vc)
     beta, gamma = vb * inverse, vc * inverse
-    for code in np.unique(region[region != REGION_FACE]):
+    present = np.flatnonzero(np.bincount(region, minlength=REGION_EDGE_BC + 1)[1:]) + 1  # the codes but the face
+    for code in present:
         at = region == code
         beta[at] = gamma[at] = 0.0
         if code == REGION_VERTEX_B:
