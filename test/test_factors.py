@@ -68,6 +68,25 @@ def central_differences(function, state, step=1e-7):
     return np.stack(columns, axis=1)
 
 
+def test_point_to_surface_keeps_the_last_two_associations(cube, monkeypatch):
+    """LM asks for the cost at a trial, at its extrapolation, and then (the extrapolation not
+    taken) linearises at the trial: the second visit to a state reuses its exact association;
+    a third state's pushes the oldest out."""
+    from meshfg_ros.core import closest_point
+
+    first, second, third = (deformed(cube, seed=seed) for seed in (1, 2, 3))
+    factor = PointToSurfaceFactor(0, noisy_points(first, cube.surface_triangles), cube.surface_triangles, first,
+                                  IsotropicNoise(1e-3))
+    queries = []
+    original = closest_point.ClosestPointIndex.associate
+    monkeypatch.setattr(closest_point.ClosestPointIndex, "associate",
+                        lambda index, points, *args: queries.append(1) or original(index, points, *args))
+    costs = [factor.cost({0: state}) for state in (second, third, second, third)]
+    assert len(queries) == 2 and costs[:2] == costs[2:]
+    factor.cost({0: first})  # the gating's association was pushed out by the other two
+    assert len(queries) == 3
+
+
 def test_point_to_surface_jacobian_matches_finite_differences(cube):
     state = deformed(cube)
     factor = PointToSurfaceFactor(0, noisy_points(state, cube.surface_triangles), cube.surface_triangles, state,

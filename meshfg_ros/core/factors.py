@@ -445,8 +445,9 @@ class PointToSurfaceFactor(Factor):
         self.weights = self.noise.point_weights(len(self.points))
         self.robust = robust
         self._frozen_triangle: np.ndarray | None = None
-        # Last (vertices, association): LM linearises where the gating or a trial's cost associated.
-        self._last_association = None if initial_association is None else (initial_vertices.copy(), initial_association)
+        # The last two (vertices, association) pairs: LM linearises where the gating or a trial's
+        # cost associated, and after an extrapolated trial it did not take, at the trial before it.
+        self._associations = [] if initial_association is None else [(initial_vertices.copy(), initial_association)]
 
     def _visible(self, accepted, vertices, association, viewpoint) -> np.ndarray:
         """`accepted` less the points whose closest triangle faces away from `viewpoint`."""
@@ -475,9 +476,9 @@ class PointToSurfaceFactor(Factor):
     def associate(self, states) -> Association:
         """Closest triangle per point on the surface of the current state (or the frozen ones)."""
         vertices = states[self.keys[0]]
-        last = self._last_association
-        if last is not None and np.array_equal(last[0], vertices):
-            return last[1]
+        for kept_vertices, kept in self._associations:
+            if np.array_equal(kept_vertices, vertices):
+                return kept
         if self._frozen_triangle is not None:
             projection = project_onto_triangles(self.points, *triangle_corners(vertices, self.triangles,
                                                                                 self._frozen_triangle))
@@ -485,13 +486,13 @@ class PointToSurfaceFactor(Factor):
                                       projection.region, np.sqrt(projection.squared_distance))
         else:
             association = ClosestPointIndex(vertices, self.triangles).associate(self.points)
-        self._last_association = (np.array(vertices, dtype=np.float64), association)
+        self._associations = [*self._associations[-1:], (np.array(vertices, dtype=np.float64), association)]
         return association
 
     def freeze_association(self, states) -> np.ndarray:
         """Pin every point to its closest triangle at `states`; returns those triangle indices."""
         self._frozen_triangle = self.associate(states).triangle.copy()
-        self._last_association = None
+        self._associations = []
         return self._frozen_triangle
 
     def _terms(self, states):
