@@ -329,6 +329,14 @@ class PCGSolver(LinearSolver):
             return None
         return latest
 
+    def _outdated(self, cached: _BlockFactor, system: WindowSystem, t: int, borrowed_only: bool) -> bool:
+        """Whether block t needs a factor of its own instead of `cached`: a borrowed one when
+        `borrowed_only` (PCG missed the tolerance with it), else an own one that drifted beyond
+        refresh_change (a borrowed factor is judged by PCG's iterations, not by its distance)."""
+        if borrowed_only:
+            return cached.borrowed
+        return not cached.borrowed and cached.change(system, t) > self.refresh_change
+
     def _refresh(self, system: WindowSystem, mode: str, force: bool, borrowed_only: bool = False) -> None:
         """Factors that fit `system`: a joining state borrows (see the class doc), a factor of
         its own is made where a block has none or drifted beyond refresh_change; with `force`,
@@ -337,17 +345,15 @@ class PCGSolver(LinearSolver):
             lender = None if force or borrowed_only else self._lender(system)
             for t, key in enumerate(system.keys):
                 cached = self._block_factors.get(key)
-                if cached is None and lender is not None:
-                    self._block_factors[key] = self._latest = lender.lent()
-                    self._revision += 1
-                    continue
-                if cached is not None and not force:
-                    if borrowed_only and not cached.borrowed:
+                if cached is None:
+                    if lender is not None:
+                        self._block_factors[key] = self._latest = lender.lent()
+                        self._revision += 1
                         continue
-                    if not borrowed_only and (cached.borrowed or cached.change(system, t) <= self.refresh_change):
-                        continue
-                if cached is not None:
+                elif force or self._outdated(cached, system, t, borrowed_only):
                     self._release(key)
+                else:
+                    continue
                 data = system.block_data(t)
                 self._revision += 1
                 self._block_factors[key] = self._latest = _BlockFactor(self._factor(data, system.pattern), data,
