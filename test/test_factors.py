@@ -208,7 +208,24 @@ def test_gating_rejects_far_points(cube):
     points = np.array([[0.05, 0.05, 0.101], [0.05, 0.05, 0.2], [0.5, 0.5, 0.5], [0.05, -0.001, 0.05]])
     factor = PointToSurfaceFactor(0, points, cube.surface_triangles, state, gating_distance=0.01)
     assert factor.num_points == 2 and factor.num_points_rejected == 2
-    np.testing.assert_array_equal(factor.points, points[[0, 3]])
+    assert sorted(map(tuple, factor.points)) == sorted(map(tuple, points[[0, 3]]))
+
+
+def test_gated_points_are_ordered_by_triangle_with_their_noise(cube):
+    """The factor keeps its points in the order of their closest triangles (faster queries),
+    and each point keeps its own sigma through the reordering."""
+    state = cube.vertices
+    rng = np.random.default_rng(3)
+    points = sample_surface(state, cube.surface_triangles, 60, rng)
+    sigmas = rng.uniform(1e-3, 5e-3, len(points))
+    factor = PointToSurfaceFactor(0, points, cube.surface_triangles, state, PerPointNoise(sigmas),
+                                  gating_distance=0.01)
+    assert factor.num_points == len(points)
+    triangles = factor.associate({0: state}).triangle
+    assert np.all(np.diff(triangles) >= 0)
+    order = [int(np.flatnonzero(np.all(points == point, axis=1))[0]) for point in factor.points]
+    assert sorted(order) == list(range(len(points))) and order != list(range(len(points)))
+    np.testing.assert_allclose(factor.weights, 1.0 / sigmas[order] ** 2, rtol=1e-15)
 
 
 def test_points_against_back_faces_are_dropped_as_leaks(cube):
@@ -222,7 +239,7 @@ def test_points_against_back_faces_are_dropped_as_leaks(cube):
     factor = PointToSurfaceFactor(0, points, cube.surface_triangles, state, gating_distance=0.01, viewpoint=camera)
     assert factor.num_points_back_facing == 2 and factor.num_points_rejected == 2
     assert not factor.back_facing_test_skipped
-    np.testing.assert_array_equal(factor.points, top)
+    assert sorted(map(tuple, factor.points)) == sorted(map(tuple, top))
     # Without a viewpoint the distance gate alone keeps them (they are within a millimetre).
     assert PointToSurfaceFactor(0, points, cube.surface_triangles, state, gating_distance=0.01).num_points == 5
     # Seen from below, most points would face away: the viewpoint is not the sensor's, nothing is dropped.

@@ -40,7 +40,7 @@ class PointNoise:
         raise NotImplementedError
 
     def subset(self, mask: np.ndarray) -> PointNoise:
-        """The model of the points selected by boolean `mask`."""
+        """The model of the points selected by `mask`: a boolean mask or indices (in their order)."""
         return self
 
     def whiten(self, residual: np.ndarray) -> np.ndarray:
