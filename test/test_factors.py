@@ -10,6 +10,7 @@ from torch.func import jacrev, vmap
 from meshfg_ros.benchmarks.baselines import WhitenedProblem, freeze_associations
 from meshfg_ros.core.factor_graph import FactorGraph
 from meshfg_ros.core.factors import (
+    CURVATURE_FLOOR,
     Factor,
     FactorError,
     PhysicsPriorFactor,
@@ -141,6 +142,10 @@ def test_linearize_equals_weighted_normal_equations(cube, model):
         residual = factor.residual({0: state}).reshape(-1, 3)
         squared = (residual**2).sum(axis=1)
         weights = 1.0 / sigmas**2 * (1.0 if robust is None else robust.weight(squared))
+        # Along the distance, a face point's term has its cost's curvature, at least
+        # CURVATURE_FLOOR of the IRLS weight; edge and vertex points keep the IRLS weight.
+        curvatures = weights if robust is None else np.maximum(robust.curvature(squared) / sigmas**2,
+                                                               CURVATURE_FLOOR * weights)
         weight_rows = scipy.sparse.diags(np.repeat(weights, 3))
         blocks = terms.point_blocks[0]
         tri_dofs = (3 * cube.surface_triangles[blocks.triangle][:, :, None] + np.arange(3)).reshape(-1, 9)
@@ -157,12 +162,43 @@ def test_linearize_equals_weighted_normal_equations(cube, model):
         dense = jacobian.toarray().reshape(len(points), 3, -1)
         face = association.region == REGION_FACE
         normal_rows = np.einsum("ki,kic->kc", normals[face], dense[face])
-        expected = (normal_rows.T * weights[face]) @ normal_rows
+        expected = (normal_rows.T * curvatures[face]) @ normal_rows
         other_rows = dense[~face].reshape(-1, dense.shape[2])
         expected += (other_rows.T * np.repeat(weights[~face], 3)) @ other_rows
         np.testing.assert_allclose(hessian, expected, rtol=1e-10, atol=1e-3)
         expected_cost = 0.5 * np.sum(squared / sigmas**2) if robust is None else 0.5 * np.sum(robust.rho(squared) / sigmas**2)
         assert terms.cost == pytest.approx(expected_cost, rel=1e-12)
+
+
+@pytest.mark.parametrize("distance_in_scales", [0.3, 0.5, 2.0])
+def test_face_point_term_is_the_cost_curvature_along_the_normal(cube, distance_in_scales):
+    """Moving a point's triangle along its normal by t changes the point's distance by t: the
+    second derivative of its cost in t (central differences) is the term's weight, where it is
+    above the floor; beyond it (a far point, negative curvature) the term is the floor."""
+    state = cube.vertices.astype(np.float64)
+    kernel = CauchyKernel(2e-3)
+    sigma = 1e-3
+    point = np.array([[0.0331, 0.0173, 0.1 + distance_in_scales * kernel.scale]])  # above the top face
+    factor = PointToSurfaceFactor(0, point, cube.surface_triangles, state, IsotropicNoise(sigma), kernel)
+    assert factor.associate({0: state}).region[0] == REGION_FACE
+    blocks = factor.linearize({0: state}).point_blocks[0]
+    triangle = cube.surface_triangles[blocks.triangle[0]]
+    normal_move = np.tile([0.0, 0.0, 1.0], 3)  # the three corners up along the top face's normal
+    term = normal_move @ blocks.hessian[0].reshape(9, 9) @ normal_move
+
+    def cost(t):
+        moved = state.copy()
+        moved[triangle] += [0.0, 0.0, t]
+        return factor.cost({0: moved})
+
+    step = 1e-6
+    curvature = (cost(step) - 2.0 * cost(0.0) + cost(-step)) / step**2
+    irls = float(kernel.weight(np.array([(distance_in_scales * kernel.scale) ** 2]))[0]) / sigma**2
+    if curvature >= CURVATURE_FLOOR * irls:
+        assert term == pytest.approx(curvature, rel=1e-5)
+        assert term < irls  # IRLS overstates it
+    else:
+        assert term == pytest.approx(CURVATURE_FLOOR * irls, rel=1e-12)
 
 
 def test_prior_scale_sets_mean_information(model, cube):
@@ -284,6 +320,14 @@ def test_noise_models_and_robust_kernels():
     np.testing.assert_allclose(huber.weight(squared), [1.0, 1.0, 0.5])
     np.testing.assert_allclose(cauchy.rho(squared), 4 * np.log1p(squared / 4))
     np.testing.assert_allclose(cauchy.weight(squared), 1 / (1 + squared / 4))
+    # curvature: d^2/dd^2 of 0.5 rho(d^2), by central differences in d.
+    for kernel in (huber, cauchy):
+        for distance in (0.5, 1.5, 3.0, 5.0):
+            step = 1e-4
+            half_cost = [0.5 * float(kernel.rho(np.array([(distance + k * step) ** 2]))[0]) for k in (-1, 0, 1)]
+            expected = (half_cost[0] - 2.0 * half_cost[1] + half_cost[2]) / step**2
+            assert float(kernel.curvature(np.array([distance**2]))[0]) == pytest.approx(expected, abs=1e-6)
+    assert cauchy.curvature(np.array([16.0]))[0] < 0.0 < cauchy.weight(np.array([16.0]))[0]
     assert make_robust_kernel("none", 1.0) is None and make_robust_kernel(None, 1.0) is None
     with pytest.raises(RobustKernelError):
         make_robust_kernel("tukey", 1.0)

@@ -58,6 +58,16 @@ BARRIER_VOLUME_RATIO = 0.5
 # camera scenes at the predicted surface: 0-1 % of the points on the tissue and 49-100 % of the
 # leaks onto the surroundings lie against back faces; the leaks are 10-20 % of a cloud.
 MAX_BACK_FACING_SHARE = 0.5
+# A point's Gauss-Newton term (PointToSurfaceFactor._distance_hessians) is weighted by the second
+# derivative of its robust cost along its distance, w (rho' + 2 s rho'') (RobustKernel.curvature),
+# but by at least this share of its IRLS weight w rho'. The IRLS weight overstates the curvature
+# (Cauchy at 2.4 sigma, a point one sigma off: 0.85 w against 0.61 w), so LM's steps stop short
+# and its decrement test sees less of the remaining decrease than there is; beyond about 0.6
+# kernel scales the true curvature falls below half the IRLS weight and turns negative, and
+# there the floor keeps the model convex (without it, steps chase the far points of the first
+# updates: 5.2 LM iterations per organ-scale update instead of 3.8, up to 10). Measurements in
+# docs/design-notes.md ("Curvature of the robust cost").
+CURVATURE_FLOOR = 0.5
 
 
 class FactorError(ValueError):
@@ -411,7 +421,8 @@ class PointToSurfaceFactor(Factor):
     (back_facing_test_skipped). The accepted points (`points`, with their `noise`) are kept in
     the order of their closest triangles at `initial_vertices` when those were found.
     Cost: 0.5 sum_k w_k rho(|r_k|^2), w_k = 1/sigma_k^2, rho the robust kernel (identity
-    without one), applied as IRLS weights w_k rho'(|r_k|^2).
+    without one); its gradient carries the IRLS weights w_k rho'(|r_k|^2), its Gauss-Newton
+    terms the curvature along each point's distance (see CURVATURE_FLOOR).
     """
 
     def __init__(self, key, points, surface_triangles, initial_vertices, noise: PointNoise | None = None,
@@ -511,25 +522,33 @@ class PointToSurfaceFactor(Factor):
             cost_terms, irls = squared, self.weights
         else:
             cost_terms, irls = self.robust.rho(squared), self.weights * self.robust.weight(squared)
-        return association, residual, 0.5 * float(self.weights @ cost_terms), irls
+        return association, residual, squared, 0.5 * float(self.weights @ cost_terms), irls
+
+    def _curvature_weights(self, squared, irls) -> np.ndarray:
+        """Per-point weights of the Gauss-Newton terms along the distance (see CURVATURE_FLOOR)."""
+        if self.robust is None:
+            return irls
+        return np.maximum(self.weights * self.robust.curvature(squared), CURVATURE_FLOOR * irls)
 
     def residual(self, states):
         if not self.num_points:
             return np.zeros(0)
         return (self.associate(states).closest - self.points).reshape(-1)
 
-    def _distance_hessians(self, states, association, residual, irls) -> np.ndarray:
-        """Gauss-Newton terms (K, 81) of the points' squared distances.
+    def _distance_hessians(self, states, association, curvature, irls) -> np.ndarray:
+        """Gauss-Newton terms (K, 81) of the points' robust costs: `curvature` (K,) weights a
+        point inside its face, `irls` (K,) one on an edge or a vertex.
 
         A point projected inside its face has d = n.(m - q): its Gauss-Newton term is
-        w (beta (x) n)(beta (x) n)^T, since d d / d x_i = -beta_i n (the envelope theorem, as for
+        c (beta (x) n)(beta (x) n)^T, since d d / d x_i = -beta_i n (the envelope theorem, as for
         the gradient). Gauss-Newton on the vector r = q - m instead adds d^2 (dn/dX)^T (dn/dX),
         a stiffness against turning the face that the distance does not have; at a window's
         optimum the prior holds the surface off the data, the d keep a systematic part and that
         term makes Levenberg-Marquardt's steps stop short (on the airway scene the vector form's
         curvature along a step is 1.35 times the true one, and LM converges linearly, at about
         half the remaining decrease per iteration). A point projected onto an edge or a
-        vertex keeps the vector form, which is exact there (distance to a line or a point)."""
+        vertex keeps the vector form, which is exact there (distance to a line or a point),
+        with its IRLS weight (a few points, weighted the conservative way)."""
         face = association.region == REGION_FACE
         # The face form for every point (nearly all are inside a face), the rest overwritten:
         # no masked copies of the (K, 81) terms. A degenerate triangle's NaN normal is either
@@ -539,7 +558,7 @@ class PointToSurfaceFactor(Factor):
         with np.errstate(invalid="ignore", divide="ignore"):
             normals /= np.linalg.norm(normals, axis=1)[:, None]
         rows = (association.barycentric[:, :, None] * normals[:, None, :]).reshape(-1, 9)
-        hessians = ((irls[:, None] * rows)[:, :, None] * rows[:, None, :]).reshape(-1, 81)
+        hessians = ((curvature[:, None] * rows)[:, :, None] * rows[:, None, :]).reshape(-1, 81)
         if not face.all():
             other = ~face
             jacobian = projection_jacobian(self.points[other], a[other], b[other], c[other], association.region[other])
@@ -568,13 +587,13 @@ class PointToSurfaceFactor(Factor):
     def cost(self, states):
         if not self.num_points:
             return 0.0
-        return self._terms(states)[2]
+        return self._terms(states)[3]
 
     def linearize(self, states, hessian=True):
         key = self.keys[0]
         if not self.num_points:
             return FactorLinearization(cost=0.0)
-        association, residual, cost, irls = self._terms(states)
+        association, residual, squared, cost, irls = self._terms(states)
         # J^T W r without J: q is the closest point of the triangle, so (dq/dX)^T r equals the
         # derivative with the barycentrics held fixed, beta_i r for corner i (envelope theorem;
         # test_jacobian_times_residual_is_the_fixed_barycentric_gradient checks it per region).
@@ -582,6 +601,6 @@ class PointToSurfaceFactor(Factor):
         gradient = (association.barycentric[:, :, None] * weighted_residual[:, None, :]).reshape(-1, 9)
         point_hessian = None
         if hessian:
-            point_hessian = self._distance_hessians(states, association, residual, irls)
+            point_hessian = self._distance_hessians(states, association, self._curvature_weights(squared, irls), irls)
         blocks = PointBlocks(association.triangle, point_hessian, gradient)
         return FactorLinearization(cost=cost, point_blocks={key: blocks})
