@@ -210,3 +210,32 @@ def test_an_update_solved_again_after_re_weighting_reports_every_run(scene):
     runs = [int(accepted) for accepted in re.findall(r"(\d+) of \d+ steps accepted", result.message)]
     assert "re-weighted (measurement sigma" in result.message and len(runs) >= 2
     assert result.accepted_steps == sum(runs) and runs[0] >= 1
+
+
+
+def test_the_gate_reuses_the_innovation_tests_association(scene, monkeypatch):
+    """Preparing an update queries the closest triangles of the cloud on the prediction once:
+    the innovation test's association serves the measurement factor's gate, which keeps the
+    same points as one that queries on its own."""
+    from meshfg_ros.core import closest_point
+    from meshfg_ros.core.factors import FactorError, PointToSurfaceFactor
+
+    mesh, sequence = scene
+    estimator = SlidingWindowEstimator(mesh, EstimatorConfig())
+    estimator.update(sequence[0].stamp_ns, sequence[0].points, sequence[0].predicted)
+    queried = []
+    original = closest_point.ClosestPointIndex.associate
+    monkeypatch.setattr(closest_point.ClosestPointIndex, "associate",
+                        lambda index, points, *args: queried.append(len(points)) or original(index, points, *args))
+    step = sequence[1]
+    pending = estimator.prepare(step.stamp_ns, step.points, step.predicted)
+    assert queried == [len(pending.points)]
+    reused = next(f for f in estimator.graph.state_factors(pending.key) if isinstance(f, PointToSurfaceFactor))
+    known, pending.association = pending.association, None
+    own = next(f for f in estimator._state_factors(pending) if isinstance(f, PointToSurfaceFactor))
+    assert len(queried) == 2
+    np.testing.assert_array_equal(reused.points, own.points)
+    assert reused.num_points_rejected == own.num_points_rejected
+    with pytest.raises(FactorError, match="initial_association"):
+        PointToSurfaceFactor(pending.key, pending.points[1:], mesh.surface_triangles, pending.prediction,
+                             initial_association=known[1])

@@ -318,6 +318,9 @@ class PendingStep:
     points: np.ndarray | None = None      # the cloud after the tool gate
     prediction: np.ndarray | None = None  # (N, 3) the prior's mean, fixed vertices reset
     viewpoint: np.ndarray | None = None   # (3,) the sensor's centre, for the back-face test
+    # (vertices, Association of `points` on their surface): the innovation test's, which the
+    # measurement factor's gate reuses when the vertices are the prediction's.
+    association: tuple | None = None
 
 
 class _PendingChanges:
@@ -582,14 +585,18 @@ class SlidingWindowEstimator:
         copy-forward. Clouds of fewer than MIN_POINTS points (weights.py) do not judge."""
         if predicted is None or points is None or len(points) < MIN_POINTS:
             return predicted
-        sample = innovation_sample(points)
         triangles = self.mesh.surface_triangles
-        spread = innovation_spread(ClosestPointIndex(predicted, triangles).associate(sample).distance)
+        # The whole cloud's association (the measurement factor's gate needs it), judged on the sample.
+        association = ClosestPointIndex(predicted, triangles).associate(points)
+        spread = innovation_spread(innovation_sample(association.distance))
         limit = max(INNOVATION_SIGMAS * self.config.measurement_sigma, INNOVATION_DIAGONALS * self.scene.diagonal)
         if spread <= limit:
+            pending.association = (predicted, association)
             return predicted
+        sample = innovation_sample(points)
         copy_forward = innovation_spread(ClosestPointIndex(self.last_estimate, triangles).associate(sample).distance)
         if spread <= INNOVATION_RATIO * copy_forward:
+            pending.association = (predicted, association)
             return predicted
         pending.messages.append(f"{REJECTIONS['predictions_rejected_innovation']} (spread {1e3 * spread:.3g} mm "
                                 f"about it, {1e3 * copy_forward:.3g} mm about the copy-forward, "
@@ -615,8 +622,10 @@ class SlidingWindowEstimator:
             robust = make_robust_kernel(cfg.robust_kernel, cfg.robust_scale or ROBUST_SCALE_SIGMAS * sigma)
             gate = cfg.gating_distance or (lambda distances: GATE_SIGMAS * float(np.clip(
                 _MEDIAN_ABSOLUTE_TO_SIGMA * np.median(distances), sigma, GATE_SPREAD_CAP * sigma)))
+            known = pending.association
+            association = known[1] if known is not None and np.array_equal(known[0], pending.prediction) else None
             factor = PointToSurfaceFactor(key, points, graph.surface_triangles, pending.prediction,
-                                          IsotropicNoise(sigma), robust, gate, pending.viewpoint)
+                                          IsotropicNoise(sigma), robust, gate, pending.viewpoint, association)
             pending.num_points, pending.num_points_gated = factor.num_points, factor.num_points_rejected
             pending.num_points_back_facing = factor.num_points_back_facing
             pending.back_facing_test_skipped = factor.back_facing_test_skipped

@@ -418,7 +418,9 @@ class PointToSurfaceFactor(Factor):
     table, neighbouring tissue), close enough to the surface to pass a distance gate. When more
     than MAX_BACK_FACING_SHARE of the gated points would go, the viewpoint is not the sensor's
     (a camera pose left at a default) and the test is skipped
-    (back_facing_test_skipped). The accepted points (`points`, with their `noise`) are kept in
+    (back_facing_test_skipped). `initial_association`, the points' Association at
+    `initial_vertices` where the caller has it (the estimator's innovation test made it), saves
+    that query. The accepted points (`points`, with their `noise`) are kept in
     the order of their closest triangles at `initial_vertices` when those were found.
     Cost: 0.5 sum_k w_k rho(|r_k|^2), w_k = 1/sigma_k^2, rho the robust kernel (identity
     without one); its gradient carries the IRLS weights w_k rho'(|r_k|^2), its Gauss-Newton
@@ -426,7 +428,8 @@ class PointToSurfaceFactor(Factor):
     """
 
     def __init__(self, key, points, surface_triangles, initial_vertices, noise: PointNoise | None = None,
-                 robust: RobustKernel | None = None, gating_distance=np.inf, viewpoint=None):
+                 robust: RobustKernel | None = None, gating_distance=np.inf, viewpoint=None,
+                 initial_association: Association | None = None):
         points = np.asarray(points, dtype=np.float64)
         if points.ndim != 2 or points.shape[1] != 3:
             raise FactorError(f"points must have shape (K, 3), got {points.shape}")
@@ -439,11 +442,16 @@ class PointToSurfaceFactor(Factor):
         noise = IdentityNoise() if noise is None else noise
         noise.point_weights(len(points))  # validates per-point sizes
         accepted = np.ones(len(points), dtype=bool)
-        initial_association = None
+        if initial_association is not None and len(initial_association.triangle) != len(points):
+            raise FactorError(f"initial_association has {len(initial_association.triangle)} points, "
+                              f"the cloud {len(points)}")
         self.num_points_back_facing, self.back_facing_test_skipped = 0, False
         gated = callable(gating_distance) or np.isfinite(gating_distance)
-        if (gated or viewpoint is not None) and len(points):
+        if not (gated or viewpoint is not None) or not len(points):
+            initial_association = None
+        elif initial_association is None:
             initial_association = ClosestPointIndex(initial_vertices, self.triangles).associate(points)
+        if initial_association is not None:
             if gated:
                 gate = gating_distance(initial_association.distance) if callable(gating_distance) else gating_distance
                 accepted = initial_association.distance <= gate

@@ -180,10 +180,11 @@ def innovation_spread(distances: np.ndarray) -> float:
     return _MEDIAN_ABSOLUTE_TO_SIGMA * float(np.median(distances))
 
 
-def innovation_sample(points: np.ndarray) -> np.ndarray:
-    """At most INNOVATION_SAMPLE of `points` (K, 3), evenly strided through the cloud."""
-    stride = max(1, -(-len(points) // INNOVATION_SAMPLE))
-    return points[::stride]
+def innovation_sample(values: np.ndarray) -> np.ndarray:
+    """At most INNOVATION_SAMPLE of a cloud's `values` (K, ...): its points or their distances,
+    evenly strided through the cloud."""
+    stride = max(1, -(-len(values) // INNOVATION_SAMPLE))
+    return values[::stride]
 
 
 def rejections_in(message: str) -> list[str]:
