@@ -463,14 +463,17 @@ class FactorGraph:
         u, v, w = (corners[:, k] - corners[:, 0] for k in (1, 2, 3))
         du, dv, dw = (corner_moves[:, k] - corner_moves[:, 0] for k in (1, 2, 3))
 
-        def triple(a, b, c):
-            return np.einsum("pi,pi->p", cross(a, b), c)
+        def dot(a, b):
+            return np.einsum("pi,pi->p", a, b)
 
+        # 6 V(alpha) = (u + a du) . ((v + a dv) x (w + a dw)), expanded in a with four cross products.
+        vw, dvdw = cross(v, w), cross(dv, dw)
+        mixed = cross(dv, w) + cross(v, dw)
         coefficients = np.stack([
-            triple(u, v, w),
-            triple(du, v, w) + triple(u, dv, w) + triple(u, v, dw),
-            triple(du, dv, w) + triple(du, v, dw) + triple(u, dv, dw),
-            triple(du, dv, dw),
+            dot(u, vw),
+            dot(du, vw) + dot(u, mixed),
+            dot(du, mixed) + dot(u, dvdw),
+            dot(du, dvdw),
         ])  # (4, P): 6 V(alpha) = sum_k c_k alpha^k
         bound = margin[candidates]
         grid = np.linspace(0.0, 1.0, _STEP_FRACTION_GRID + 1)[1:]
