@@ -1,4 +1,4 @@
-"""Robust kernels for point residuals, applied as IRLS weights (as GTSAM's m-estimators).
+"""Robust kernels for point residuals: IRLS weights (as GTSAM's m-estimators) and curvatures.
 
 A kernel rho maps a point's squared distance d^2 [m^2] to a robust squared distance; the
 point's cost is 0.5 * w * rho(d^2) with w = 1/sigma^2 its noise weight, and its
