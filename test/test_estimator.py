@@ -212,7 +212,6 @@ def test_an_update_solved_again_after_re_weighting_reports_every_run(scene):
     assert result.accepted_steps == sum(runs) and runs[0] >= 1
 
 
-
 def test_the_gate_reuses_the_innovation_tests_association(scene, monkeypatch):
     """Preparing an update queries the closest triangles of the cloud on the prediction once:
     the innovation test's association serves the measurement factor's gate, which keeps the

@@ -152,6 +152,16 @@ def test_converged_means_optimal_not_stuck():
     assert "0 of" in result.summary() and "not converged" in result.summary()
 
 
+def test_a_run_that_starts_at_the_optimum_says_so():
+    """Started at Rosenbrock's minimum, LM converges by its gradient test without a step, and
+    its summary says the run converged where it started, not that it moved there."""
+    result = levenberg_marquardt(Rosenbrock(), np.array([1.0, 1.0]), TIGHT, CholeskySolver())
+    assert result.converged and result.iterations == 0 and result.accepted_steps == 0
+    assert result.summary().startswith(f"converged ({result.reason}) at its starting point; 0 of 0 steps")
+    moved = levenberg_marquardt(Rosenbrock(), np.array([0.5, 0.2]), TIGHT, CholeskySolver())
+    assert moved.converged and "starting point" not in moved.summary()
+
+
 def test_window_optimum_matches_scipy_and_gtsam(cube, model):  # noqa: F811
     graph = build_window(cube, model, keys=2)
     results = compare_single_update(graph, tolerance=1e-14)

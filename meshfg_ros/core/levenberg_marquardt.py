@@ -112,7 +112,9 @@ class LevenbergMarquardtResult:
     def summary(self) -> str:
         """One line for status messages: steps accepted and why the run ended."""
         state = "converged" if self.converged else "not converged"
-        text = f"{state} ({self.reason}); {self.accepted_steps} of {self.iterations} steps accepted"
+        # A run that starts at an optimum (a re-weighted run from the last one's) says so.
+        where = " at its starting point" if self.converged and not self.iterations else ""
+        text = f"{state} ({self.reason}){where}; {self.accepted_steps} of {self.iterations} steps accepted"
         if self.shortened_steps:
             text += f", {self.shortened_steps} shortened to keep element volumes"
         return text
