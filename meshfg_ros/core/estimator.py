@@ -52,14 +52,13 @@ Design decisions (see also factors.py, factor_graph.py, levenberg_marquardt.py, 
   chi^2 / 2 under the estimated weights: the remaining step is within one posterior standard
   deviation along it), never on a relative decrease: the window's cost grows with W and the
   clouds, and a relative test stopped the newest state short of small, statistically clear
-  corrections. Against 0.25 (0.7 standard deviations), organ-scale updates take 4.0 LM
-  iterations instead of 4.4 (p95 0.96-1.03 s against 1.15-1.24 s) with the same vertex RMSE
-  to 0.1 %, and the accuracy suite's median ratios move by at most 0.005. Steps are inexact Newton steps: PCG to a relative residual of
-  LINEAR_TOLERANCE (0.1, a usual forcing term of truncated Newton methods); the gain ratio
-  judges each step on its true cost. Against 1e-3, an organ-scale update takes 0.6 of the time
-  (PCG's iterations are its largest cost after the newest state's factorisation) with 4.4
-  LM iterations per update against 4.25 and the same vertex RMSE to 0.2 %, and the accuracy
-  suite's ratios move by at most 0.01, its LM iterations per update by at most 0.1.
+  corrections (0.25, 0.7 standard deviations, against 0.5: docs/design-notes.md). Steps are
+  inexact Newton steps: PCG to a relative residual of LINEAR_TOLERANCE (0.1, a usual forcing
+  term of truncated Newton methods); the gain ratio judges each step on its true cost.
+  Against 1e-3, an organ-scale update takes 0.6 of the time (PCG's iterations are its largest
+  cost after the newest state's factorisation) with 4.4 LM iterations per update against 4.25
+  and the same vertex RMSE to 0.2 %, and the accuracy suite's ratios move by at most 0.01, its
+  LM iterations per update by at most 0.1.
 - Posterior std (position_std, (N,), sqrt(trace(Sigma_ii)/3), 0 on fixed vertices): up to
   EXACT_COVARIANCE_MAX_DOFS window unknowns the exact marginal of the newest state, diag
   blocks of H^-1 of the undamped Gauss-Newton matrix of the whole window at the solution
