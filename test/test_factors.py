@@ -482,3 +482,22 @@ def test_volume_barrier_gradient_hessian_and_bounds(cube):
     inverted = cube.vertices.copy()
     inverted[corner] = cube.vertices.mean(axis=0) - (cube.vertices[corner] - cube.vertices.mean(axis=0))
     assert barrier.cost({0: inverted}) == np.inf
+
+
+def test_volume_barrier_keeps_the_last_states_volumes(cube, monkeypatch):
+    """LM evaluates a trial's cost and then linearises there: the barrier computes that state's
+    volumes once. Another state, or the same array changed in place, is computed afresh."""
+    from meshfg_ros.core import factors
+    from meshfg_ros.core.mesh import signed_volumes
+
+    barrier = factors.VolumeBarrierFactor(0, cube.tetrahedra, signed_volumes(cube.vertices, cube.tetrahedra), 2.0)
+    computed = []
+    monkeypatch.setattr(factors, "signed_volumes", lambda *args: computed.append(1) or signed_volumes(*args))
+    state = deformed(cube, 1.0, seed=4)
+    cost = barrier.cost({0: state})
+    assert barrier.linearize({0: state}).cost == cost and len(computed) == 1
+    barrier.cost({0: deformed(cube, 1.0, seed=5)})
+    assert len(computed) == 2
+    state[0] += 1e-3
+    barrier.cost({0: state})
+    assert len(computed) == 3
