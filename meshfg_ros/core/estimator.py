@@ -589,18 +589,16 @@ class SlidingWindowEstimator:
         association = ClosestPointIndex(predicted, triangles).associate(points)
         spread = innovation_spread(innovation_sample(association.distance))
         limit = max(INNOVATION_SIGMAS * self.config.measurement_sigma, INNOVATION_DIAGONALS * self.scene.diagonal)
-        if spread <= limit:
-            pending.association = (predicted, association)
-            return predicted
-        sample = innovation_sample(points)
-        copy_forward = innovation_spread(ClosestPointIndex(self.last_estimate, triangles).associate(sample).distance)
-        if spread <= INNOVATION_RATIO * copy_forward:
-            pending.association = (predicted, association)
-            return predicted
-        pending.messages.append(f"{REJECTIONS['predictions_rejected_innovation']} (spread {1e3 * spread:.3g} mm "
-                                f"about it, {1e3 * copy_forward:.3g} mm about the copy-forward, "
-                                f"limit {1e3 * limit:.3g} mm)")
-        return None
+        if spread > limit:
+            sample = innovation_sample(points)
+            copy_forward = innovation_spread(ClosestPointIndex(self.last_estimate, triangles).associate(sample).distance)
+            if spread > INNOVATION_RATIO * copy_forward:
+                pending.messages.append(f"{REJECTIONS['predictions_rejected_innovation']} (spread {1e3 * spread:.3g} "
+                                        f"mm about it, {1e3 * copy_forward:.3g} mm about the copy-forward, "
+                                        f"limit {1e3 * limit:.3g} mm)")
+                return None
+        pending.association = (predicted, association)
+        return predicted
 
     def _state_factors(self, pending: PendingStep) -> list:
         """The physics prior and measurement factors of the pending state at the current weights."""

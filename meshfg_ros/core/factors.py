@@ -61,7 +61,7 @@ MAX_BACK_FACING_SHARE = 0.5
 # A point's Gauss-Newton term (PointToSurfaceFactor._distance_hessians) is weighted by the second
 # derivative of its robust cost along its distance, w (rho' + 2 s rho'') (RobustKernel.curvature),
 # but by at least this share of its IRLS weight w rho'. The IRLS weight overstates the curvature
-# (Cauchy at 2.4 sigma, a point one sigma off: 0.85 w against 0.61 w), so LM's steps stop short
+# (Cauchy at 2.4 sigma, a point one sigma off: 0.85 w against 0.60 w), so LM's steps stop short
 # and its decrement test sees less of the remaining decrease than there is; beyond about 0.6
 # kernel scales the true curvature falls below half the IRLS weight and turns negative, and
 # there the floor keeps the model convex (without it, steps chase the far points of the first
