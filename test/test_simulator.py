@@ -2,6 +2,7 @@
 reproducibility, rigid grasp motion, gravity, colourings and input validation."""
 
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -333,3 +334,23 @@ def test_stuck_vertices_stay_stuck_when_the_next_start_is_a_noisy_estimate():
         predicted = simulator.predict(noisy, pose(centres[4]), 1.0)
         error = np.sqrt(np.mean(np.sum((predicted - states[4]) ** 2, axis=1)))
         assert error < 0.5e-3, seed  # the start moved 0.17 mm RMS
+
+
+def test_a_prediction_that_would_invert_an_element_slips_instead():
+    """The bundled airway's last step: the tool carries the stuck vertices of an element it has
+    already flattened (J = 0.11) through the element's other corners, which the solvers cannot
+    undo. The prediction is run again with those vertices slipping on the tool, so every step of
+    the replay (closed loop and simulation alone) has a prediction with positive volumes."""
+    from meshfg_ros.replay import iterate_replay, load_inputs, replay_parameters
+
+    bags = Path(__file__).resolve().parents[1] / "bags"
+    inputs = load_inputs(bags / "cao-push")
+    steps = list(iterate_replay(inputs, replay_parameters(inputs)))
+    assert len(steps) == 10
+    tetrahedra = inputs.initial_mesh.tetrahedra
+    for step in steps:
+        assert step.predicted is not None and not step.result.degraded, step.result.message
+        assert np.all(signed_volumes(step.predicted, tetrahedra) > 0.0)
+        assert np.all(signed_volumes(step.simulation_only, tetrahedra) > 0.0)
+    # The open-loop baseline moved on at the last step instead of keeping the step before.
+    assert not np.array_equal(steps[-1].simulation_only, steps[-2].simulation_only)
