@@ -640,7 +640,9 @@ class ElasticSimulator:
     stuck when the next starting state (an estimate) has it within _CONTACT_MEMORY_BAND tool
     radii of the surface. Without that memory a 0.1 mm correction that lifts the vertex off the
     tool releases it, it slides off the pole, the tool passes between the vertices of a coarse
-    mesh and the prediction jumps by centimetres (measured on the SOFA liver). In "grasp" mode
+    mesh and the prediction jumps by centimetres (measured on the SOFA liver). A prediction
+    that ends with an inverted element is run once more with stuck vertices slipping where
+    carrying them would invert an element (`predict`). In "grasp" mode
     `grasped_vertices` follow the tool rigidly: at pose T they sit at T T0^-1 applied to their
     rest positions, T0 being the first tool pose (set by `reset`, or by the first `predict`).
     """
