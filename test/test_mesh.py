@@ -12,6 +12,7 @@ from meshfg_ros.core.mesh import (
     MeshFileError,
     TetMesh,
     cross,
+    inverted_elements,
     load_mesh,
     orient_tetrahedra,
     save_mesh,
@@ -193,3 +194,13 @@ def test_non_tetrahedral_files_raise(liver, tmp_path):
         load_mesh(tmp_path / "missing.msh")
     with pytest.raises(MeshFileError, match="unsupported mesh format"):
         save_mesh(liver, tmp_path / "liver.stl")
+
+
+def test_inverted_elements_are_the_flat_flipped_and_non_finite_ones():
+    vertices = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0],
+                         [0.0, 0.0, -1.0], [1.0, 1.0, 0.0], [np.nan, 0.0, 0.0]])
+    tetrahedra = np.array([[0, 1, 2, 3],   # positive
+                           [0, 1, 2, 4],   # flipped
+                           [0, 1, 2, 5],   # flat
+                           [6, 1, 2, 3]])  # NaN corner
+    np.testing.assert_array_equal(inverted_elements(vertices, tetrahedra), [1, 2, 3])

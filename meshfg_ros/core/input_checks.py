@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from meshfg_ros.core.mesh import signed_volumes
+from meshfg_ros.core.mesh import inverted_elements
 
 __all__ = [
     "FAR_DIAGONALS",
@@ -172,7 +172,7 @@ def check_initial_mesh(vertices: np.ndarray) -> Scene:
 
 def flat_elements(vertices: np.ndarray, tetrahedra: np.ndarray) -> int:
     """How many tetrahedra of `vertices` (N, 3) have a volume <= 0 (or NaN)."""
-    return int(np.count_nonzero(~(signed_volumes(vertices, tetrahedra) > 0.0)))
+    return int(inverted_elements(vertices, tetrahedra).size)
 
 
 def innovation_spread(distances: np.ndarray) -> float:

@@ -22,6 +22,7 @@ __all__ = [
     "TetMesh",
     "check_degenerate",
     "cross",
+    "inverted_elements",
     "load_mesh",
     "orient_tetrahedra",
     "save_mesh",
@@ -99,6 +100,11 @@ def signed_volumes(vertices: np.ndarray, tetrahedra: np.ndarray, longest_edges: 
     longest = np.sqrt(np.maximum.reduce([ux * ux + uy * uy + uz * uz, vx * vx + vy * vy + vz * vz,
                                          wx * wx + wy * wy + wz * wz]))
     return volumes, longest
+
+
+def inverted_elements(vertices: np.ndarray, tetrahedra: np.ndarray) -> np.ndarray:
+    """Indices of the tetrahedra without a positive volume at `vertices` (NaN ones too)."""
+    return np.flatnonzero(~(signed_volumes(vertices, tetrahedra) > 0.0))
 
 
 def _mean_edge_length(vertices: np.ndarray, tetrahedra: np.ndarray) -> float:

@@ -42,7 +42,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from meshfg_ros.core.fem import ElasticModel
 from meshfg_ros.core.sparse_cholesky import SparseCholesky
-from meshfg_ros.core.mesh import TetMesh, name_elements, signed_volumes
+from meshfg_ros.core.mesh import TetMesh, inverted_elements, name_elements, signed_volumes
 from meshfg_ros.core.pose_history import InvalidPoseError, as_pose
 from meshfg_ros.core.settings import Setting, check_settings, setting
 
@@ -295,11 +295,6 @@ class _Body:
     corner_gradient: np.ndarray  # (M, 4, 3) shape-function gradients of the corners
     vertex_mass: np.ndarray  # (N,) lumped mass
     gravity: np.ndarray  # (3,) m / s^2
-
-
-def _inverted(state: np.ndarray, tetrahedra: np.ndarray) -> np.ndarray:
-    """Indices of the tetrahedra without a positive volume at `state` (NaN ones too)."""
-    return np.flatnonzero(~(signed_volumes(state, tetrahedra) > 0.0))
 
 
 def _outside_tool(points: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
@@ -726,10 +721,10 @@ class ElasticSimulator:
         if self._previous_pose is None:
             self.reset(pose)
         state = self._moved(start, pose, dt, slip=False)
-        inverted = _inverted(state, self.rest_mesh.tetrahedra)
+        inverted = inverted_elements(state, self.rest_mesh.tetrahedra)
         if inverted.size and self._stuck_contact:
             state = self._moved(start, pose, dt, slip=True)
-            inverted = _inverted(state, self.rest_mesh.tetrahedra)
+            inverted = inverted_elements(state, self.rest_mesh.tetrahedra)
         self._previous_pose = pose
         if inverted.size:
             raise ElementInversionError(inverted)
@@ -777,7 +772,7 @@ class ElasticSimulator:
 
     def _touching(self, state: np.ndarray, centre, band: float) -> np.ndarray:
         """Movable vertices within band * tool_radius of the tool centre (stick contact only)."""
-        if self.config.tool_mode != "sphere" or self.config.tool_contact != "stick":
+        if not self._stuck_contact:
             return np.zeros(0, dtype=np.int64)
         offsets = state[self.movable_vertices] - centre
         inside = np.einsum("ij,ij->i", offsets, offsets) <= (self.config.tool_radius * band) ** 2
@@ -795,14 +790,14 @@ class ElasticSimulator:
         near = (np.abs(distances - radius) <= _CONTACT_MEMORY_BAND * radius) & (distances > 0.0)
         vertices = self._stuck[near]
         targets = centre + radius * offsets[near] / distances[near, None]
-        safe = self._not_inverting(state, vertices, targets) if slip else np.ones(vertices.size, dtype=bool)
-        state[vertices[safe]] = targets[safe]
+        kept = self._kept_moves(state, vertices, targets, slip)
+        state[vertices[kept]] = targets[kept]
 
     def _carry_stuck_vertices(self, state: np.ndarray, previous_centre, centre, slip: bool) -> np.ndarray:
         """Stick contact: move the vertices touching the tool with it, in place; returns them (sorted).
 
         A vertex is released when the tool moves away from it (negative normal motion), and with
-        `slip` also when moving it would invert an element (`_not_inverting`): the tissue then
+        `slip` also when moving it would invert an element (`_kept_moves`): the tissue then
         slips on the tool instead of folding over it. `predict` slips only when a prediction
         without it ends inverted: a sphere pushing into a coarse mesh carries the stuck vertices
         of an element it has already flattened through the element's other corners (the bundled
@@ -815,16 +810,16 @@ class ElasticSimulator:
         touching = self._touching(state, previous_centre, _CONTACT_BAND)
         stuck = touching[(state[touching] - previous_centre) @ (centre - previous_centre) >= 0.0]
         targets = state[stuck] + (centre - previous_centre)
-        safe = self._not_inverting(state, stuck, targets) if slip else np.ones(stuck.size, dtype=bool)
-        state[stuck[safe]] = targets[safe]
-        return stuck[safe]
+        kept = self._kept_moves(state, stuck, targets, slip)
+        state[stuck[kept]] = targets[kept]
+        return stuck[kept]
 
-    def _not_inverting(self, state: np.ndarray, vertices: np.ndarray, targets: np.ndarray) -> np.ndarray:
-        """Mask of `vertices` that may move to `targets` (k, 3) together without inverting an
-        incident element: the moves of every corner of an element they would invert are
-        dropped, until none is."""
+    def _kept_moves(self, state: np.ndarray, vertices: np.ndarray, targets: np.ndarray, slip: bool) -> np.ndarray:
+        """Mask of the moves of `vertices` to `targets` (k, 3) to make: all of them, or with `slip`
+        those that together invert no incident element (the moves of every corner of an element
+        they would invert are dropped, until none is)."""
         keep = np.ones(vertices.size, dtype=bool)
-        if vertices.size == 0:
+        if not slip or vertices.size == 0:
             return keep
         tetrahedra = self.rest_mesh.tetrahedra
         moved = np.zeros(self.rest_mesh.vertex_count, dtype=bool)

@@ -53,7 +53,7 @@ import scipy.sparse.linalg
 import skfem
 from skfem.helpers import ddot, det, grad, identity, inv, mul, transpose
 
-from meshfg_ros.core.mesh import TetMesh, signed_volumes
+from meshfg_ros.core.mesh import TetMesh, inverted_elements, signed_volumes
 
 __all__ = [
     "Equilibrium",
@@ -201,7 +201,7 @@ class NeoHookeanSolid:
         return (self._checked_positions(positions) - self.rest_vertices).reshape(-1)
 
     def _require_positive_volumes(self, positions: np.ndarray) -> None:
-        inverted = np.flatnonzero(~(signed_volumes(positions, self.tetrahedra) > 0.0))
+        inverted = inverted_elements(positions, self.tetrahedra)
         if inverted.size:
             raise HyperelasticInputError(f"{inverted.size} elements have non-positive volume, first {inverted[0]}")
 
