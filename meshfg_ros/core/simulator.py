@@ -140,6 +140,10 @@ class SimulatorConfig:
     deterministic: bool = True  # required: both solvers are bit-reproducible
     solver: str = setting("vbd", "Simulator solver: 'vbd' (vertex block descent) or 'xpbd'.", choices=SOLVERS,
                           parameter="simulator")  # see the module docstring
+    estimate_body_load: bool = setting(
+        True, "Estimate a uniform body load the tissue model does not know (a change of gravity, a pull) "
+              "from each estimate's correction of its prediction, and apply it in the next predictions "
+              "(core/body_load.py).")
 
     def __post_init__(self):
         check_settings(self, SimulatorConfigError)
@@ -311,6 +315,14 @@ def _outside_tool(points: np.ndarray, centre: np.ndarray, radius: float) -> np.n
     return pushed
 
 
+def rest_stiffness_factor(body: _Body) -> SparseCholesky:
+    """Sparse Cholesky factor of K0 (small-strain stiffness: the Hessian at rest) on the movable dofs."""
+    mesh, config = body.rest_mesh, body.config
+    model = ElasticModel(mesh.vertices, mesh.tetrahedra, config.youngs_modulus, config.poisson_ratio)
+    dofs = (3 * body.movable_vertices[:, None] + np.arange(3)).reshape(-1)
+    return SparseCholesky(model.stiffness(kind="linear")[dofs][:, dofs], node_size=3)
+
+
 # ---------------------------------------------------------------------- solver strategies
 
 
@@ -323,8 +335,14 @@ class SimulatorSolver:
     simulator's: a strategy moves only `movable_vertices`.
     """
 
+    rest_stiffness: SparseCholesky | None = None  # K0 on the movable dofs, where the strategy factors it
+
     def begin(self, state: np.ndarray) -> None:
         """Start a prediction from `state` (N, 3)."""
+
+    def set_gravity(self, gravity: np.ndarray) -> None:
+        """Uniform body acceleration (3,) in m/s^2 from the next sub-step on."""
+        raise NotImplementedError
 
     def substep(self, state: np.ndarray, step: float, tool_centre: np.ndarray, held: np.ndarray) -> None:
         raise NotImplementedError
@@ -350,9 +368,15 @@ class VertexBlockDescent(SimulatorSolver):
         self._corner_volume_gradient_em = np.ascontiguousarray(
             (volumes[:, None, None] * body.corner_gradient).transpose(1, 2, 0)
         )
+        self._vertex_mass = body.vertex_mass
         self._gravity_force = body.vertex_mass[:, None] * body.gravity
         self._colours = self._vertex_colours(tets, volumes, body.rest_inverse, body.corner_gradient)
-        self._rest_stiffness = self._factorised_rest_stiffness() if self.movable_vertices.size else None
+        self.rest_stiffness = rest_stiffness_factor(body) if self.movable_vertices.size else None
+
+    def set_gravity(self, gravity: np.ndarray) -> None:
+        self._gravity_force = self._vertex_mass[:, None] * gravity
+        for colour in self._colours:
+            colour.gravity_force = np.ascontiguousarray(self._gravity_force[colour.vertices].T)
 
     def _vertex_colours(self, tets, volumes, rest_inverse, corner_gradient) -> list[_VertexColour]:
         """Colours of the movable vertices with their incident-element data."""
@@ -388,16 +412,9 @@ class VertexBlockDescent(SimulatorSolver):
             )
         return colours
 
-    def _factorised_rest_stiffness(self) -> SparseCholesky:
-        """Sparse Cholesky factor of K0 (small-strain stiffness: the Hessian at rest) on the movable dofs."""
-        mesh, config = self.rest_mesh, self.config
-        model = ElasticModel(mesh.vertices, mesh.tetrahedra, config.youngs_modulus, config.poisson_ratio)
-        dofs = (3 * self.movable_vertices[:, None] + np.arange(3)).reshape(-1)
-        return SparseCholesky(model.stiffness(kind="linear")[dofs][:, dofs], node_size=3)
-
     def _rest_solve(self, right_hand_side: np.ndarray) -> np.ndarray:
         """K0^-1 applied to a vector (3 n,) or to the columns (3 n, k) of a matrix on the movable dofs."""
-        return self._rest_stiffness.solve(right_hand_side)
+        return self.rest_stiffness.solve(right_hand_side)
 
     def substep(self, state, step, tool_centre, held) -> None:
         """Quasi-static iterations of one sub-step in place: a vertex sweep, then a global K0 step.
@@ -534,6 +551,9 @@ class ExtendedPositionBasedDynamics(SimulatorSolver):
     def begin(self, state):
         self._velocity = np.zeros_like(state)
 
+    def set_gravity(self, gravity: np.ndarray) -> None:
+        self._gravity = gravity
+
     def substep(self, state, step, tool_centre, held) -> None:
         self._velocity = self._xpbd_substep(state, self._velocity, step, tool_centre, held)
 
@@ -637,7 +657,8 @@ class ElasticSimulator:
     tool releases it, it slides off the pole, the tool passes between the vertices of a coarse
     mesh and the prediction jumps by centimetres (measured on the SOFA liver). A prediction
     that ends with an inverted element is run once more with stuck vertices slipping where
-    carrying them would invert an element (`predict`). In "grasp" mode
+    carrying them would invert an element (`predict`). `body_acceleration` adds a uniform load
+    to the configured gravity (the unmodelled load of core/body_load.py). In "grasp" mode
     `grasped_vertices` follow the tool rigidly: at pose T they sit at T T0^-1 applied to their
     rest positions, T0 being the first tool pose (set by `reset`, or by the first `predict`).
     """
@@ -659,9 +680,11 @@ class ElasticSimulator:
         corner_gradient = _CORNER_FROM_EDGES @ rest_inverse  # (M, 4, 3) shape-function gradients
         corner_volumes = np.repeat(volumes / 4.0, 4)
         vertex_mass = config.density * np.bincount(tets.reshape(-1), corner_volumes, vertex_count)
-        body = _Body(rest_mesh, config, kinematic, self.movable_vertices, volumes, rest_inverse, corner_gradient,
-                     vertex_mass, np.asarray(config.gravity, dtype=np.float64))
-        self.solver: SimulatorSolver = SOLVER_STRATEGIES[config.solver](body)
+        self.vertex_mass = vertex_mass
+        self._body = _Body(rest_mesh, config, kinematic, self.movable_vertices, volumes, rest_inverse,
+                           corner_gradient, vertex_mass, np.asarray(config.gravity, dtype=np.float64))
+        self.solver: SimulatorSolver = SOLVER_STRATEGIES[config.solver](self._body)
+        self._body_acceleration = np.zeros(3)
         self._first_pose: np.ndarray | None = None
         self._previous_pose: np.ndarray | None = None
         self._stuck: np.ndarray = np.zeros(0, dtype=np.int64)  # stuck at the end of the last prediction
@@ -683,6 +706,27 @@ class ElasticSimulator:
         if np.intersect1d(grasped, rest_mesh.fixed_vertices).size:
             raise SimulatorInputError("grasped_vertices must not include fixed vertices")
         return grasped
+
+    @property
+    def body_acceleration(self) -> np.ndarray:
+        """Uniform body acceleration (3,) in m/s^2 applied on top of the configured gravity: a
+        load the model does not know, estimated from the estimates (core/body_load.py)."""
+        return self._body_acceleration.copy()
+
+    @body_acceleration.setter
+    def body_acceleration(self, acceleration) -> None:
+        acceleration = np.asarray(acceleration, dtype=np.float64)
+        if acceleration.shape != (3,) or not np.all(np.isfinite(acceleration)):
+            raise SimulatorInputError(f"body_acceleration must be 3 finite numbers, got {acceleration!r}")
+        self._body_acceleration = acceleration.copy()
+        self.solver.set_gravity(self._body.gravity + acceleration)
+
+    def rest_response(self, forces: np.ndarray) -> np.ndarray:
+        """Displacements K0^-1 f of the movable dofs under forces (3 n,) or (3 n, k) on them, the
+        other vertices held: the model's small-strain response to a load."""
+        if self.solver.rest_stiffness is None:
+            self.solver.rest_stiffness = rest_stiffness_factor(self._body)
+        return self.solver.rest_stiffness.solve(forces)
 
     @property
     def previous_tool_pose(self) -> np.ndarray | None:
