@@ -8,6 +8,7 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from offline_helpers import NOISE_SIGMA, TOOL_RADIUS, tiny_scenario
 
+from meshfg_ros.core.body_load import BodyLoadEstimate
 from meshfg_ros.core.estimator import SlidingWindowEstimator
 from meshfg_ros.core.mesh import MeshFileError, save_mesh
 from meshfg_ros.parameters import ParameterError, estimator_config, simulator_config
@@ -91,11 +92,13 @@ def test_a_nominal_model_the_nodes_cannot_express_is_rejected(recording):
 
 def test_loop_matches_the_nodes_semantics(scenario, recording, replayed):
     """First pose resets; each later pose predicts from the latest estimate; the cloud at t
-    pairs with the prediction and the tool pose stamped t; the estimate feeds the next prediction."""
+    pairs with the prediction and the tool pose stamped t; the estimate feeds the next prediction,
+    and its correction of the prediction the body load the next predictions apply."""
     inputs = load_inputs(recording)
     params = replayed.parameters
     mesh = scenario.initial_mesh
     simulator = ElasticSimulator(mesh, simulator_config(params))
+    body_load = BodyLoadEstimate(simulator)
     estimator = SlidingWindowEstimator(mesh, estimator_config(params))
     simulator.reset(scenario.initial_tool_pose)
     estimate = mesh.vertices
@@ -104,6 +107,7 @@ def test_loop_matches_the_nodes_semantics(scenario, recording, replayed):
         predicted = simulator.predict(estimate, step.tool_pose, STEP_PERIOD_NS / 1e9)
         result = estimator.update(step.stamp_ns, cloud.points, predicted, step.tool_pose)
         estimate = result.positions
+        body_load.update(predicted, estimate)
         assert replay_step.stamp_ns == step.stamp_ns and not replay_step.result.degraded
         np.testing.assert_array_equal(replay_step.predicted, predicted)
         np.testing.assert_array_equal(replay_step.result.positions, result.positions)

@@ -48,6 +48,7 @@ from meshfg_ros.core.input_checks import (
     check_initial_mesh,
     stamp_order,
 )
+from meshfg_ros.core.body_load import BodyLoadEstimate
 from meshfg_ros.core.mesh import TetMesh
 from meshfg_ros.core.patient_mesh import PatientMeshError, check_against_clouds
 from meshfg_ros.core.pose_history import InvalidPoseError, as_pose
@@ -119,6 +120,8 @@ class PredictionScheduler:
         self.mesh = mesh
         self.scene = check_initial_mesh(mesh.vertices)
         self.simulator = ElasticSimulator(mesh, model, grasped_vertices)
+        self.body_load = (BodyLoadEstimate(self.simulator)
+                          if model.estimate_body_load and self.simulator.movable_vertices.size else None)
         self.timeouts = timeouts
         self._jump_ns = _jump_ns(clock_jump_threshold)
         self._poses = ToolPoseBuffer(extrapolation_horizon_s=tool_pose_extrapolation)
@@ -137,6 +140,9 @@ class PredictionScheduler:
         self._state = self.mesh.vertices.copy()
         self._state_ns: int | None = None       # stamp of the estimate self._state is
         self._skipped_ns: int | None = None     # newest stamp the estimator will not answer
+        self._predicted: Prediction | None = None  # the last prediction, for its estimate's correction
+        if self.body_load is not None:
+            self.body_load.reset()
 
     @property
     def tool_pose_unavailable(self) -> dict[str, int]:
@@ -188,6 +194,8 @@ class PredictionScheduler:
                              "non-finite positions or positions far outside the scene: ignored")
         if self._state_ns is None or stamp_ns > self._state_ns:
             self._state, self._state_ns = positions, stamp_ns
+            if self.body_load is not None and self._predicted is not None and self._predicted.stamp_ns == stamp_ns:
+                self.body_load.update(self._predicted.positions, positions)
         return None
 
     def poll(self, now_s: float = 0.0, flush: bool = False) -> list[Prediction]:
@@ -229,7 +237,8 @@ class PredictionScheduler:
         if not np.isfinite(predicted).all():
             self.simulator.reset(pose)
             return self._finish(Prediction(stamp, None, "the predicted positions are not finite", pose), now_s)
-        return self._finish(Prediction(stamp, predicted, "", pose), now_s)
+        self._predicted = Prediction(stamp, predicted, "", pose)
+        return self._finish(self._predicted, now_s)
 
     def _previous_settled(self) -> bool:
         """Whether the state to predict from is known: the previous request's estimate has come,

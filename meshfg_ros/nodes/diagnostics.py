@@ -112,6 +112,10 @@ class SimulatorCounters(_Counters):
     inputs_held_before_mesh: int = 0    # tool poses, requests and estimates kept until the mesh came
     inputs_dropped_before_mesh: int = 0  # the oldest of those, beyond what is kept (nodes/held_inputs.py)
     last_prediction_ms: float = float("nan")
+    # the unmodelled uniform body load the predictions apply, m/s^2 (core/body_load.py; 0 when off)
+    body_acceleration_x: float = 0.0
+    body_acceleration_y: float = 0.0
+    body_acceleration_z: float = 0.0
     # requests answered without a prediction for want of a tool pose, by reason (core/tool_poses.py)
     tool_pose_unavailable_empty: int = 0
     tool_pose_unavailable_before_first: int = 0

@@ -177,6 +177,9 @@ class SimulationNode(Node):
             totals = self._unavailable_earlier + Counter(self._scheduler.tool_pose_unavailable)
             for reason, count in totals.items():
                 setattr(counters, f"tool_pose_unavailable_{reason}", count)
+            if self._scheduler.body_load is not None:
+                (counters.body_acceleration_x, counters.body_acceleration_y,
+                 counters.body_acceleration_z) = self._scheduler.body_load.acceleration.tolist()
         new_rejections = counters.tool_poses_rejected - self._rejected_at_last_report
         new_ignored = counters.estimates_ignored - self._ignored_at_last_report
         self._rejected_at_last_report = counters.tool_poses_rejected

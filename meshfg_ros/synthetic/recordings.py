@@ -29,6 +29,9 @@ from meshfg_ros.topics import (
 )
 
 FRAME_ID = "world"
+# SimulatorConfig fields that are settings of the closed loop, not of the scene's nominal model:
+# left out of the metadata, so a replay takes them from its parameters like any estimator setting.
+NOT_THE_MODEL = ("estimate_body_load",)
 
 
 def scenario_metadata(scenario: Scenario, max_points: int | None = None) -> ScenarioMetadata:
@@ -37,7 +40,7 @@ def scenario_metadata(scenario: Scenario, max_points: int | None = None) -> Scen
     if scenario.observed_triangles is not None:
         observed = tuple(int(f) for f in np.flatnonzero(scenario.observed_triangles))
     simulator = {key: (list(value) if isinstance(value, tuple) else value)
-                 for key, value in asdict(scenario.simulator_config).items()}
+                 for key, value in asdict(scenario.simulator_config).items() if key not in NOT_THE_MODEL}
     return ScenarioMetadata(
         scenario=scenario.name,
         seed=int(scenario.seed),

@@ -1,0 +1,107 @@
+"""Tests of core/body_load.py and its use by the prediction scheduler: the unmodelled uniform
+body load is recovered from corrections, local corrections move it little, the simulator
+applies it, and a new timeline forgets it."""
+
+import numpy as np
+import pytest
+
+from meshfg_ros.core.body_load import BodyLoadEstimate
+from meshfg_ros.core.scheduler import PredictionScheduler
+from meshfg_ros.core.simulator import ElasticSimulator, SimulatorConfig, SimulatorInputError
+from meshfg_ros.synthetic.meshing import cube_mesh
+
+IDENTITY = np.array([0.0, 0.0, 0.0, 1.0])
+FAR_AWAY = np.concatenate([[1.0, 1.0, 1.0], IDENTITY])  # a tool that touches nothing
+# A stiff 10 cm cube sags by tens of micrometres under 1 g: the small-strain response the
+# estimate assumes holds to about 1e-3.
+STIFF = 3.0e6
+TRUE_ACCELERATION = np.array([2.0, -1.0, -9.81])
+
+
+def fixed_cube():
+    mesh = cube_mesh(side=0.1, divisions=4)
+    return mesh.with_fixed(np.flatnonzero(mesh.vertices[:, 2] < 1e-9))
+
+
+def settled(simulator: ElasticSimulator, start: np.ndarray) -> np.ndarray:
+    """The simulator's equilibrium from `start` under its current load (a few predictions)."""
+    state = start
+    for _ in range(3):
+        state = simulator.predict(state, FAR_AWAY, dt=1.0)
+    return state
+
+
+def test_the_unmodelled_load_is_recovered_from_corrections():
+    mesh = fixed_cube()
+    config = SimulatorConfig(youngs_modulus=STIFF, substeps=1, solver_iterations=3)
+    truth = settled(ElasticSimulator(mesh, SimulatorConfig(youngs_modulus=STIFF, substeps=1, solver_iterations=3,
+                                                           gravity=tuple(TRUE_ACCELERATION))), mesh.vertices)
+    model = ElasticSimulator(mesh, config)
+    model.reset(FAR_AWAY)
+    load = BodyLoadEstimate(model)
+    first = None
+    for _ in range(3):  # each correction is what the load still misses: the truth less the prediction
+        predicted = settled(model, mesh.vertices)
+        added = load.update(predicted, truth)
+        first = added if first is None else first
+    # One perfect correction gives the load to the model's nonlinearity; later ones add only that.
+    assert np.linalg.norm(first - TRUE_ACCELERATION) < 1e-2 * np.linalg.norm(TRUE_ACCELERATION)
+    assert np.linalg.norm(load.acceleration - TRUE_ACCELERATION) < 1e-3 * np.linalg.norm(TRUE_ACCELERATION)
+    assert np.abs(settled(model, mesh.vertices) - truth).max() < 1e-3 * np.abs(truth - mesh.vertices).max()
+
+
+def test_a_local_or_noisy_correction_moves_the_load_little():
+    mesh = fixed_cube()
+    model = ElasticSimulator(mesh, SimulatorConfig(youngs_modulus=STIFF))
+    load = BodyLoadEstimate(model)
+    sag = settled(ElasticSimulator(mesh, SimulatorConfig(youngs_modulus=STIFF, gravity=tuple(TRUE_ACCELERATION))),
+                  mesh.vertices) - mesh.vertices
+    size = np.sqrt(np.mean(np.sum(sag**2, axis=1)))
+    rng = np.random.default_rng(3)
+    noise = rng.normal(scale=size, size=sag.shape)  # as large as the sag, vertex by vertex
+    noise[mesh.fixed_vertices] = 0.0
+    from_noise = load.update(mesh.vertices, mesh.vertices + noise)
+    load.reset()
+    top = np.argmax(mesh.vertices[:, 2] + 1e-3 * mesh.vertices[:, 0])  # one vertex moved by the whole sag
+    local = np.zeros_like(sag)
+    local[top] = sag[top] * 10
+    from_local = load.update(mesh.vertices, mesh.vertices + local)
+    assert np.linalg.norm(from_noise) < 0.2 * np.linalg.norm(TRUE_ACCELERATION)
+    assert np.linalg.norm(from_local) < 0.2 * np.linalg.norm(TRUE_ACCELERATION)
+
+
+def test_the_simulator_applies_the_acceleration_on_top_of_its_gravity():
+    mesh = fixed_cube()
+    gravity = np.array([0.0, 0.0, -9.81])
+    with_gravity = ElasticSimulator(mesh, SimulatorConfig(youngs_modulus=STIFF, gravity=tuple(gravity)))
+    both = ElasticSimulator(mesh, SimulatorConfig(youngs_modulus=STIFF, gravity=tuple(gravity + TRUE_ACCELERATION)))
+    with_gravity.body_acceleration = TRUE_ACCELERATION
+    np.testing.assert_allclose(settled(with_gravity, mesh.vertices), settled(both, mesh.vertices), rtol=0, atol=1e-12)
+    with pytest.raises(SimulatorInputError, match="body_acceleration"):
+        with_gravity.body_acceleration = [np.nan, 0.0, 0.0]
+
+
+def test_the_scheduler_carries_the_load_into_the_next_prediction_and_forgets_it_on_a_new_timeline():
+    mesh = fixed_cube()
+    config = SimulatorConfig(youngs_modulus=STIFF)
+    scheduler = PredictionScheduler(mesh, config)
+    off = PredictionScheduler(mesh, SimulatorConfig(youngs_modulus=STIFF, estimate_body_load=False))
+    sag = settled(ElasticSimulator(mesh, SimulatorConfig(youngs_modulus=STIFF, gravity=tuple(TRUE_ACCELERATION))),
+                  mesh.vertices) - mesh.vertices
+    for target in (scheduler, off):
+        for second in (1, 2):
+            target.add_tool_pose(second * 10**9, FAR_AWAY)
+        target.request(10**9 + 5)
+    first, unchanged = scheduler.poll()[0], off.poll()[0]
+    scheduler.add_estimate(first.stamp_ns, first.positions + sag)  # the estimate found the sag
+    off.add_estimate(unchanged.stamp_ns, unchanged.positions + sag)
+    assert np.linalg.norm(scheduler.body_load.acceleration - TRUE_ACCELERATION) < 0.05 * np.linalg.norm(TRUE_ACCELERATION)
+    assert off.body_load is None
+    for target in (scheduler, off):
+        target.request(2 * 10**9)
+    carried, relaxed = scheduler.poll()[0], off.poll()[0]
+    # Started from the sagged estimate, the model without the load springs back; with it, it stays.
+    assert np.abs(carried.positions - (mesh.vertices + sag)).max() < 0.1 * np.abs(sag).max()
+    assert np.abs(relaxed.positions - mesh.vertices).max() < 0.1 * np.abs(sag).max()
+    scheduler.add_tool_pose(5 * 10**8, FAR_AWAY)  # a jump back: a new timeline
+    assert np.all(scheduler.body_load.acceleration == 0.0)
