@@ -301,10 +301,10 @@ def _raw_messages(path: Path, topics: tuple[str, ...]) -> list[tuple[str, int, A
 
 
 def _mesh_state(template: MeshState, positions: np.ndarray, stamp_ns: int, step: int,
-                position_std: np.ndarray | None = None) -> MeshState:
+                position_std: np.ndarray | None = None, degraded: bool = False) -> MeshState:
     return MeshState(stamp_ns, template.frame_id, step, positions, template.tetrahedra,
                      template.surface_triangles, template.fixed_vertices,
-                     np.zeros(0) if position_std is None else position_std)
+                     np.zeros(0) if position_std is None else position_std, degraded)
 
 
 def _cost_history(writer: RecordingWriter, history: np.ndarray, stamp_ns: int) -> None:
@@ -360,7 +360,8 @@ def write_replay(
                 writer.write(SIMULATION_ONLY_MESH_TOPIC,
                              _mesh_state(template, step.simulation_only, step.stamp_ns, index))
             writer.write(ESTIMATED_MESH_TOPIC,
-                         _mesh_state(template, result.positions, step.stamp_ns, result.step, result.position_std))
+                         _mesh_state(template, result.positions, step.stamp_ns, result.step, result.position_std,
+                                     result.degraded))
             writer.write(STATUS_TOPIC, status_record(result, frame))
             _cost_history(writer, np.asarray(result.cost_history, dtype=np.float64), step.stamp_ns)
             writer.write(MARKERS_TOPIC, mesh_markers(

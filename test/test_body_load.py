@@ -105,3 +105,18 @@ def test_the_scheduler_carries_the_load_into_the_next_prediction_and_forgets_it_
     assert np.abs(relaxed.positions - mesh.vertices).max() < 0.1 * np.abs(sag).max()
     scheduler.add_tool_pose(5 * 10**8, FAR_AWAY)  # a jump back: a new timeline
     assert np.all(scheduler.body_load.acceleration == 0.0)
+
+
+def test_an_estimate_made_without_the_prediction_teaches_the_load_nothing():
+    """A degraded update started from the copy-forward: its difference from the prediction is
+    the predicted motion, not a correction of the model."""
+    mesh = fixed_cube()
+    scheduler = PredictionScheduler(mesh, SimulatorConfig(youngs_modulus=STIFF))
+    for second in (1, 2):
+        scheduler.add_tool_pose(second * 10**9, FAR_AWAY)
+    scheduler.request(2 * 10**9)
+    predicted = scheduler.poll()[0]
+    sagged = predicted.positions + 1e-4 * np.array([0.0, 0.0, -1.0]) * (mesh.vertices[:, 2:] / 0.1)
+    scheduler.add_estimate(predicted.stamp_ns, sagged, degraded=True)
+    assert np.all(scheduler.body_load.acceleration == 0.0)
+    assert np.array_equal(scheduler._state, sagged)  # still the start of the next prediction

@@ -41,6 +41,7 @@ def test_tetramesh_roundtrip_10k_vertices(tmp_path):
         "surface_triangles": rng.integers(0, n_vertices, 3 * n_tris).astype(np.uint32),
         "fixed_vertices": np.arange(0, n_vertices, 17, dtype=np.uint32),
         "position_std": rng.random(n_vertices).astype(np.float32),
+        "degraded": np.array(True),
     }
     received = run_pair(tmp_path, "TetraMesh", sent)
     assert set(received) == set(sent)

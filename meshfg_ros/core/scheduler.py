@@ -179,9 +179,12 @@ class PredictionScheduler:
         while len(self._requests) > MAX_QUEUED_CLOUDS:
             self._requests.popleft()
 
-    def add_estimate(self, stamp_ns: int, positions: np.ndarray | None) -> Rejection | None:
+    def add_estimate(self, stamp_ns: int, positions: np.ndarray | None, degraded: bool = False) -> Rejection | None:
         """The estimate at a requested stamp; None: the estimator gives none for it (its update
-        failed), so the next request need not wait and starts from the newest state."""
+        failed), so the next request need not wait and starts from the newest state. `degraded`:
+        the update ran without this stamp's prediction (it came late, or was rejected), so the
+        estimate is the next start but its difference from the prediction teaches the body load
+        nothing."""
         if self._start_ns is None or not self._start_ns <= stamp_ns <= self._previous_ns:
             return None  # not a stamp this timeline predicted (a looped recording, or no pose yet)
         if positions is None:
@@ -194,7 +197,8 @@ class PredictionScheduler:
                              "non-finite positions or positions far outside the scene: ignored")
         if self._state_ns is None or stamp_ns > self._state_ns:
             self._state, self._state_ns = positions, stamp_ns
-            if self.body_load is not None and self._predicted is not None and self._predicted.stamp_ns == stamp_ns:
+            if (self.body_load is not None and not degraded and self._predicted is not None
+                    and self._predicted.stamp_ns == stamp_ns):
                 self.body_load.update(self._predicted.positions, positions)
         return None
 
@@ -512,7 +516,8 @@ class OfflinePipeline:
             while step is not None:
                 outcome = self.estimation.run(step)
                 positions = outcome.result.positions if outcome.result is not None else None
-                self.simulation.add_estimate(step.stamp_ns, positions)
+                self.simulation.add_estimate(step.stamp_ns, positions,
+                                             degraded=outcome.result is not None and outcome.result.degraded)
                 if outcome.result is not None:
                     steps.append(PipelineStep(step.stamp_ns, step.points, step.predicted,
                                               self._open_loop_states.pop(step.stamp_ns, None), outcome.result))

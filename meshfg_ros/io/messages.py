@@ -41,6 +41,7 @@ uint32[] tetrahedra         # 4M vertex indices, positive signed volume
 uint32[] surface_triangles  # 3F vertex indices, counter-clockwise seen from outside
 uint32[] fixed_vertices     # vertices held fixed (boundary condition)
 float32[] position_std      # N per-vertex posterior standard deviation (m), or empty
+bool degraded               # an estimate whose update ran without a simulator prediction (as EstimatorStatus.degraded)
 """,
     ESTIMATOR_STATUS: """\
 # Outcome of one estimator update (one step of the sliding-window Levenberg-Marquardt).
@@ -57,6 +58,14 @@ bool converged
 bool degraded               # true when the step ran without a simulator prediction
 string message
 """,
+}
+
+# Earlier definitions a recording may hold, read with their own definition (fields added since
+# take their defaults): TetraMesh before `degraded`.
+EARLIER_MSG_DEFINITIONS: dict[str, tuple[str, ...]] = {
+    TETRA_MESH: (MSG_DEFINITIONS[TETRA_MESH].replace(
+        "bool degraded               # an estimate whose update ran without a simulator prediction "
+        "(as EstimatorStatus.degraded)\n", ""),),
 }
 
 _UINT32_MAX = 2**32 - 1
@@ -78,6 +87,21 @@ def meshfg_typestore() -> Typestore:
     for typename, text in MSG_DEFINITIONS.items():
         store.register(get_types_from_msg(text, typename))
     return store
+
+
+@functools.lru_cache(maxsize=1)
+def readable_definition_hashes() -> dict[str, frozenset[str]]:
+    """RIHS01 hashes of the definitions of each meshfg_msgs type that recordings may hold: this
+    version's and the earlier ones (EARLIER_MSG_DEFINITIONS)."""
+    hashes = {}
+    for typename in MSG_DEFINITIONS:
+        known = {meshfg_typestore().hash_rihs01(typename)}
+        for text in EARLIER_MSG_DEFINITIONS.get(typename, ()):
+            store = get_typestore(Stores.ROS2_JAZZY)
+            store.register(get_types_from_msg(text, typename))
+            known.add(store.hash_rihs01(typename))
+        hashes[typename] = frozenset(known)
+    return hashes
 
 
 class MessageFactory(Protocol):
@@ -214,6 +238,7 @@ class MeshState:
     surface_triangles: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.int64))
     fixed_vertices: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     position_std: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    degraded: bool = False  # an estimate made without a simulator prediction
 
     def __post_init__(self) -> None:
         positions = np.array(self.positions, dtype=np.float64)
@@ -248,6 +273,7 @@ class MeshState:
         )
         set_field("fixed_vertices", _as_index_array("fixed_vertices", self.fixed_vertices, None, num_vertices))
         set_field("position_std", _frozen(position_std))
+        set_field("degraded", bool(self.degraded))
 
     def tet_mesh(self, name: str = "") -> TetMesh:
         """The core mesh (vertices, tetrahedra, fixed vertices) of this state."""
@@ -342,6 +368,7 @@ def mesh_state_to_msg(state: MeshState, factory: MessageFactory | None = None) -
         surface_triangles=factory.sequence(state.surface_triangles, np.uint32),
         fixed_vertices=factory.sequence(state.fixed_vertices, np.uint32),
         position_std=factory.sequence(state.position_std, np.float32),
+        degraded=bool(state.degraded),
     )
 
 
@@ -356,6 +383,7 @@ def mesh_state_from_msg(msg: Any) -> MeshState:
         surface_triangles=np.asarray(msg.surface_triangles, dtype=np.int64),
         fixed_vertices=np.asarray(msg.fixed_vertices, dtype=np.int64),
         position_std=np.asarray(msg.position_std, dtype=np.float64),
+        degraded=bool(getattr(msg, "degraded", False)),  # recordings made before the field have none
     )
 
 

@@ -31,6 +31,7 @@ from meshfg_ros.io.messages import (
     StatusRecord,
     mesh_state_from_msg,
     mesh_state_to_msg,
+    readable_definition_hashes,
     meshfg_typestore,
     pose_from_msg,
     pose_to_msg,
@@ -232,7 +233,8 @@ class RecordingReader:
             self._compatible_types = {
                 msgtype
                 for msgtype in {info.msgtype for info in self.topics.values()} & set(_FROM_MSG)
-                if self._reader.typestore.hash_rihs01(msgtype) == meshfg_typestore().hash_rihs01(msgtype)
+                if self._reader.typestore.hash_rihs01(msgtype) in readable_definition_hashes().get(
+                    msgtype, {meshfg_typestore().hash_rihs01(msgtype)})
             }
         except Exception as error:  # a definition the recording lacks or that does not parse
             raise CorruptRecordingError(

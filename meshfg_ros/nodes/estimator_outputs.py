@@ -91,7 +91,7 @@ class EstimatorOutputs:
         _, messages, _ = self._mesh
         publish_start = time.monotonic()
         self._estimates.publish(messages.message(step.stamp_ns, self._frame, result.step, result.positions,
-                                                 result.position_std))
+                                                 result.position_std, result.degraded))
         self._statuses.publish(status_to_msg(status_record(result, self._frame), RCLPY_FACTORY))
         done = time.monotonic()
         with self._lock:

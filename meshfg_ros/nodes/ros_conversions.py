@@ -83,8 +83,9 @@ class MeshMessages:
         self._fixed_vertices = RCLPY_FACTORY.sequence(state.fixed_vertices, np.uint32)
 
     def message(self, stamp_ns: int, frame_id: str, step: int, positions: np.ndarray,
-                position_std: np.ndarray | None = None) -> Any:
-        """TetraMesh of `positions` (N, 3) (finite: checked by the caller) and optional std (N,)."""
+                position_std: np.ndarray | None = None, degraded: bool = False) -> Any:
+        """TetraMesh of `positions` (N, 3) (finite: checked by the caller), optional std (N,), and
+        whether it is an estimate made without a simulator prediction."""
         std = np.zeros(0) if position_std is None else position_std
         return RCLPY_FACTORY.make(
             TETRA_MESH,
@@ -95,6 +96,7 @@ class MeshMessages:
             surface_triangles=self._surface_triangles,
             fixed_vertices=self._fixed_vertices,
             position_std=RCLPY_FACTORY.sequence(std, np.float32),
+            degraded=bool(degraded),
         )
 
 

@@ -104,7 +104,7 @@ class SimulationNode(Node):
         stamp_ns = stamp_ns_from_msg(msg.header.stamp)
         positions = positions_from_msg(msg, self._scheduler.mesh.vertex_count)
         # A malformed estimate is no estimate: the next request does not wait for it.
-        rejection = self._scheduler.add_estimate(stamp_ns, positions)
+        rejection = self._scheduler.add_estimate(stamp_ns, positions, degraded=bool(msg.degraded))
         if positions is None:
             self._count("estimates_ignored", f"estimated_mesh at {stamp_ns} ns ignored: wrong vertex count or "
                         "non-finite positions")
