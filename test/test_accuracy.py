@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from offline_helpers import BAGS, MESHFG
 
+from meshfg_ros.core.body_load import BodyLoadEstimate
 from meshfg_ros.core.estimator import EstimatorConfig, SlidingWindowEstimator
 from meshfg_ros.parameters import estimator_config, load_parameters, simulator_config
 from meshfg_ros.synthetic.scenarios import generate
@@ -26,11 +27,13 @@ def dome():
     return generate("dome-tilted", seed=1, steps=3)
 
 
-def run_defaults(scenario, points_of=lambda step: step.points, tool_gate=True, **config):
-    """The replay's loop on a scenario in memory, with what a user knows of it (its metadata);
-    without `tool_gate` the estimator is not told where the tool is (no points dropped on it)."""
-    params = load_parameters(scenario_parameters(scenario_metadata(scenario)))
+def run_defaults(scenario, points_of=lambda step: step.points, tool_gate=True, parameters={}, **config):
+    """The replay's loop on a scenario in memory, with what a user knows of it (its metadata) and
+    `parameters`; without `tool_gate` the estimator is not told where the tool is (no points
+    dropped on it)."""
+    params = load_parameters({**scenario_parameters(scenario_metadata(scenario)), **parameters})
     simulator, open_loop = (ElasticSimulator(scenario.initial_mesh, simulator_config(params)) for _ in range(2))
+    body_load = BodyLoadEstimate(simulator) if params["estimate_body_load"] else None
     simulator.reset(scenario.initial_tool_pose)
     open_loop.reset(scenario.initial_tool_pose)
     estimator = SlidingWindowEstimator(scenario.initial_mesh, EstimatorConfig(**{
@@ -42,6 +45,8 @@ def run_defaults(scenario, points_of=lambda step: step.points, tool_gate=True, *
         simulation = open_loop.predict(simulation, step.tool_pose, 1.0)
         result = estimator.update(step.stamp_ns, points_of(step), predicted, step.tool_pose if tool_gate else None)
         estimate = result.positions
+        if body_load is not None and not result.degraded:
+            body_load.update(predicted, estimate)
         results.append((result, simulation))
     return results
 
@@ -59,6 +64,18 @@ def test_factor_graph_beats_the_simulation_on_a_mismatch_scene(dome):
     assert all("weights: measurement sigma" in r.message for r, _ in results)
     # the noise estimate moved from the datasheet value towards the real spread (larger)
     assert results[-1][0].measurement_sigma > 1.1 * dome.noise_sigma_m
+
+
+def test_the_learnt_body_load_carries_the_correction_into_later_predictions(dome):
+    """The dome's lateral load ramps up and the model knows none: without the body load each
+    prediction relaxes to the model's equilibrium and the factor graph corrects it from scratch
+    (0.75 of the simulation's error at the last step, measured); with it the later predictions
+    carry the load learnt so far (0.57)."""
+    truth = dome.steps[-1].truth
+    with_load, _ = run_defaults(dome)[-1]
+    without_load, _ = run_defaults(dome, parameters={"estimate_body_load": False})[-1]
+    assert rmse(with_load.positions, truth) < 0.85 * rmse(without_load.positions, truth)
+    assert with_load.converged
 
 
 def test_leaks_do_not_pull_the_estimate(dome):
