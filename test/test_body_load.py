@@ -127,3 +127,20 @@ def test_an_estimate_made_without_the_prediction_teaches_the_load_nothing():
     scheduler.add_estimate(predicted.stamp_ns, sagged, degraded=True)
     assert np.all(scheduler.body_load.acceleration == 0.0)
     assert np.array_equal(scheduler._state, sagged)  # still the start of the next prediction
+
+
+def test_a_failed_prediction_forgets_the_load():
+    """The load may be what made the prediction fail; kept, every later one could fail too."""
+    mesh = fixed_cube()
+    scheduler = PredictionScheduler(mesh, SimulatorConfig(youngs_modulus=STIFF))
+    for second in (1, 2, 3):
+        scheduler.add_tool_pose(second * 10**9, FAR_AWAY)
+    scheduler.request(2 * 10**9)
+    predicted = scheduler.poll()[0]
+    scheduler.add_estimate(predicted.stamp_ns, predicted.positions + [0.0, 0.0, -1e-5])
+    assert np.linalg.norm(scheduler.body_load.acceleration) > 0.0
+    scheduler.simulator.body_acceleration = [0.0, 0.0, -1e9]  # a load that crushes the cube
+    scheduler.request(3 * 10**9)
+    failed = scheduler.poll()[0]
+    assert failed.positions is None and "inverted" in failed.failure
+    assert np.all(scheduler.body_load.acceleration == 0.0)

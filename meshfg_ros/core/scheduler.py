@@ -236,13 +236,21 @@ class PredictionScheduler:
         try:
             predicted = self.simulator.predict(self._state, pose, dt)
         except (ValueError, RuntimeError) as error:
-            self.simulator.reset(pose)
+            self._restart_simulator(pose)
             return self._finish(Prediction(stamp, None, str(error), pose), now_s)
         if not np.isfinite(predicted).all():
-            self.simulator.reset(pose)
+            self._restart_simulator(pose)
             return self._finish(Prediction(stamp, None, "the predicted positions are not finite", pose), now_s)
         self._predicted = Prediction(stamp, predicted, "", pose)
         return self._finish(self._predicted, now_s)
+
+    def _restart_simulator(self, pose: np.ndarray) -> None:
+        """After a failed prediction: the tool restarts at `pose`, and the body load learnt so far
+        is forgotten, since it may be what failed; kept, every later prediction could fail alike,
+        each step would run degraded, and degraded estimates teach the load nothing."""
+        self.simulator.reset(pose)
+        if self.body_load is not None:
+            self.body_load.reset()
 
     def _previous_settled(self) -> bool:
         """Whether the state to predict from is known: the previous request's estimate has come,
