@@ -14,6 +14,7 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from meshfg_ros.io.messages import (
+    EARLIER_MSG_DEFINITIONS,
     MSG_DEFINITIONS,
     TETRA_MESH,
     MeshState,
@@ -439,3 +440,24 @@ def test_a_different_tetra_mesh_definition_is_refused(tmp_path):
         assert reader.topics["/meshfg/mesh"].count == 1
         with pytest.raises(TopicTypeError, match="recorded meshfg_msgs/msg/TetraMesh definition differs"):
             reader.messages()
+
+
+def test_a_recording_with_the_tetra_mesh_before_degraded_is_read_with_its_own_definition(tmp_path):
+    """Recordings made before TetraMesh.degraded (the bundled ones among them) stay readable;
+    their meshes read as not degraded."""
+    (earlier,) = EARLIER_MSG_DEFINITIONS[TETRA_MESH]
+    assert "degraded" not in earlier and "degraded" in MSG_DEFINITIONS[TETRA_MESH]
+    store = get_typestore(Stores.ROS2_JAZZY)
+    store.register(get_types_from_msg(earlier, TETRA_MESH))
+    corners = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    old = store.types[TETRA_MESH](
+        header=header_msg(5, "tissue", RosbagsMessageFactory(store)), step=3, positions=corners.reshape(-1),
+        tetrahedra=np.array([0, 1, 2, 3], np.uint32), surface_triangles=np.zeros(0, np.uint32),
+        fixed_vertices=np.array([0], np.uint32), position_std=np.zeros(0, np.float32))
+    with Writer(tmp_path / "earlier", version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        connection = writer.add_connection("/meshfg/mesh", TETRA_MESH, typestore=store)
+        writer.write(connection, 5, store.serialize_cdr(old, TETRA_MESH))
+    with RecordingReader(tmp_path / "earlier") as reader:
+        (state,) = list(reader.records("/meshfg/mesh", MeshState))
+    assert state.step == 3 and state.degraded is False and state.fixed_vertices.tolist() == [0]
+    np.testing.assert_array_equal(state.positions[3], [0.0, 0.0, 1.0])
