@@ -52,6 +52,7 @@ from meshfg_ros.io.messages import (
     RosbagsMessageFactory,
     status_record,
     meshfg_typestore,
+    vector_msg,
 )
 from meshfg_ros.io.recording import (
     CorruptRecordingError,
@@ -62,6 +63,7 @@ from meshfg_ros.io.recording import (
 from meshfg_ros.markers import mesh_markers, surface_edges
 from meshfg_ros.io.scenario_metadata import ScenarioMetadata, read_metadata
 from meshfg_ros.topics import (
+    BODY_ACCELERATION_TOPIC,
     CAMERA_POSE_TOPIC,
     COST_HISTORY_TOPIC,
     ESTIMATED_MESH_TOPIC,
@@ -118,13 +120,15 @@ class ReplayInputs:
 
 @dataclass(frozen=True)
 class ReplayStep:
-    """One estimator update: its cloud (world frame), prediction, open-loop simulation, result."""
+    """One estimator update: its cloud (world frame), prediction, open-loop simulation, result,
+    and the body load learnt from it (None with estimate_body_load off)."""
 
     stamp_ns: int
     points: np.ndarray
     predicted: np.ndarray | None
     simulation_only: np.ndarray | None
     result: StepResult
+    body_acceleration: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -252,7 +256,8 @@ def iterate_replay(inputs: ReplayInputs, params: Mapping[str, Any],
                                clock_jump_threshold=params["clock_jump_threshold"],
                                tool_pose_extrapolation=params["tool_pose_horizon"], alter_prediction=alter_prediction)
     for step in run_offline(pipeline, _world_frame_events(inputs, params)):
-        yield ReplayStep(step.stamp_ns, step.points, step.predicted, step.simulation_only, step.result)
+        yield ReplayStep(step.stamp_ns, step.points, step.predicted, step.simulation_only, step.result,
+                         step.body_acceleration)
 
 
 def _world_frame_events(inputs: ReplayInputs, params: Mapping[str, Any]) -> Iterator[tuple]:
@@ -363,6 +368,8 @@ def write_replay(
                          _mesh_state(template, result.positions, step.stamp_ns, result.step, result.position_std,
                                      result.degraded))
             writer.write(STATUS_TOPIC, status_record(result, frame))
+            if step.body_acceleration is not None:
+                writer.write(BODY_ACCELERATION_TOPIC, vector_msg(step.stamp_ns, frame, step.body_acceleration))
             _cost_history(writer, np.asarray(result.cost_history, dtype=np.float64), step.stamp_ns)
             writer.write(MARKERS_TOPIC, mesh_markers(
                 result.positions, template.surface_triangles, result.position_std, step.points, frame,

@@ -112,6 +112,7 @@ def test_accuracy_command_reports_table_json_and_picture(tmp_path):
     assert row["steps"] == 10 and 0.0 <= row["converged_share"] <= 1.0
     assert row["ratio_all_final"] == pytest.approx(row["factor_graph_all_final_m"] / row["simulation_all_final_m"])
     assert 0.0 < row["solve_ms_p50"] <= row["solve_ms_p95"]
+    assert len(row["body_acceleration_final"]) == 3 and np.linalg.norm(row["body_acceleration_final"]) > 0.0
     assert (out / "accuracy.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert (out / "liver-push" / "replay" / "metadata.yaml").is_file()
 

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseStamped, Vector3Stamped
 from rcl_interfaces.srv import GetParameters
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
@@ -217,11 +217,12 @@ class SimulationProbe:
 
     def __init__(self, probe, namespace):
         self.node = probe
-        self.predictions, self.failures = [], []
+        self.predictions, self.failures, self.loads = [], [], []
         self._subscriptions = [
             probe.create_subscription(TetraMesh, f"{namespace}/predicted_mesh", self.predictions.append, KEEP),
             probe.create_subscription(PredictionFailure, f"{namespace}/prediction_failed", self.failures.append,
-                                      KEEP)]
+                                      KEEP),
+            probe.create_subscription(Vector3Stamped, f"{namespace}/body_acceleration", self.loads.append, KEEP)]
         self.mesh = probe.create_publisher(TetraMesh, f"{namespace}/initial_mesh", LATCHED)
         self.estimate = probe.create_publisher(TetraMesh, f"{namespace}/estimated_mesh", LATCHED)
         self.pose = probe.create_publisher(PoseStamped, f"{namespace}/tool_pose", KEEP)
@@ -308,7 +309,7 @@ def test_simulation_node_predicts_from_the_latest_estimate(probe, processes, tmp
     body_load = BodyLoadEstimate(simulator)
     simulator.reset(pose(poses[0]))
     expected = [simulator.predict(mesh.vertices, pose(poses[1]), 1.0)]
-    body_load.update(expected[0], estimate)
+    learnt = body_load.update(expected[0], estimate)
     for k in (2, 3, 4):
         expected.append(simulator.predict(estimate, pose(poses[k]), 1.0))
     expected.append(expected[0])
@@ -322,6 +323,13 @@ def test_simulation_node_predicts_from_the_latest_estimate(probe, processes, tmp
     for message, positions in zip(predictions, expected, strict=True):
         np.testing.assert_allclose(np.asarray(message.positions).reshape(-1, 3), positions, rtol=0, atol=1e-12)
     assert not np.array_equal(expected[1], expected[0])  # the tool did push the cube
+    # After each estimate it took: the load learnt so far (the crushed estimate's own is forgotten
+    # when its prediction fails; the looped recording restarts from none).
+    loads = [(stamp_ns_from_msg(m.header.stamp), [m.vector.x, m.vector.y, m.vector.z]) for m in io.loads]
+    assert [stamp for stamp, _ in loads] == [2 * S, 5 * S, 2 * S]
+    np.testing.assert_allclose(loads[0][1], learnt, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(loads[2][1], learnt, rtol=0, atol=1e-12)
+    assert np.linalg.norm(learnt) > 0.0
     assert node.alive()
     assert_clean_exit(node, node.interrupt())
 

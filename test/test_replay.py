@@ -14,7 +14,7 @@ from meshfg_ros.core.mesh import MeshFileError, save_mesh
 from meshfg_ros.parameters import ParameterError, estimator_config, simulator_config
 from meshfg_ros.synthetic.scenarios import FIRST_STAMP_NS, STEP_PERIOD_NS
 from meshfg_ros.core.simulator import ElasticSimulator
-from meshfg_ros.io.messages import MeshState, PointCloudRecord, PoseRecord, StatusRecord
+from meshfg_ros.io.messages import MeshState, PointCloudRecord, PoseRecord, StatusRecord, stamp_ns_from_msg
 from meshfg_ros.io.recording import RecordingExistsError, RecordingReader, RecordingWriter
 from meshfg_ros.replay import (
     ReplayError,
@@ -27,6 +27,7 @@ from meshfg_ros.replay import (
 )
 from meshfg_ros.synthetic.recordings import write_scenario
 from meshfg_ros.topics import (
+    BODY_ACCELERATION_TOPIC,
     CAMERA_POSE_TOPIC,
     COST_HISTORY_TOPIC,
     ESTIMATED_MESH_TOPIC,
@@ -108,6 +109,7 @@ def test_loop_matches_the_nodes_semantics(scenario, recording, replayed):
         result = estimator.update(step.stamp_ns, cloud.points, predicted, step.tool_pose)
         estimate = result.positions
         body_load.update(predicted, estimate)
+        np.testing.assert_array_equal(replay_step.body_acceleration, body_load.acceleration)
         assert replay_step.stamp_ns == step.stamp_ns and not replay_step.result.degraded
         np.testing.assert_array_equal(replay_step.predicted, predicted)
         np.testing.assert_array_equal(replay_step.result.positions, result.positions)
@@ -197,12 +199,17 @@ def test_outputs_and_copies(output, replayed, scenario):
     out, counts = output
     assert counts == {SCENARIO_TOPIC: 1, CAMERA_POSE_TOPIC: 1, INITIAL_MESH_TOPIC: 1, TOOL_POSE_TOPIC: 4,
                       POINTS_TOPIC: 3, PREDICTED_MESH_TOPIC: 3, SIMULATION_ONLY_MESH_TOPIC: 3,
-                      ESTIMATED_MESH_TOPIC: 3, STATUS_TOPIC: 3, COST_HISTORY_TOPIC: 3, MARKERS_TOPIC: 3}
+                      ESTIMATED_MESH_TOPIC: 3, STATUS_TOPIC: 3, COST_HISTORY_TOPIC: 3, MARKERS_TOPIC: 3,
+                      BODY_ACCELERATION_TOPIC: 3}
     with RecordingReader(out) as reader:
         estimates = list(reader.records(ESTIMATED_MESH_TOPIC, MeshState))
         statuses = list(reader.records(STATUS_TOPIC, StatusRecord))
         histories = [m.data.data for m in reader.messages([COST_HISTORY_TOPIC])]
+        loads = [m.data for m in reader.messages([BODY_ACCELERATION_TOPIC])]
     final = replayed.steps[-1].result
+    assert [stamp_ns_from_msg(load.header.stamp) for load in loads] == [step.stamp_ns for step in replayed.steps]
+    np.testing.assert_array_equal([[load.vector.x, load.vector.y, load.vector.z] for load in loads],
+                                  [step.body_acceleration for step in replayed.steps])
     np.testing.assert_array_equal(estimates[-1].positions, final.positions)
     np.testing.assert_allclose(estimates[-1].position_std, final.position_std)
     assert estimates[-1].stamp_ns == scenario.steps[-1].stamp_ns and estimates[-1].step == final.step

@@ -145,6 +145,11 @@ class PredictionScheduler:
             self.body_load.reset()
 
     @property
+    def state_stamp_ns(self) -> int | None:
+        """Stamp of the estimate the next prediction starts from (None: the initial mesh)."""
+        return self._state_ns
+
+    @property
     def tool_pose_unavailable(self) -> dict[str, int]:
         """How often no tool pose could be given for a request, by PoseUnavailable.reason."""
         return dict(self._poses.unavailable)
@@ -455,13 +460,15 @@ def _finite(result: StepResult) -> bool:
 # --------------------------------------------------------------------------- offline
 @dataclass(frozen=True)
 class PipelineStep:
-    """One estimate of the offline pipeline, with its inputs and the simulation-alone baseline."""
+    """One estimate of the offline pipeline, with its inputs, the simulation-alone baseline and
+    the body load the simulator learnt from it (None with estimate_body_load off)."""
 
     stamp_ns: int
     points: np.ndarray
     predicted: np.ndarray | None
     simulation_only: np.ndarray | None
     result: StepResult
+    body_acceleration: np.ndarray | None = None
 
 
 class OfflinePipeline:
@@ -527,8 +534,10 @@ class OfflinePipeline:
                 self.simulation.add_estimate(step.stamp_ns, positions,
                                              degraded=outcome.result is not None and outcome.result.degraded)
                 if outcome.result is not None:
+                    load = self.simulation.body_load
                     steps.append(PipelineStep(step.stamp_ns, step.points, step.predicted,
-                                              self._open_loop_states.pop(step.stamp_ns, None), outcome.result))
+                                              self._open_loop_states.pop(step.stamp_ns, None), outcome.result,
+                                              None if load is None else load.acceleration))
                 for old in [s for s in self._open_loop_states if s < step.stamp_ns]:
                     del self._open_loop_states[old]
                 step = self.estimation.next_step(flush=flush)

@@ -14,7 +14,8 @@ d_CD, the share of updates whose Levenberg-Marquardt run converged, iterations p
 the p50 / p95 solve time; and, to say why a ratio is what it is, how each step's correction of
 its prediction compares with the one the truth needed (evaluation.metrics.correction_alignment,
 mean over steps) on the observed surface along its normal and across it, and on the unobserved
-surface. The targets it reports against are the accuracy issue's: the factor
+surface; in the JSON also the body load the simulator had learnt by the last step
+(core/body_load.py). The targets it reports against are the accuracy issue's: the factor
 graph no worse than the simulation on every scene, median ratios <= 0.7 (all) and <= 0.8
 (unobserved external), LM converged in >= 95 % of updates.
 """
@@ -34,7 +35,7 @@ from meshfg_ros.io.messages import StatusRecord
 from meshfg_ros.io.recording import RecordingReader
 from meshfg_ros.replay import write_replay
 from meshfg_ros.synthetic.recordings import synthesize
-from meshfg_ros.topics import STATUS_TOPIC
+from meshfg_ros.topics import BODY_ACCELERATION_TOPIC, STATUS_TOPIC
 
 __all__ = ["BUNDLED_SCENES", "SCENES", "SYNTHESISED_SCENES", "TARGETS", "format_table", "run_accuracy",
            "write_plot"]
@@ -48,6 +49,15 @@ TARGETS = {"median_ratio_all": 0.7, "median_ratio_unobserved": 0.8, "worst_ratio
 def _statuses(replay: Path) -> list[StatusRecord]:
     with RecordingReader(replay) as reader:
         return list(reader.records(STATUS_TOPIC, StatusRecord))
+
+
+def _final_body_acceleration(replay: Path) -> list[float] | None:
+    """The body load learnt by the replay's last step (m/s^2), or None without one."""
+    with RecordingReader(replay) as reader:
+        if BODY_ACCELERATION_TOPIC not in reader.topics:
+            return None
+        vector = [message.data.vector for message in reader.messages([BODY_ACCELERATION_TOPIC])][-1]
+    return [float(vector.x), float(vector.y), float(vector.z)]
 
 
 def _ratio(numerator, denominator) -> float | None:
@@ -82,6 +92,7 @@ def scene_result(name: str, recording: Path, replay: Path, seconds: float) -> di
     row["iterations_mean"] = float(np.mean([status.iterations for status in statuses])) if statuses else None
     row["solve_ms_p50"] = float(np.percentile(times, 50)) if times.size else None
     row["solve_ms_p95"] = float(np.percentile(times, 95)) if times.size else None
+    row["body_acceleration_final"] = _final_body_acceleration(replay)
     return row
 
 

@@ -450,6 +450,14 @@ def pose_to_msg(record: PoseRecord, factory: MessageFactory | None = None) -> An
     return factory.make(POSE_STAMPED, header=header_msg(record.stamp_ns, record.frame_id, factory), pose=pose)
 
 
+def vector_msg(stamp_ns: int, frame_id: str, vector: np.ndarray, factory: MessageFactory | None = None) -> Any:
+    """geometry_msgs/Vector3Stamped of `vector` (3,), e.g. the learnt body acceleration."""
+    factory = _default_factory(factory)
+    x, y, z = (float(v) for v in vector)
+    return factory.make("geometry_msgs/msg/Vector3Stamped", header=header_msg(stamp_ns, frame_id, factory),
+                        vector=factory.make("geometry_msgs/msg/Vector3", x=x, y=y, z=z))
+
+
 def pose_from_msg(msg: Any) -> PoseRecord:
     """PoseRecord from a PoseStamped message of either flavour."""
     position, orientation = msg.pose.position, msg.pose.orientation

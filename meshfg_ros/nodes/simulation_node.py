@@ -7,7 +7,9 @@ Subscribes `tool_pose` (geometry_msgs/PoseStamped, any rate, any frame placed th
 `predicted_mesh` (TetraMesh at the cloud's stamp: the simulator moved from the estimate of the
 previous request to the tool pose interpolated at the cloud's stamp), or `prediction_failed`
 (meshfg_msgs/PredictionFailure, same stamp, with the reason) so that the estimator runs that step
-at once without one. The waits and the stamp rule are the scheduler's; counters go to /diagnostics.
+at once without one. After each estimate it takes it publishes `body_acceleration`
+(geometry_msgs/Vector3Stamped at the estimate's stamp, m/s^2): the unmodelled body load learnt so
+far (core/body_load.py; not published with estimate_body_load off). The waits and the stamp rule are the scheduler's; counters go to /diagnostics.
 Tool poses, requests and estimates that arrive before the mesh are held until it comes
 (nodes/held_inputs.py).
 """
@@ -19,7 +21,7 @@ import time
 from collections import Counter
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseStamped, Vector3Stamped
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from std_msgs.msg import Header
@@ -28,7 +30,8 @@ from meshfg_msgs.msg import PredictionFailure, TetraMesh
 from meshfg_ros.core.scheduler import MAX_QUEUED_CLOUDS, PredictionScheduler, SchedulingTimeouts
 from meshfg_ros.core.tool_poses import DEFAULT_MAX_SAMPLES
 from meshfg_ros.core.world_frame import POSE, FramedInput, Unplaceable
-from meshfg_ros.io.messages import MessageValidationError, header_msg, pose_from_msg, stamp_ns_from_msg
+from meshfg_ros.io.messages import (MessageValidationError, header_msg, pose_from_msg, stamp_ns_from_msg,
+                                    vector_msg)
 from meshfg_ros.nodes.diagnostics import SimulatorCounters, diagnostic_array, waiting_for_mesh_message
 from meshfg_ros.nodes.frame_inputs import FrameInputs
 from meshfg_ros.nodes.held_inputs import HeldUntilMesh
@@ -68,6 +71,7 @@ class SimulationNode(Node):
                                     "prediction request": MAX_QUEUED_CLOUDS})
         self._publisher = self.create_publisher(TetraMesh, "predicted_mesh", PREDICTION_QOS)
         self._failure_publisher = self.create_publisher(PredictionFailure, "prediction_failed", PREDICTION_QOS)
+        self._load_publisher = self.create_publisher(Vector3Stamped, "body_acceleration", PREDICTION_QOS)
         self._diagnostics_publisher = self.create_publisher(DiagnosticArray, "/diagnostics", STREAM_QOS)
         self._mesh = InitialMeshSource(self, self._frame, self._set_mesh, self._held.release)
         self._inputs = FrameInputs(self, world_frame_inputs(self.params), self._on_placed, self._on_unplaceable)
@@ -110,6 +114,9 @@ class SimulationNode(Node):
                         "non-finite positions")
         elif rejection is not None:
             self._count(rejection.counter, rejection.reason)
+        elif self._scheduler.body_load is not None and self._scheduler.state_stamp_ns == stamp_ns:
+            self._load_publisher.publish(vector_msg(stamp_ns, self._frame, self._scheduler.body_load.acceleration,
+                                                    RCLPY_FACTORY))
         self._answer()
 
     def _on_tool_pose(self, msg: PoseStamped) -> None:
