@@ -486,7 +486,9 @@ class OfflinePipeline:
                  alter_prediction: Callable[[int, np.ndarray], np.ndarray] | None = None) -> None:
         shared = dict(clock_jump_threshold=clock_jump_threshold, tool_pose_extrapolation=tool_pose_extrapolation)
         self.simulation = PredictionScheduler(mesh, model, grasped_vertices, **shared)
-        self.open_loop = PredictionScheduler(mesh, model, grasped_vertices, **shared)
+        # The simulation alone learns no load: it never sees an estimate.
+        self.open_loop = PredictionScheduler(mesh, replace(model, estimate_body_load=False), grasped_vertices,
+                                             **shared)
         self.estimation = EstimationScheduler(mesh, config, **shared)
         self._alter_prediction = alter_prediction
         self._open_loop_states: dict[int, np.ndarray] = {}

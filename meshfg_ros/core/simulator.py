@@ -680,7 +680,6 @@ class ElasticSimulator:
         corner_gradient = _CORNER_FROM_EDGES @ rest_inverse  # (M, 4, 3) shape-function gradients
         corner_volumes = np.repeat(volumes / 4.0, 4)
         vertex_mass = config.density * np.bincount(tets.reshape(-1), corner_volumes, vertex_count)
-        self.vertex_mass = vertex_mass
         self._body = _Body(rest_mesh, config, kinematic, self.movable_vertices, volumes, rest_inverse,
                            corner_gradient, vertex_mass, np.asarray(config.gravity, dtype=np.float64))
         self.solver: SimulatorSolver = SOLVER_STRATEGIES[config.solver](self._body)
@@ -706,6 +705,11 @@ class ElasticSimulator:
         if np.intersect1d(grasped, rest_mesh.fixed_vertices).size:
             raise SimulatorInputError("grasped_vertices must not include fixed vertices")
         return grasped
+
+    @property
+    def vertex_mass(self) -> np.ndarray:
+        """Lumped mass (N,) of every vertex in kg (density times a quarter of each incident volume)."""
+        return self._body.vertex_mass
 
     @property
     def body_acceleration(self) -> np.ndarray:
@@ -843,13 +847,11 @@ class ElasticSimulator:
         A vertex is released when the tool moves away from it (negative normal motion), and with
         `slip` also when moving it would invert an element (`_kept_moves`): the tissue then
         slips on the tool instead of folding over it. `predict` slips only when a prediction
-        without it ends inverted: a sphere pushing into a coarse mesh carries the stuck vertices
-        of an element it has already flattened through the element's other corners (the bundled
-        airway's last step: J = 0.11 before the move, -0.04 after), which the solvers cannot
-        undo. Most carries that invert an element for a moment are undone by the solvers'
-        iterations, and slipping there changes the grip: always slipping leaves kidney-drag's
-        dragging tool with less of it in the factor graph's loop (final vertex error 0.84 against
-        0.59 mm).
+        without it ends inverted: a sphere pushing into a coarse mesh can carry the stuck vertices
+        of an element it has already flattened through the element's other corners, which the
+        solvers cannot undo, while most carries that invert an element for a moment are undone
+        by the solvers' iterations, and slipping there would loosen the grip (measured in
+        docs/design-notes.md, "Simulator contact").
         """
         touching = self._touching(state, previous_centre, _CONTACT_BAND)
         stuck = touching[(state[touching] - previous_centre) @ (centre - previous_centre) >= 0.0]
