@@ -13,6 +13,7 @@ from meshfg_ros.core.fem import ElasticModel, free_dofs
 from meshfg_ros.core.mesh import signed_volumes
 from meshfg_ros.synthetic.meshing import cube_mesh, structured_box_mesh
 from meshfg_ros.core.simulator import (
+    FLAT_VOLUME_RATIO,
     ElasticSimulator,
     ElementInversionError,
     SimulatorConfig,
@@ -336,11 +337,39 @@ def test_stuck_vertices_stay_stuck_when_the_next_start_is_a_noisy_estimate():
         assert error < 0.5e-3, seed  # the start moved 0.17 mm RMS
 
 
+def _deep_oblique_push(steps: int = 6) -> list[float]:
+    """Smallest element volume over its rest volume after each prediction: a 4 cm cube (bottom
+    fixed, 5 cells per edge) that an 8 mm sphere, stuck to it, pushes 26 mm down and 8 mm aside."""
+    mesh = cube_mesh(0.04, 5)
+    mesh = mesh.with_fixed(np.flatnonzero(np.isclose(mesh.vertices[:, 2], 0.0)))
+    config = SimulatorConfig(youngs_modulus=3e3, poisson_ratio=0.45, tool_radius=0.008, tool_mode="sphere")
+    simulator = ElasticSimulator(mesh, config)
+    start = np.array([0.02, 0.02, 0.048])
+    simulator.reset(pose(start))
+    rest = signed_volumes(mesh.vertices, mesh.tetrahedra)
+    state, smallest = mesh.vertices, []
+    for k in range(1, steps + 1):
+        state = simulator.predict(state, pose(start + np.array([0.008, 0.0, -0.026]) * k / steps), 1.0)
+        smallest.append(float(np.min(signed_volumes(state, mesh.tetrahedra) / rest)))
+    return smallest
+
+
+def test_a_prediction_that_would_flatten_an_element_to_nothing_slips_instead(monkeypatch):
+    """Pushed deep and obliquely, the stuck tool carries vertices of an element through its other
+    corners until the element keeps 0.65 % of its volume (with slipping only where an element
+    would invert). A prediction below FLAT_VOLUME_RATIO is run again with slipping, and keeps
+    every element above it."""
+    assert min(_deep_oblique_push()) >= FLAT_VOLUME_RATIO
+    monkeypatch.setattr("meshfg_ros.core.simulator.FLAT_VOLUME_RATIO", 1e-300)  # slip only on inversion
+    assert 0.0 < _deep_oblique_push()[-1] < FLAT_VOLUME_RATIO
+
+
 def test_a_prediction_that_would_invert_an_element_slips_instead():
     """The bundled airway's last step: the tool carries the stuck vertices of an element it has
     already flattened (J = 0.11) through the element's other corners, which the solvers cannot
     undo. The prediction is run again with those vertices slipping on the tool, so every step of
-    the replay (closed loop and simulation alone) has a prediction with positive volumes."""
+    the replay (closed loop and simulation alone) has a prediction whose elements all keep
+    FLAT_VOLUME_RATIO of their rest volume."""
     from meshfg_ros.replay import iterate_replay, load_inputs, replay_parameters
 
     bags = Path(__file__).resolve().parents[1] / "bags"
@@ -348,9 +377,10 @@ def test_a_prediction_that_would_invert_an_element_slips_instead():
     steps = list(iterate_replay(inputs, replay_parameters(inputs)))
     assert len(steps) == 10
     tetrahedra = inputs.initial_mesh.tetrahedra
+    rest = signed_volumes(inputs.initial_mesh.vertices, tetrahedra)
     for step in steps:
         assert step.predicted is not None and not step.result.degraded, step.result.message
-        assert np.all(signed_volumes(step.predicted, tetrahedra) > 0.0)
-        assert np.all(signed_volumes(step.simulation_only, tetrahedra) > 0.0)
+        assert np.min(signed_volumes(step.predicted, tetrahedra) / rest) >= FLAT_VOLUME_RATIO
+        assert np.min(signed_volumes(step.simulation_only, tetrahedra) / rest) >= FLAT_VOLUME_RATIO
     # The open-loop baseline moved on at the last step instead of keeping the step before.
     assert not np.array_equal(steps[-1].simulation_only, steps[-2].simulation_only)
