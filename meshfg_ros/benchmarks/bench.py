@@ -234,7 +234,7 @@ def format_report(result: dict) -> str:
                 row = base[name]
                 verdict = "met" if row["meshfg_speedup"] >= SPEEDUP_TARGET else "NOT met"
                 lines.append(f"  {name:<7}{row['median_ms']:>10.1f} ms  cost {row['final_cost']:.9g}  meshfg is "
-                             f"{row['meshfg_speedup']:.1f}x faster (target {SPEEDUP_TARGET:g}x: {verdict}), "
+                             f"{row['meshfg_speedup']:.2f}x faster (target {SPEEDUP_TARGET:g}x: {verdict}), "
                              f"relative cost difference {row['relative_cost_difference']:.1e}{where}")
     if "live" in result:
         live = result["live"]

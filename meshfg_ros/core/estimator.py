@@ -648,7 +648,7 @@ class SlidingWindowEstimator:
                 break
             rounds += 1
             graph.replace_state_factors(pending.key, self._state_factors(pending))
-            messages.append(f"re-weighted (measurement sigma {1e3 * self.noise.sigma:.3g} mm):")
+            messages.append(f"re-weighted (measurement sigma {1e3 * self.noise.sigma:.3g} mm)")
             result = self._optimise(messages)
             iterations += result["iterations"]
             accepted += result["accepted_steps"]
