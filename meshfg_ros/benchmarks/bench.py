@@ -123,16 +123,28 @@ def _single_update_problem(scale: dict):
 
 
 def _compare(graph, solvers, repeats: int, progress: bool, label: str) -> dict:
+    """Median wall time and final cost of each solver on `graph`. The solvers' runs alternate
+    (meshfg, scipy, meshfg, scipy, ...), so that a slow spell of a shared machine falls on both
+    sides of a speed-up instead of on one solver's block of runs; GTSAM (seconds per run) runs
+    once, last."""
     from meshfg_ros.benchmarks.baselines import compare_single_update
     from meshfg_ros.core.estimator import LINEAR_TOLERANCE
 
-    out = {}
-    for name in tqdm(solvers, desc=f"bench baselines ({label})", file=sys.stderr, disable=not progress):
-        runs = 1 if name == "gtsam" else repeats  # GTSAM: seconds per run
-        median_ms, results = _median_time(
-            lambda: compare_single_update(graph, solvers=(name,), tolerance=BASELINE_TOLERANCE,
-                                          linear_tolerance=LINEAR_TOLERANCE), runs)
-        out[name] = {"median_ms": median_ms, "final_cost": float(results[name].cost)}
+    def run(name):
+        start = time.perf_counter()
+        result = compare_single_update(graph, solvers=(name,), tolerance=BASELINE_TOLERANCE,
+                                       linear_tolerance=LINEAR_TOLERANCE)[name]
+        return 1e3 * (time.perf_counter() - start), result
+
+    repeated = [name for name in solvers if name != "gtsam"]
+    schedule = [name for _ in range(repeats) for name in repeated] + [name for name in solvers if name == "gtsam"]
+    times: dict = {name: [] for name in solvers}
+    results: dict = {}
+    for name in tqdm(schedule, desc=f"bench baselines ({label})", file=sys.stderr, disable=not progress):
+        elapsed, results[name] = run(name)
+        times[name].append(elapsed)
+    out = {name: {"median_ms": float(np.median(times[name])), "final_cost": float(results[name].cost)}
+           for name in solvers}
     for name in solvers:
         if name != "meshfg":
             out[name]["meshfg_speedup"] = out[name]["median_ms"] / out["meshfg"]["median_ms"]
@@ -148,7 +160,11 @@ def bench_baselines(repeats: int = 3, progress: bool = True) -> dict:
     (W=10, ~40k factors) take longer than 25 minutes here, so the three-way comparison runs on
     a smaller window (BASELINE_SCALE); meshfg against scipy is also measured at paper scale.
     Medians of `repeats` runs (GTSAM: one); the small window, where one run of meshfg takes
-    ~25 ms and its median over 3 moved by 15% between runs, gets 7 (scipy too).
+    ~25 ms and its median over 3 moved by 15% between runs, gets 7 (scipy too). meshfg's and
+    scipy's runs alternate (`_compare`): each starts from the caches the other left, as one
+    update in a running node does. Measured on the 2-core VM: run in blocks instead, each
+    solver's repeats warm the caches for its next (small window: scipy 165-172 ms in blocks,
+    189-194 ms alternating; meshfg 15-17 ms and 17.1-17.6 ms).
     """
     graph, problem = _single_update_problem(BASELINE_SCALE)
     out = {"problem": problem, **_compare(graph, ("meshfg", "scipy", "gtsam"), max(repeats, 7), progress, "small")}
