@@ -668,8 +668,9 @@ class ElasticSimulator:
     tool releases it, it slides off the pole, the tool passes between the vertices of a coarse
     mesh and the prediction jumps by centimetres (measured on the SOFA liver). A prediction
     that ends with an element flattened below FLAT_VOLUME_RATIO of its rest volume is run once
-    more with stuck vertices slipping where carrying them would flatten an element (`predict`). `body_acceleration` adds a uniform load
-    to the configured gravity (the unmodelled load of core/body_load.py). In "grasp" mode
+    more with stuck vertices slipping where carrying them would flatten an element (`predict`).
+    `body_acceleration` adds a uniform load to the configured gravity (the unmodelled load of
+    core/body_load.py). In "grasp" mode
     `grasped_vertices` follow the tool rigidly: at pose T they sit at T T0^-1 applied to their
     rest positions, T0 being the first tool pose (set by `reset`, or by the first `predict`).
     """
