@@ -670,9 +670,9 @@ class ElasticSimulator:
     that ends with an element flattened below FLAT_VOLUME_RATIO of its rest volume is run once
     more with stuck vertices slipping where carrying them would flatten an element (`predict`).
     `body_acceleration` adds a uniform load to the configured gravity (the unmodelled load of
-    core/body_load.py). In "grasp" mode
-    `grasped_vertices` follow the tool rigidly: at pose T they sit at T T0^-1 applied to their
-    rest positions, T0 being the first tool pose (set by `reset`, or by the first `predict`).
+    core/body_load.py). In "grasp" mode `grasped_vertices` follow the tool rigidly: at pose T
+    they sit at T T0^-1 applied to their rest positions, T0 being the first tool pose (set by
+    `reset`, or by the first `predict`).
     """
 
     def __init__(self, rest_mesh: TetMesh, config: SimulatorConfig, grasped_vertices=None):
