@@ -428,9 +428,13 @@ class FactorGraph:
                                     if factor.keys[0] in self._active}
         return system, gradient[:, self.free_dofs].reshape(-1), cost
 
-    def step_fraction(self, x: np.ndarray, step: np.ndarray) -> float:
-        """The largest alpha in [0, 1] such that every tetrahedron with a positive volume at x
-        keeps at least MIN_VOLUME_RATIO_PER_STEP of it at x + alpha * step (LM's inversion guard).
+    def step_fraction(self, x: np.ndarray, step: np.ndarray) -> np.ndarray:
+        """Per unknown (the shape of x), the fraction alpha_t in [0, 1] of its state t's part of
+        the step: the largest such that every tetrahedron of the state with a positive volume at
+        x keeps at least MIN_VOLUME_RATIO_PER_STEP of it at x + alpha_t * step_t (LM's inversion
+        guard). Each state is cut on its own (a state's volumes depend on its own positions
+        only), so that one state that cannot move, such as one holding an element the simulator
+        nearly flattened, does not stop the steps of the others.
 
         Along the step a volume is the cubic 6 V(alpha) = (u + a du) x (v + a dv) . (w + a dw) in
         the edge vectors at corner 0. With L the longest of u, v, w and delta the largest move of
@@ -439,9 +443,16 @@ class FactorGraph:
         grid of alpha and refined by bisection, and the result is checked on exact volumes. States
         the step leaves alone (PCGSolver's left-out blocks) are not looked at."""
         step = np.asarray(step, dtype=np.float64)
+        fractions = np.ones(len(self.keys))
         moved = np.flatnonzero(step.reshape(len(self.keys), self.block_size).any(axis=1))
+        fractions[moved] = self._state_fractions(x, step, moved)
+        return np.repeat(fractions, self.block_size)
+
+    def _state_fractions(self, x: np.ndarray, step: np.ndarray, moved: np.ndarray) -> np.ndarray:
+        """step_fraction's alpha_t of the states `moved` (indices into keys), (len(moved),)."""
+        fractions = np.ones(moved.size)
         if not moved.size:
-            return 1.0
+            return fractions
         keys = [self.keys[t] for t in moved]
         states = self.states_from_x(x)
         volumes, longest = self._window_geometry(states, keys)
@@ -455,7 +466,7 @@ class FactorGraph:
         margin = MIN_VOLUME_RATIO_PER_STEP * 6.0 * volumes
         candidates = (volumes > 0.0) & ((longest + 2.0 * largest) ** 3 - longest**3 >= 6.0 * volumes - margin)
         if not candidates.any():
-            return 1.0
+            return fractions
         state_index, element = np.nonzero(candidates)
         window = np.stack([states[key] for key in keys])
         corners = window[state_index[:, None], self.tetrahedra[element]]      # (P, 4, 3)
@@ -480,7 +491,7 @@ class FactorGraph:
         crossed = np.polynomial.polynomial.polyval(grid[:, None], coefficients, tensor=False) < bound  # (G, P)
         hit = crossed.any(axis=0)
         if not hit.any():
-            return 1.0
+            return fractions
         first = np.argmax(crossed[:, hit], axis=0)
         low, high = np.where(first > 0, grid[first - 1], 0.0), grid[first]
         chosen, chosen_bound = coefficients[:, hit], bound[hit]
@@ -488,11 +499,16 @@ class FactorGraph:
             middle = 0.5 * (low + high)
             bad = np.polynomial.polynomial.polyval(middle, chosen, tensor=False) < chosen_bound
             high, low = np.where(bad, middle, high), np.where(bad, low, middle)
-        fraction = float(low.min())
+        np.minimum.at(fractions, state_index[hit], low)
         positive = volumes > 0.0
+        blocks = step.reshape(len(self.keys), self.block_size)
         for _ in range(_STEP_FRACTION_HALVINGS):
-            trial_volumes = self._window_geometry(self.states_from_x(x + fraction * step), keys)[0]
-            if not np.any(positive & (6.0 * trial_volumes < margin)):
-                return fraction
-            fraction *= 0.5
-        return 0.0
+            scaled = np.zeros_like(blocks)
+            scaled[moved] = fractions[:, None] * blocks[moved]
+            trial_volumes = self._window_geometry(self.states_from_x(x + scaled.reshape(-1)), keys)[0]
+            short = np.any(positive & (6.0 * trial_volumes < margin), axis=1)
+            if not short.any():
+                return fractions
+            fractions[short] *= 0.5
+        fractions[short] = 0.0
+        return fractions

@@ -8,8 +8,9 @@ and the cost F = 0.5 r^T W r. Each iteration is four steps:
   A damped system that is not positive definite (the paper's raw Neo-Hookean prior can make H
   indefinite; Cholesky or PCG reports it) proposes nothing. The problem's
   `step_fraction(x, dx)` (optional) gives the largest fraction alpha of the step that keeps
-  every element's volume above its margin, so a step that would invert a tetrahedron is
-  shortened, not thrown away.
+  every element's volume above its margin, one for the whole step or one per unknown (a
+  factor graph cuts each state's part on its own), so a step that would invert a tetrahedron
+  is shortened, not thrown away.
 - judge: the proposed step alpha dx is accepted when its gain ratio
       rho = (F(x) - F(x + alpha dx)) / (L(0) - L(alpha dx)),
       L(0) - L(alpha dx) = -alpha g.dx - 0.5 alpha^2 dx.H dx
@@ -231,11 +232,13 @@ class _Run:
         return self.shorten(step) if np.all(np.isfinite(step)) else None
 
     def shorten(self, step: np.ndarray) -> _Proposal:
-        """Cut the step to its feasible fraction; the model's decrease for what is left."""
-        fraction = 1.0 if self.step_fraction is None else float(self.step_fraction(self.x, step))
+        """Cut the step to its feasible fractions; the model's decrease for what is left (exact
+        for any scaling of the step's parts). The proposal's fraction is the smallest."""
+        fractions = 1.0 if self.step_fraction is None else self.step_fraction(self.x, step)
+        fraction = float(np.min(fractions))
         if fraction < 1.0:
             self.result.shortened_steps += 1
-        scaled = fraction * step
+        scaled = fractions * step
         predicted = -float(self.gradient @ scaled) - 0.5 * float(scaled @ self.system.matvec(scaled))
         return _Proposal(scaled, fraction, predicted, self.cost)
 
@@ -292,7 +295,7 @@ class _Run:
         if alpha <= 1.0 + 1e-3:
             return
         longer = alpha * proposal.step
-        if self.step_fraction is not None and self.step_fraction(self.x, longer) < 1.0:
+        if self.step_fraction is not None and np.min(self.step_fraction(self.x, longer)) < 1.0:
             return
         trial = self.x + longer
         trial_cost = float(self.problem.cost(trial))
@@ -388,8 +391,9 @@ def levenberg_marquardt(problem, x0: np.ndarray, config: LevenbergMarquardtConfi
     """Minimise problem's cost from x0.
 
     problem: linearize(x) -> (WindowSystem H, gradient, cost); cost(x) -> float;
-    step_fraction(x, dx) -> float in [0, 1] (optional: the largest fraction of dx that keeps
-    every element's volume above its margin); gradient(x) -> (gradient, cost) (optional: the
+    step_fraction(x, dx) -> float or array of dx's shape, in [0, 1] (optional: the largest
+    fraction of dx, or of each of its unknowns, that keeps every element's volume above its
+    margin); gradient(x) -> (gradient, cost) (optional: the
     same gradient and cost without Hessians). Raises NonFiniteCostError when the cost at x0 is
     not finite.
     """
