@@ -164,7 +164,7 @@ def bench_baselines(repeats: int = 3, progress: bool = True) -> dict:
     scipy's runs alternate (`_compare`): each starts from the caches the other left, as one
     update in a running node does. Measured on the 2-core VM: run in blocks instead, each
     solver's repeats warm the caches for its next (small window: scipy 165-172 ms in blocks,
-    173-197 ms alternating; meshfg 15-17 ms and 17-21 ms).
+    169-197 ms alternating; meshfg 15-17 ms and 17-21 ms).
     """
     graph, problem = _single_update_problem(BASELINE_SCALE)
     out = {"problem": problem, **_compare(graph, ("meshfg", "scipy", "gtsam"), max(repeats, 7), progress, "small")}
