@@ -42,7 +42,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from meshfg_ros.core.fem import ElasticModel
 from meshfg_ros.core.sparse_cholesky import SparseCholesky
-from meshfg_ros.core.mesh import TetMesh, inverted_elements, name_elements, signed_volumes
+from meshfg_ros.core.mesh import TetMesh, name_elements, signed_volumes
 from meshfg_ros.core.pose_history import InvalidPoseError, as_pose
 from meshfg_ros.core.settings import Setting, check_settings, setting
 
@@ -781,9 +781,11 @@ class ElasticSimulator:
         if self._previous_pose is None:
             self.reset(pose)
         state = self._moved(start, pose, dt, slip=False)
-        if self._stuck_contact and np.any(self._volume_ratios(state) < FLAT_VOLUME_RATIO):
+        ratios = self._volume_ratios(state)
+        if self._stuck_contact and not np.all(ratios >= FLAT_VOLUME_RATIO):  # NaN too
             state = self._moved(start, pose, dt, slip=True)
-        inverted = inverted_elements(state, self.rest_mesh.tetrahedra)
+            ratios = self._volume_ratios(state)
+        inverted = np.flatnonzero(~(ratios > 0.0))  # rest volumes are positive
         self._previous_pose = pose
         if inverted.size:
             raise ElementInversionError(inverted)

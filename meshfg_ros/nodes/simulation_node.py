@@ -9,7 +9,8 @@ previous request to the tool pose interpolated at the cloud's stamp), or `predic
 (meshfg_msgs/PredictionFailure, same stamp, with the reason) so that the estimator runs that step
 at once without one. After each estimate it takes it publishes `body_acceleration`
 (geometry_msgs/Vector3Stamped at the estimate's stamp, m/s^2): the unmodelled body load learnt so
-far (core/body_load.py; not published with estimate_body_load off). The waits and the stamp rule are the scheduler's; counters go to /diagnostics.
+far (core/body_load.py; not published with estimate_body_load off). The waits and the stamp rule
+are the scheduler's; counters go to /diagnostics.
 Tool poses, requests and estimates that arrive before the mesh are held until it comes
 (nodes/held_inputs.py).
 """
