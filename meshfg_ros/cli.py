@@ -258,27 +258,35 @@ def _accuracy_arguments(parser: argparse.ArgumentParser) -> None:
                              "accuracy.json and accuracy.png")
     parser.add_argument("--scenes", nargs="+", choices=ACCURACY_SCENES, default=list(ACCURACY_SCENES),
                         help="scenes (default: all)")
-    parser.add_argument("--seed", type=int, default=0, help="scene seed (default 0: the bundled recordings)")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0],
+                        help="scene seeds (default 0: the bundled recordings); with several, each seed's run goes "
+                             "to OUT/seed<N>/ and OUT/accuracy.json and .png pool them")
     parser.add_argument("--json", type=Path, help="also write the result here (never overwritten)")
     parser.add_argument("--plot", type=Path, help="also write the PNG summary here (never overwritten)")
 
 
 def run_accuracy(args: argparse.Namespace) -> int:
-    from meshfg_ros.evaluation.accuracy import format_table, run_accuracy, save, write_plot
+    from meshfg_ros.evaluation import accuracy
 
     _refuse_existing(args.json)
     _refuse_existing(args.plot)
+    seeds = list(dict.fromkeys(args.seeds))
 
     def progress(name):
         return _progress(f"accuracy {name}")
 
-    result = run_accuracy(args.out, tuple(args.scenes), args.seed, bundled_recording, progress)
-    print(format_table(result))
+    if len(seeds) == 1:
+        result = accuracy.run_accuracy(args.out, tuple(args.scenes), seeds[0], bundled_recording, progress)
+        table, write_plot = accuracy.format_table(result), accuracy.write_plot
+    else:
+        result = accuracy.run_accuracy_seeds(args.out, tuple(args.scenes), seeds, bundled_recording, progress)
+        table, write_plot = accuracy.format_seeds_table(result), accuracy.write_seeds_plot
+    print(table)
     outputs = [args.out / "accuracy.json", args.out / "accuracy.png"]
-    save(result, outputs[0])
+    accuracy.save(result, outputs[0])
     write_plot(result, outputs[1])
     if args.json is not None:
-        save(result, args.json)
+        accuracy.save(result, args.json)
         outputs.append(args.json)
     if args.plot is not None:
         write_plot(result, args.plot)

@@ -108,6 +108,36 @@ def test_accuracy_command_reports_table_json_and_picture(tmp_path):
     assert (out / "liver-push" / "replay" / "metadata.yaml").is_file()
 
 
+@pytest.mark.slow
+def test_accuracy_over_seeds_pools_every_seeds_scenes(tmp_path):
+    """`--seeds 0 1`: each seed's run in its own directory, and the targets' figures pooled over
+    every scene of every seed, with the seeds each target held on."""
+    out = tmp_path / "accuracy"
+    completed = subprocess.run([MESHFG, "accuracy", "--out", str(out), "--scenes", "liver-push", "cube-shear-spd",
+                                "--seeds", "0", "1"], capture_output=True, text=True, timeout=600)
+    assert completed.returncode == 0, completed.stderr
+    result = json.loads((out / "accuracy.json").read_text())
+    assert result["seeds"] == [0, 1] and [r["seed"] for r in result["results"]] == [0, 1]
+    for seed, seed_result in zip((0, 1), result["results"]):
+        assert json.loads((out / f"seed{seed}" / "accuracy.json").read_text()) == seed_result
+        assert (out / f"seed{seed}" / "liver-push" / "replay" / "metadata.yaml").is_file()
+        assert [row["seed"] for row in seed_result["scenes"]] == [seed, seed]
+    assert result["results"][0]["scenes"][0]["recording"] == str(BAGS / "liver-push")
+    assert result["results"][1]["scenes"][0]["recording"] == str(out / "seed1" / "scenes" / "liver-push-seed1")
+    rows = [row for seed_result in result["results"] for row in seed_result["scenes"]]
+    pooled = result["summary"]
+    assert pooled["median_ratio_all"] == pytest.approx(np.median([row["ratio_all_final"] for row in rows]))
+    worst = max(((row[f"ratio_{metric}_final"], row["scene"], row["seed"], metric) for row in rows
+                 for metric in ("all", "unobserved_external")))
+    assert pooled["worst_ratio"] == worst[0]
+    assert pooled["worst"] == {"scene": worst[1], "seed": worst[2], "vertices": worst[3]}
+    for target, count in pooled["seeds_met"].items():
+        assert count == sum(seed_result["summary"]["met"][target] for seed_result in result["results"])
+    assert "| liver-push | " in completed.stdout and "pooled over the 2 seeds' scenes" in completed.stdout
+    assert f"seed {worst[2]})" in completed.stdout
+    assert (out / "accuracy.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
 def test_the_command_line_names_the_suite_and_the_scenarios_it_can_synthesise():
     """cli.py lists scene names without importing the heavy modules (fast --help): they must
     stay those of the accuracy suite and of core.scenarios."""
