@@ -302,19 +302,34 @@ def _bench_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sections", nargs="+", default=["core", "estimator", "baselines", "live"],
                         choices=("core", "estimator", "baselines", "live"), help="what to measure (default: all)")
     parser.add_argument("--bag", type=Path, help="recording for the live section (default: bundled cao-push)")
+    parser.add_argument("--runs", type=_positive_integer, default=1,
+                        help="measure this many times in a row and say in how many runs each target held "
+                             "(default 1)")
 
 
 def run_bench(args: argparse.Namespace) -> int:
-    from meshfg_ros.benchmarks.bench import format_report, run_bench, save, write_plot
+    from meshfg_ros.benchmarks import bench
 
     _refuse_existing(args.json)
     _refuse_existing(args.plot)
     bag = args.bag if args.bag is not None else bundled_recording(DEMO_SCENARIO)
-    result = run_bench(tuple(args.sections), bag)
-    print(format_report(result))
-    save(result, args.json)
+    results = []
+    for number in range(1, args.runs + 1):
+        if args.runs > 1:
+            print(f"bench: run {number} of {args.runs}", file=sys.stderr)
+        results.append(bench.run_bench(tuple(args.sections), bag))
+        print(("" if number == 1 else "\n") + (f"Run {number} of {args.runs}:\n" if args.runs > 1 else "")
+              + bench.format_report(results[-1]), flush=True)
+    if args.runs == 1:
+        bench.save(results[0], args.json)
+    else:
+        print("\n" + bench.format_tally(results))
+        bench.save({"runs": results, "tally": bench.tally(results)}, args.json)
     if args.plot is not None:
-        write_plot(result, args.plot)
+        if args.runs == 1:
+            bench.write_plot(results[0], args.plot)
+        else:
+            bench.write_tally_plot(results, args.plot)
         print(f"wrote {args.plot}")
     return 0
 

@@ -10,7 +10,8 @@ Sections (each can be skipped):
   from the same start by meshfg's LM, GTSAM's LM and scipy's least_squares: median time and
   final cost, and meshfg's speed-up (GTSAM on a small window, see bench_baselines);
 - live: cloud arrival to estimate published over real DDS on a bundled recording.
-Timings on a shared 2-core machine are noisy: compare ratios taken in the same run.
+Timings on a shared 2-core machine are noisy: compare ratios taken in the same run, and over
+several runs (`--runs`), in how many each target held (`tally`).
 """
 from __future__ import annotations
 
@@ -207,6 +208,51 @@ def run_bench(sections=("core", "estimator", "baselines", "live"), bag: Path | N
     return out
 
 
+def target_figures(result: dict) -> list[dict]:
+    """The figures of one run that have a target: name, value, target, unit and whether it held
+    (latencies: p95 at or below the target; speed-ups: at or above it)."""
+    figures = []
+    for key in ("paper_scale", "organ_scale"):
+        if key in result:
+            value = result[key]["p95_ms"]
+            figures.append({"figure": f"{key.replace('_', '-')} update p95", "value": value, "unit": "ms",
+                            "target": TARGETS_MS[key], "met": value <= TARGETS_MS[key]})
+    if "baselines" in result:
+        for window, base in (("small window", result["baselines"]), ("paper-scale window",
+                                                                     result["baselines"]["paper_scale"])):
+            for name in ("scipy", "gtsam"):
+                if name in base:
+                    value = base[name]["meshfg_speedup"]
+                    figures.append({"figure": f"speed-up over {name}, {window}", "value": value, "unit": "x",
+                                    "target": SPEEDUP_TARGET, "met": value >= SPEEDUP_TARGET})
+    return figures
+
+
+def tally(results: list[dict]) -> list[dict]:
+    """Per target figure over several runs: its values and in how many runs it held."""
+    rows: dict = {}
+    for result in results:
+        for figure in target_figures(result):
+            row = rows.setdefault(figure["figure"], {**figure, "values": [], "met_runs": 0})
+            row["values"].append(figure["value"])
+            row["met_runs"] += bool(figure["met"])
+    for row in rows.values():
+        del row["value"], row["met"]
+    return list(rows.values())
+
+
+def format_tally(results: list[dict]) -> str:
+    """Each target figure's range over the runs and the runs in which it held."""
+    rows = tally(results)
+    lines = [f"Targets over {len(results)} runs{_on(results[0])}:"]
+    for row in rows:
+        low, high = min(row["values"]), max(row["values"])
+        relation = "<=" if row["unit"] == "ms" else ">="
+        lines.append(f"  {row['figure']:<40} {low:.2f}-{high:.2f} {row['unit']} (target {relation} {row['target']:g} "
+                     f"{row['unit']}): met in {row['met_runs']} of {len(row['values'])} runs")
+    return "\n".join(lines)
+
+
 def _on(section: dict) -> str:
     """` [CPU; BLAS]`: where a figure was measured, for every line of the report."""
     on = section["machine"]
@@ -283,6 +329,27 @@ def write_plot(result: dict, path: Path) -> None:
         axes[1].set_yscale("log")
         axes[1].set_ylabel("one window update (ms)")
         axes[1].set_title("same problem, same start")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+def write_tally_plot(results: list[dict], path: Path) -> None:
+    """PNG: each target figure of every run as the share of its target it uses (a latency over
+    its target, the target speed-up over the speed-up): at or below 1 the target held."""
+    from matplotlib.figure import Figure
+
+    rows = tally(results)
+    fig = Figure(figsize=(10, 4))
+    axes = fig.subplots()
+    for index, row in enumerate(rows):
+        values = np.asarray(row["values"])
+        used = values / row["target"] if row["unit"] == "ms" else row["target"] / values
+        axes.scatter(np.full(used.size, index), used, color="C0", alpha=0.7)
+    axes.axhline(1.0, color="red", lw=1, label="target")
+    axes.set_xticks(np.arange(len(rows)), [row["figure"] for row in rows], rotation=20, ha="right", fontsize=8)
+    axes.set_ylabel("share of the target used (<= 1: met)")
+    axes.set_title(f"{len(results)} runs")
+    axes.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 
