@@ -16,6 +16,7 @@ from test_nodes import (  # noqa: F401 - probe and processes are fixtures
     EstimatorProbe,
     Process,
     assert_clean_exit,
+    call_service,
     cloud_msg,
     get_parameters,
     probe,
@@ -49,12 +50,9 @@ def set_parameters(probe, node_name, **values):
     """Set each of `values` in its own request over the node's parameter service; the results."""
     client = probe.create_client(SetParameters, f"{node_name}/set_parameters")
     try:
-        assert client.wait_for_service(timeout_sec=30.0)
         request = SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()
                                                     for name, value in values.items()])
-        future = client.call_async(request)
-        assert spin_until(probe, future.done)
-        return dict(zip(values, future.result().results))
+        return dict(zip(values, call_service(probe, client, request).results))
     finally:
         probe.destroy_client(client)
 

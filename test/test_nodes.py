@@ -151,13 +151,26 @@ def tool_pose_msg(position, stamp_ns):
     return pose_to_msg(PoseRecord(stamp_ns, "world", [*position, 0.0, 0.0, 0.0, 1.0]), FACTORY)
 
 
+def call_service(probe, client, request, timeout_s=30.0, resend_s=5.0):
+    """The response to `request` (an idempotent one: the parameter services'), sent again every
+    `resend_s` without an answer. Fast DDS drops a response when the client's response reader
+    has not been matched within 100 ms of the request (ros2/rmw_fastrtps#390, #467), which
+    happens on a loaded machine although wait_for_service returned: the request went out, the
+    answer never comes."""
+    assert client.wait_for_service(timeout_sec=timeout_s), f"no service {client.srv_name}"
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        future = client.call_async(request)
+        if spin_until(probe, future.done, timeout_s=min(resend_s, deadline - time.monotonic())):
+            return future.result()
+        client.remove_pending_request(future)
+    raise AssertionError(f"no response from {client.srv_name} in {timeout_s:g} s")
+
+
 def get_parameters(probe, node_name: str, names: list[str]) -> dict:
     client = probe.create_client(GetParameters, f"{node_name}/get_parameters")
     try:
-        assert client.wait_for_service(timeout_sec=30.0), f"no parameter service {node_name}"
-        future = client.call_async(GetParameters.Request(names=names))
-        assert spin_until(probe, future.done)
-        values = future.result().values
+        values = call_service(probe, client, GetParameters.Request(names=names)).values
         assert len(values) == len(names), f"{node_name} has not declared all of {names}"
         return {name: rclpy.parameter.parameter_value_to_python(value) for name, value in zip(names, values)}
     finally:
@@ -411,7 +424,15 @@ class EstimatorProbe:
         return self.counters()
 
     def send(self, msg, **expected) -> dict:
-        self.cloud.publish(msg)
+        """Publish the cloud, again every 5 s while the node has not received it (clouds go
+        best-effort: on a loaded machine the node's reader may match the probe's writer after
+        the writer matched it, and drops what came before), then wait for `expected`."""
+        received = int(self.counters().get("clouds_received", "0"))
+        for _ in range(6):
+            self.cloud.publish(msg)
+            if spin_until(self.node, lambda: int(self.counters().get("clouds_received", "0")) > received,
+                          timeout_s=5.0):
+                break
         return self.wait_for(**expected)
 
 
