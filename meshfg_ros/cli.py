@@ -318,18 +318,18 @@ def run_bench(args: argparse.Namespace) -> int:
         if args.runs > 1:
             print(f"bench: run {number} of {args.runs}", file=sys.stderr)
         results.append(bench.run_bench(tuple(args.sections), bag))
-        print(("" if number == 1 else "\n") + (f"Run {number} of {args.runs}:\n" if args.runs > 1 else "")
-              + bench.format_report(results[-1]), flush=True)
+        heading = f"Run {number} of {args.runs}:\n" if args.runs > 1 else ""
+        print(("\n" if number > 1 else "") + heading + bench.format_report(results[-1]), flush=True)
     if args.runs == 1:
         bench.save(results[0], args.json)
+        if args.plot is not None:
+            bench.write_plot(results[0], args.plot)
     else:
         print("\n" + bench.format_tally(results))
         bench.save({"runs": results, "tally": bench.tally(results)}, args.json)
-    if args.plot is not None:
-        if args.runs == 1:
-            bench.write_plot(results[0], args.plot)
-        else:
+        if args.plot is not None:
             bench.write_tally_plot(results, args.plot)
+    if args.plot is not None:
         print(f"wrote {args.plot}")
     return 0
 

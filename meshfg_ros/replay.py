@@ -28,10 +28,9 @@ import numpy as np
 import yaml
 from rosbags.highlevel import AnyReader
 
-from meshfg_ros.core.estimator import StepResult
 from meshfg_ros.core.input_checks import NS_PER_S, SceneError, check_initial_mesh
 from meshfg_ros.core.frames import StampedTransform
-from meshfg_ros.core.scheduler import OfflinePipeline, run_offline
+from meshfg_ros.core.scheduler import OfflinePipeline, PipelineStep, run_offline
 from meshfg_ros.core.world_frame import CLOUD, POSE, FramedInput
 from meshfg_ros.io.tf_messages import TF_STATIC_TOPIC, TF_TOPIC, tf_message_to_transforms
 from meshfg_ros.core.mesh import TetMesh
@@ -119,25 +118,12 @@ class ReplayInputs:
 
 
 @dataclass(frozen=True)
-class ReplayStep:
-    """One estimator update: its cloud (world frame), prediction, open-loop simulation, result,
-    and the body load learnt from it (None with estimate_body_load off)."""
-
-    stamp_ns: int
-    points: np.ndarray
-    predicted: np.ndarray | None
-    simulation_only: np.ndarray | None
-    result: StepResult
-    body_acceleration: np.ndarray | None = None
-
-
-@dataclass(frozen=True)
 class ReplayResult:
     """All steps of a replay, with the parameters it ran with."""
 
     parameters: dict
     initial_mesh: TetMesh
-    steps: tuple[ReplayStep, ...]
+    steps: tuple[PipelineStep, ...]  # one per estimate
 
     @property
     def final_estimate(self) -> np.ndarray:
@@ -243,7 +229,7 @@ def _parameters(metadata, camera_pose, overrides: Mapping[str, Any] | None) -> d
 
 
 def iterate_replay(inputs: ReplayInputs, params: Mapping[str, Any],
-                   alter_prediction: Callable[[int, np.ndarray], np.ndarray] | None = None) -> Iterator[ReplayStep]:
+                   alter_prediction: Callable[[int, np.ndarray], np.ndarray] | None = None) -> Iterator[PipelineStep]:
     """Run the nodes' step loop (core/scheduler.py) over the recorded poses and clouds; yields one
     step per estimate. alter_prediction(stamp, predicted) (fault injection, `meshfg fuzz`) replaces
     each prediction the estimator gets, as a faulty simulation node's message would.
@@ -255,9 +241,7 @@ def iterate_replay(inputs: ReplayInputs, params: Mapping[str, Any],
     pipeline = OfflinePipeline(inputs.initial_mesh, simulator_config(params), estimator_config(params), grasped,
                                clock_jump_threshold=params["clock_jump_threshold"],
                                tool_pose_extrapolation=params["tool_pose_horizon"], alter_prediction=alter_prediction)
-    for step in run_offline(pipeline, _world_frame_events(inputs, params)):
-        yield ReplayStep(step.stamp_ns, step.points, step.predicted, step.simulation_only, step.result,
-                         step.body_acceleration)
+    yield from run_offline(pipeline, _world_frame_events(inputs, params))
 
 
 def _world_frame_events(inputs: ReplayInputs, params: Mapping[str, Any]) -> Iterator[tuple]:

@@ -77,3 +77,4 @@ def test_runs_are_tallied_per_target_in_its_own_direction():
     assert text.splitlines()[0] == f"Targets over 3 runs {TAG}:"
     assert "29.00-31.00 ms (target <= 30 ms): met in 2 of 3 runs" in text
     assert "9.50-12.00 x (target >= 10 x): met in 2 of 3 runs" in text
+    assert "none: the sections measured" in format_tally([{"machine": ON}])

@@ -245,6 +245,8 @@ def format_tally(results: list[dict]) -> str:
     """Each target figure's range over the runs and the runs in which it held."""
     rows = tally(results)
     lines = [f"Targets over {len(results)} runs{_on(results[0])}:"]
+    if not rows:
+        lines.append("  none: the sections measured have no figure with a target (estimator and baselines do)")
     for row in rows:
         low, high = min(row["values"]), max(row["values"])
         relation = "<=" if row["unit"] == "ms" else ">="

@@ -230,7 +230,8 @@ def _summary_line(s: dict, with_seed: bool = False) -> str:
         f"median FG/sim ratio: all {_x(s['median_ratio_all'])} (target <= {TARGETS['median_ratio_all']}, "
         f"{'met' if met['median_ratio_all'] else 'NOT met'}), unobserved external {_x(s['median_ratio_unobserved'])} "
         f"(target <= {TARGETS['median_ratio_unobserved']}, {'met' if met['median_ratio_unobserved'] else 'NOT met'}); "
-        f"worst ratio {_x(s['worst_ratio'])}{_worst(s, with_seed)} (target <= 1, {'met' if met['worst_ratio'] else 'NOT met'}); "
+        f"worst ratio {_x(s['worst_ratio'])}{_worst(s, with_seed)} "
+        f"(target <= 1, {'met' if met['worst_ratio'] else 'NOT met'}); "
         f"LM converged in {100 * s['converged_share']:.0f} % of updates (target >= 95 %, "
         f"{'met' if met['converged_share'] else 'NOT met'})")
 
