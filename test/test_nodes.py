@@ -560,6 +560,38 @@ def test_estimator_node_runs_a_step_at_once_when_the_simulator_reports_a_failure
     assert_clean_exit(node, node.interrupt())
 
 
+# A node whose timer fires at once, under an executor that receives SIGINT right after it has made a
+# callback's task and before it runs it: the moment a KeyboardInterrupt would orphan that task.
+SIGNAL_BETWEEN_TASK_AND_RUN = """
+import os, signal
+from rclpy.executors import Executor
+from rclpy.node import Node
+from meshfg_ros.nodes.runtime import run_nodes
+make_handler = Executor._make_handler
+def make_handler_then_signal(self, *args):
+    task = make_handler(self, *args)
+    os.kill(os.getpid(), signal.SIGINT)
+    return task
+Executor._make_handler = make_handler_then_signal
+ran = []
+class Ticking(Node):
+    def __init__(self):
+        super().__init__("ticking")
+        self.create_timer(0.01, lambda: ran.append(1))
+code = run_nodes("ticking", [Ticking], args=["ticking"])
+print("exit", code, "callbacks run", len(ran))
+"""
+
+
+def test_a_signal_between_making_and_running_a_callback_stops_the_node_cleanly():
+    result = subprocess.run([sys.executable, "-c", SIGNAL_BETWEEN_TASK_AND_RUN], capture_output=True, text=True,
+                            timeout=60)
+    output = result.stdout + result.stderr
+    assert result.returncode == 0, output
+    assert "exit 0 callbacks run 1" in output  # the callback whose task was made still ran, once
+    assert "never awaited" not in output and "Traceback" not in output, output
+
+
 @pytest.mark.slow
 def test_estimated_mesh_reaches_a_late_subscriber(probe, processes, tmp_path):
     mesh = pushed_cube()

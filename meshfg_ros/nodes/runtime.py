@@ -22,6 +22,10 @@ from meshfg_ros import blas
 from meshfg_ros.parameters import ParameterError, parameters_help
 
 _HELP_OPTIONS = ("-h", "--help")
+_STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+# How long the executor waits for work before it looks at a stop request: the longest a node
+# takes to begin stopping after SIGINT / SIGTERM.
+SPIN_PERIOD_S = 0.1
 _USAGE = ("usage: {program} [-h] [--ros-args [-r FROM:=TO] [-p NAME:=VALUE] [--params-file FILE] "
           "[--log-level LEVEL] ...]")
 
@@ -52,15 +56,16 @@ def init_without_signal_handlers(args=None) -> None:
     """rclpy.init, with SIGINT and SIGTERM raising KeyboardInterrupt instead of rclpy's handlers.
 
     rclpy's handlers invalidate the context at once, so a callback still running fails to
-    publish with a traceback; with KeyboardInterrupt the program stops its executor, lets the
-    running callbacks finish, and only then shuts the context down. ArgumentError when rcl
-    cannot parse the ROS arguments.
+    publish with a traceback; with KeyboardInterrupt the program stops its work, lets the running
+    callbacks finish, and only then shuts the context down (run_nodes, which spins an executor,
+    turns the signals into a stop request instead). ArgumentError when rcl cannot parse the ROS
+    arguments.
     """
     try:
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     except rclpy_implementation.RCLError as error:
         raise _argument_error(error) from None
-    for number in (signal.SIGINT, signal.SIGTERM):  # SIGINT too: a background job may inherit it ignored
+    for number in _STOP_SIGNALS:  # SIGINT too: a background job may inherit it ignored
         signal.signal(number, signal.default_int_handler)
 
 
@@ -75,6 +80,10 @@ def run_nodes(program: str, node_factories: Sequence[Callable[[], Node]], args=N
     `node_names` (default: the node named like the program) and exits with 0 before ROS starts.
     Invalid arguments or parameters (or MESHFG_BLAS) end the program with exit code 1 and a
     one-line message; Ctrl-C / SIGINT / SIGTERM end it with 0.
+
+    The signals only request the stop, which the loop looks at between callbacks: a
+    KeyboardInterrupt raised inside `spin` can land after the executor has made a callback's task
+    and before it runs it, and that task's coroutine is then never awaited (a RuntimeWarning at exit).
     """
     argv = sys.argv if args is None else list(args)
     try:
@@ -88,14 +97,18 @@ def run_nodes(program: str, node_factories: Sequence[Callable[[], Node]], args=N
         return 1
     nodes: list[Node] = []
     executor = None
+    stop_requested = threading.Event()
+    previous_handlers = {number: signal.signal(number, lambda *_: stop_requested.set())
+                         for number in _STOP_SIGNALS}
     try:
         for factory in node_factories:
             nodes.append(factory())
         executor = SingleThreadedExecutor()
         for node in nodes:
             executor.add_node(node)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
+        while not stop_requested.is_set():
+            executor.spin_once(timeout_sec=SPIN_PERIOD_S)
+    except (KeyboardInterrupt, ExternalShutdownException):  # KeyboardInterrupt: from a node's constructor
         pass
     except (ParameterError, ParameterException) as error:
         print(f"{program}: invalid parameters: {error}", file=sys.stderr)
@@ -109,6 +122,8 @@ def run_nodes(program: str, node_factories: Sequence[Callable[[], Node]], args=N
         # cycles): finalised here while the context is valid, not at interpreter exit after it.
         gc.collect()
         rclpy.try_shutdown()
+        for number, handler in previous_handlers.items():
+            signal.signal(number, handler)
     return 0
 
 
