@@ -152,7 +152,8 @@ def test_linearize_equals_weighted_normal_equations(cube, model):
         gradient = np.bincount(tri_dofs.reshape(-1), blocks.gradient.reshape(-1), minlength=jacobian.shape[1])
         np.testing.assert_allclose(gradient, jacobian.T @ (weight_rows @ residual.reshape(-1)), rtol=1e-10, atol=1e-6)
         hessian = np.zeros((jacobian.shape[1],) * 2)
-        np.add.at(hessian, (np.repeat(tri_dofs, 9, axis=1), np.tile(tri_dofs, (1, 9))), blocks.hessian)
+        hessian_dofs = (3 * cube.surface_triangles[blocks.hessian_triangle][:, :, None] + np.arange(3)).reshape(-1, 9)
+        np.add.at(hessian, (np.repeat(hessian_dofs, 9, axis=1), np.tile(hessian_dofs, (1, 9))), blocks.hessian)
         # Gauss-Newton on the distances: a point inside its face contributes the normal row
         # n^T J (the derivative of its signed distance), one on an edge or vertex all of J.
         association = factor.associate({0: state})
@@ -182,6 +183,7 @@ def test_face_point_term_is_the_cost_curvature_along_the_normal(cube, distance_i
     factor = PointToSurfaceFactor(0, point, cube.surface_triangles, state, IsotropicNoise(sigma), kernel)
     assert factor.associate({0: state}).region[0] == REGION_FACE
     blocks = factor.linearize({0: state}).point_blocks[0]
+    assert blocks.hessian_triangle.tolist() == blocks.triangle.tolist()  # one point: one row
     triangle = cube.surface_triangles[blocks.triangle[0]]
     normal_move = np.tile([0.0, 0.0, 1.0], 3)  # the three corners up along the top face's normal
     term = normal_move @ blocks.hessian[0].reshape(9, 9) @ normal_move

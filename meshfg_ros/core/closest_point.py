@@ -182,33 +182,38 @@ def _face_blocks(p, a, b, c):
     return dq_da, dq_db, dq_dc
 
 
+# The corners an edge region's closest point moves with, (u, v) by region code (-1: no edge).
+_EDGE_U = np.array([-1, -1, -1, -1, 0, 0, 1])
+_EDGE_V = np.array([-1, -1, -1, -1, 1, 2, 2])
+
+
 def projection_jacobian(points, a, b, c, region=None) -> np.ndarray:
     """d closest / d (a, b, c): (P, 3, 9), columns [a_x a_y a_z b_x .. c_z], see module doc.
 
-    `region` (P,) from `project_onto_triangles` (computed when None).
+    `region` (P,) from `project_onto_triangles` (computed when None). One pass per kind of
+    region (vertex, edge, face), each corner's block placed by index.
     """
     p = np.asarray(points, dtype=np.float64)
     a, b, c = (np.asarray(x, dtype=np.float64) for x in (a, b, c))
     if region is None:
         region = project_onto_triangles(p, a, b, c).region
-    jacobian = np.zeros(p.shape[:-1] + (3, 9))
-    eye = np.eye(3)
-    for code, column in ((REGION_VERTEX_A, 0), (REGION_VERTEX_B, 3), (REGION_VERTEX_C, 6)):
-        jacobian[region == code, :, column : column + 3] = eye
-    for code, (u, v), (cu, cv) in (
-        (REGION_EDGE_AB, (a, b), (0, 3)),
-        (REGION_EDGE_AC, (a, c), (0, 6)),
-        (REGION_EDGE_BC, (b, c), (3, 6)),
-    ):
-        mask = region == code
-        if mask.any():
-            dq_du, dq_dv = _edge_blocks(p[mask], u[mask], v[mask])
-            jacobian[mask, :, cu : cu + 3] = dq_du
-            jacobian[mask, :, cv : cv + 3] = dq_dv
-    mask = region == REGION_FACE
-    if mask.any():
-        blocks = _face_blocks(p[mask], a[mask], b[mask], c[mask])
-        jacobian[mask] = np.concatenate(blocks, axis=-1)
+    region = np.asarray(region)
+    jacobian = np.zeros((len(p), 3, 3, 3))  # point, row, corner, column
+    vertex = np.flatnonzero((region >= REGION_VERTEX_A) & (region <= REGION_VERTEX_C))
+    if vertex.size:
+        jacobian[vertex, :, region[vertex] - REGION_VERTEX_A, :] = np.eye(3)
+    edge = np.flatnonzero(region >= REGION_EDGE_AB)
+    if edge.size:
+        u_corner, v_corner = _EDGE_U[region[edge]], _EDGE_V[region[edge]]
+        corners = np.stack((a[edge], b[edge], c[edge]), axis=1)
+        rows = np.arange(edge.size)
+        dq_du, dq_dv = _edge_blocks(p[edge], corners[rows, u_corner], corners[rows, v_corner])
+        jacobian[edge, :, u_corner, :] = dq_du
+        jacobian[edge, :, v_corner, :] = dq_dv
+    jacobian = jacobian.reshape(len(p), 3, 9)
+    face = np.flatnonzero(region == REGION_FACE)
+    if face.size:
+        jacobian[face] = np.concatenate(_face_blocks(p[face], a[face], b[face], c[face]), axis=-1)
     return jacobian
 
 

@@ -268,7 +268,7 @@ class FactorGraph:
             data += self._scattered_hessian(factor, matrix)
         for blocks in terms.point_blocks.values():
             if blocks.hessian is not None:
-                slots = self._triangle_slots[blocks.triangle].reshape(-1)
+                slots = self._triangle_slots[blocks.hessian_triangle].reshape(-1)
                 data += np.bincount(slots, weights=blocks.hessian.reshape(-1), minlength=self._pattern_keys.size + 1)
         for blocks in terms.element_blocks.values():
             if blocks.hessian is not None:

@@ -86,13 +86,16 @@ def checked_state(array, vertex_count: int, what: str) -> np.ndarray:
 
 @dataclass
 class PointBlocks:
-    """Per-point normal-equation terms of point-to-triangle residuals: triangle (P,) surface
-    triangle index, hessian (P, 81) = w J^T J (9x9 over the triangle's 9 coordinates, row
-    major), gradient (P, 9) = w J^T r. hessian is None when only the gradient was asked for."""
+    """Normal-equation terms of point-to-triangle residuals on their triangles' 9 coordinates:
+    gradient (P, 9) = w J^T r per point, on the surface triangles `triangle` (P,); hessian
+    (H, 81) Gauss-Newton terms (9x9, row major) on the triangles `hessian_triangle` (H,), where
+    a row may sum the terms of several points on one triangle. hessian and hessian_triangle are
+    None when only the gradient was asked for."""
 
     triangle: np.ndarray
-    hessian: np.ndarray | None
     gradient: np.ndarray
+    hessian: np.ndarray | None = None
+    hessian_triangle: np.ndarray | None = None
 
 
 @dataclass
@@ -551,9 +554,9 @@ class PointToSurfaceFactor(Factor):
             return np.zeros(0)
         return (self.associate(states).closest - self.points).reshape(-1)
 
-    def _distance_hessians(self, states, association, curvature, irls) -> np.ndarray:
-        """Gauss-Newton terms (K, 81) of the points' robust costs: `curvature` (K,) weights a
-        point inside its face, `irls` (K,) one on an edge or a vertex.
+    def _distance_hessians(self, states, association, curvature, irls) -> tuple[np.ndarray, np.ndarray]:
+        """Gauss-Newton terms of the points' robust costs, (triangles (H,), terms (H, 81)):
+        `curvature` (K,) weights a point inside its face, `irls` (K,) one on an edge or a vertex.
 
         A point projected inside its face has d = n.(m - q): its Gauss-Newton term is
         c (beta (x) n)(beta (x) n)^T, since d d / d x_i = -beta_i n (the envelope theorem, as for
@@ -562,25 +565,38 @@ class PointToSurfaceFactor(Factor):
         optimum the prior holds the surface off the data, the d keep a systematic part and that
         term makes Levenberg-Marquardt's steps stop short (on the airway scene the vector form's
         curvature along a step is 1.35 times the true one, and LM converges linearly, at about
-        half the remaining decrease per iteration). A point projected onto an edge or a
-        vertex keeps the vector form, which is exact there (distance to a line or a point),
-        with its IRLS weight (a few points, weighted the conservative way)."""
+        half the remaining decrease per iteration). The face points of one triangle share its n,
+        so their terms sum to (sum_k c_k beta_k beta_k^T) (x) n n^T: one row per triangle,
+        made from 3x3 sums, instead of one 9x9 per point (a cloud puts several points on each
+        triangle it sees). A point projected onto an edge or a vertex keeps the vector form,
+        which is exact there (distance to a line or a point), with its IRLS weight (a few
+        points, weighted the conservative way), in a row of its own."""
+        vertices = states[self.keys[0]]
         face = association.region == REGION_FACE
-        # The face form for every point (nearly all are inside a face), the rest overwritten:
-        # no masked copies of the (K, 81) terms. A degenerate triangle's NaN normal is either
-        # overwritten (edge or vertex point) or the face point's, as it would be alone.
-        a, b, c = triangle_corners(states[self.keys[0]], self.triangles, association.triangle)
+        triangle_count = len(self.triangles)
+        face_triangle = association.triangle[face]
+        beta = association.barycentric[face]
+        moments = (curvature[face][:, None, None] * beta[:, :, None] * beta[:, None, :]).reshape(-1, 9)
+        summed = np.bincount((9 * face_triangle[:, None] + np.arange(9)).reshape(-1), weights=moments.reshape(-1),
+                             minlength=9 * triangle_count).reshape(triangle_count, 3, 3)
+        seen = np.flatnonzero(np.bincount(face_triangle, minlength=triangle_count))
+        a, b, c = triangle_corners(vertices, self.triangles, seen)
         normals = cross(b - a, c - a)
+        # A degenerate triangle's NaN normal stays in its own row, as its points' terms would.
         with np.errstate(invalid="ignore", divide="ignore"):
             normals /= np.linalg.norm(normals, axis=1)[:, None]
-        rows = (association.barycentric[:, :, None] * normals[:, None, :]).reshape(-1, 9)
-        hessians = ((curvature[:, None] * rows)[:, :, None] * rows[:, None, :]).reshape(-1, 81)
-        if not face.all():
-            other = ~face
-            jacobian = projection_jacobian(self.points[other], a[other], b[other], c[other], association.region[other])
-            # Batched matmul: 5x faster than the equivalent einsum on (K, 3, 9) stacks.
-            hessians[other] = ((jacobian * irls[other][:, None, None]).transpose(0, 2, 1) @ jacobian).reshape(-1, 81)
-        return hessians
+        normal_outer = normals[:, :, None] * normals[:, None, :]
+        # Row 3 i + j, column 3 l + m: summed[i, l] * normal_outer[j, m].
+        face_terms = (summed[seen][:, :, None, :, None] * normal_outer[:, None, :, None, :]).reshape(-1, 81)
+        if face.all():
+            return seen, face_terms
+        other = ~face
+        jacobian = projection_jacobian(self.points[other], *triangle_corners(vertices, self.triangles,
+                                                                            association.triangle[other]),
+                                       association.region[other])
+        # Batched matmul: 5x faster than the equivalent einsum on (K, 3, 9) stacks.
+        other_terms = ((jacobian * irls[other][:, None, None]).transpose(0, 2, 1) @ jacobian).reshape(-1, 81)
+        return np.concatenate([seen, association.triangle[other]]), np.concatenate([face_terms, other_terms])
 
     def _point_jacobians(self, states, association):
         return projection_jacobian(self.points, *triangle_corners(states[self.keys[0]], self.triangles,
@@ -615,8 +631,8 @@ class PointToSurfaceFactor(Factor):
         # test_jacobian_times_residual_is_the_fixed_barycentric_gradient checks it per region).
         weighted_residual = irls[:, None] * residual
         gradient = (association.barycentric[:, :, None] * weighted_residual[:, None, :]).reshape(-1, 9)
-        point_hessian = None
+        blocks = PointBlocks(association.triangle, gradient)
         if hessian:
-            point_hessian = self._distance_hessians(states, association, self._curvature_weights(squared, irls), irls)
-        blocks = PointBlocks(association.triangle, point_hessian, gradient)
+            blocks.hessian_triangle, blocks.hessian = self._distance_hessians(
+                states, association, self._curvature_weights(squared, irls), irls)
         return FactorLinearization(cost=cost, point_blocks={key: blocks})
