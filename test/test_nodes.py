@@ -583,6 +583,7 @@ print("exit", code, "callbacks run", len(ran))
 """
 
 
+@pytest.mark.slow
 def test_a_signal_between_making_and_running_a_callback_stops_the_node_cleanly():
     result = subprocess.run([sys.executable, "-c", SIGNAL_BETWEEN_TASK_AND_RUN], capture_output=True, text=True,
                             timeout=60)
