@@ -29,6 +29,7 @@ from meshfg_ros.core.noise import (
     NoiseModelError,
     NotPositiveDefiniteError,
     PerPointNoise,
+    RayNoise,
 )
 from meshfg_ros.core.robust import CauchyKernel, HuberKernel, RobustKernelError, make_robust_kernel
 
@@ -285,6 +286,45 @@ def test_points_against_back_faces_are_dropped_as_leaks(cube):
     assert below.back_facing_test_skipped and below.num_points == 5 and below.num_points_back_facing == 0
     with pytest.raises(FactorError):
         PointToSurfaceFactor(0, points, cube.surface_triangles, state, viewpoint=np.array([0.0, np.nan, 1.0]))
+
+
+def test_ray_noise_weights_each_point_by_its_rays_incidence_on_its_face(cube):
+    """Seen from a camera off to the side and above, the cube's top face is met at one angle
+    and its +x face at another: each point's sigma scales with |cos| of its ray against its
+    face's normal (floored), normalised so that the median point keeps the cloud's sigma."""
+    state = cube.vertices
+    camera = np.array([0.3, 0.05, 0.2])
+    top = np.array([[0.02, 0.03, 0.1003], [0.05, 0.05, 0.0998], [0.08, 0.06, 0.1001]])
+    side = np.array([[0.1002, 0.05, 0.05], [0.0999, 0.03, 0.08]])
+    points = np.concatenate([top, side])
+    sigma = 1e-3
+    factor = PointToSurfaceFactor(0, points, cube.surface_triangles, state, RayNoise(sigma, camera, floor=0.1),
+                                  viewpoint=camera)
+    assert factor.num_points == 5
+    rays = factor.points - camera
+    rays /= np.linalg.norm(rays, axis=1)[:, None]
+    on_top = np.isclose(factor.points[:, 2], 0.1, atol=1e-3)
+    incidence = np.where(on_top, np.abs(rays[:, 2]), np.abs(rays[:, 0]))  # normals +z and +x
+    expected = sigma * incidence / np.median(incidence)
+    np.testing.assert_allclose(factor.weights, 1.0 / expected**2, rtol=1e-9)
+    assert incidence[~on_top].min() > incidence[on_top].max()  # the top face is the grazing one
+    # With the floor above every point's incidence, all points weigh alike.
+    floored = PointToSurfaceFactor(0, points, cube.surface_triangles, state, RayNoise(sigma, camera, floor=1.0),
+                                   viewpoint=camera)
+    np.testing.assert_allclose(floored.weights, 1.0 / sigma**2, rtol=1e-12)
+    # A viewpoint most points face away from is not the sensor's (the back-face test is skipped):
+    # its rays do not weight the points either.
+    below = np.array([0.05, 0.05, -0.5])
+    wrong = PointToSurfaceFactor(0, points, cube.surface_triangles, state, RayNoise(sigma, below), viewpoint=below)
+    assert wrong.back_facing_test_skipped
+    np.testing.assert_allclose(wrong.weights, 1.0 / sigma**2, rtol=1e-12)
+    # A NaN normal (a degenerate face) takes the floor instead of a NaN weight.
+    noise = RayNoise(sigma, camera, floor=0.5).on_surface(top, np.array([[0.0, 0.0, 1.0], [np.nan] * 3, [0.0, 0.0, 1.0]]))
+    assert np.all(np.isfinite(noise.point_weights(3)))
+    with pytest.raises(NoiseModelError):
+        RayNoise(sigma, np.array([0.0, np.nan, 1.0]))
+    with pytest.raises(NoiseModelError):
+        RayNoise(sigma, camera, floor=0.0)
 
 
 def test_association_follows_the_surface_exactly(cube):

@@ -103,10 +103,11 @@ def test_loop_matches_the_nodes_semantics(scenario, recording, replayed):
     estimator = SlidingWindowEstimator(mesh, estimator_config(params))
     simulator.reset(scenario.initial_tool_pose)
     estimate = mesh.vertices
+    viewpoint = np.asarray(inputs.camera_pose.pose)[:3]  # the camera's centre: the clouds' sensor
     assert len(replayed.steps) == len(scenario.steps) == 3
     for step, cloud, replay_step in zip(scenario.steps, inputs.clouds, replayed.steps):
         predicted = simulator.predict(estimate, step.tool_pose, STEP_PERIOD_NS / 1e9)
-        result = estimator.update(step.stamp_ns, cloud.points, predicted, step.tool_pose)
+        result = estimator.update(step.stamp_ns, cloud.points, predicted, step.tool_pose, viewpoint)
         estimate = result.positions
         body_load.update(predicted, estimate)
         np.testing.assert_array_equal(replay_step.body_acceleration, body_load.acceleration)

@@ -38,6 +38,9 @@ Design decisions (see also factors.py, factor_graph.py, levenberg_marquardt.py, 
   after every update from the residual distances (robust: 1.4826 median) and the physics
   prior is weighted as a simulation sigma of a tenth of it; the first update, which starts
   from the sensor's nominal sigma, is solved again while that estimate moves by more than 25 %.
+  When the cloud's viewpoint is known, each point's sigma follows its ray's incidence on the
+  predicted surface (noise.RayNoise: a depth sensor's noise lies along its rays), scaled so that
+  the median point keeps the estimated sigma.
   Leaks: points inside the tool sphere (plus three sigmas) are dropped before anything else
   (the tool pose and radius are inputs), points farther from the predicted surface than five
   robust spreads (the spread clipped to [1, 10] sigmas) are gated, and the rest go through a
@@ -103,7 +106,7 @@ from meshfg_ros.core.input_checks import (
 from meshfg_ros.core.levenberg_marquardt import LevenbergMarquardtConfig, levenberg_marquardt
 from meshfg_ros.core.linear_solvers import LINEAR_SOLVERS, LinearSolveError, NotPositiveDefiniteError, make_linear_solver
 from meshfg_ros.core.mesh import TetMesh, signed_volumes
-from meshfg_ros.core.noise import IsotropicNoise
+from meshfg_ros.core.noise import IsotropicNoise, RayNoise
 from meshfg_ros.core.robust import ROBUST_KERNELS, make_robust_kernel
 from meshfg_ros.core.settings import check_settings, dynamic_fields, setting
 from meshfg_ros.core.simulator import (
@@ -621,8 +624,9 @@ class SlidingWindowEstimator:
                 _MEDIAN_ABSOLUTE_TO_SIGMA * np.median(distances), sigma, GATE_SPREAD_CAP * sigma)))
             known = pending.association
             association = known[1] if known is not None and np.array_equal(known[0], pending.prediction) else None
+            noise = IsotropicNoise(sigma) if pending.viewpoint is None else RayNoise(sigma, pending.viewpoint)
             factor = PointToSurfaceFactor(key, points, graph.surface_triangles, pending.prediction,
-                                          IsotropicNoise(sigma), robust, gate, pending.viewpoint, association)
+                                          noise, robust, gate, pending.viewpoint, association)
             pending.num_points, pending.num_points_gated = factor.num_points, factor.num_points_rejected
             pending.num_points_back_facing = factor.num_points_back_facing
             pending.back_facing_test_skipped = factor.back_facing_test_skipped

@@ -458,7 +458,7 @@ class PointToSurfaceFactor(Factor):
                               f"the cloud {len(points)}")
         self.num_points_back_facing, self.back_facing_test_skipped = 0, False
         gated = callable(gating_distance) or np.isfinite(gating_distance)
-        if not (gated or viewpoint is not None) or not len(points):
+        if not (gated or viewpoint is not None or noise.needs_surface) or not len(points):
             initial_association = None
         elif initial_association is None:
             initial_association = ClosestPointIndex(initial_vertices, self.triangles).associate(points)
@@ -480,6 +480,14 @@ class PointToSurfaceFactor(Factor):
                 "triangle", "closest", "barycentric", "region", "distance")))
         self.points = points[kept]
         self.noise = noise.subset(kept)
+        # A viewpoint the back-face test found implausible (most points facing away) is not the
+        # sensor's: its rays say nothing of the points' noise either.
+        if initial_association is not None and self.noise.needs_surface and not self.back_facing_test_skipped:
+            a, b, c = triangle_corners(initial_vertices, self.triangles, initial_association.triangle)
+            normals = cross(b - a, c - a)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                normals /= np.linalg.norm(normals, axis=1)[:, None]
+            self.noise = self.noise.on_surface(self.points, normals)
         self.weights = self.noise.point_weights(len(self.points))
         self.robust = robust
         self._frozen_triangle: np.ndarray | None = None
