@@ -203,7 +203,8 @@ class EstimatorNodeConfig:
     camera_frame: str = setting(
         "camera", "The depth camera's frame, placed in world_frame by the static camera_pose when /tf does not "
         "know it (clouds in every other frame are placed through /tf and /tf_static). Its origin is the "
-        "viewpoint of every cloud: points against faces turned away from it are dropped as leaks.")
+        "viewpoint of every cloud: points against faces turned away from it are dropped as leaks, and each "
+        "point's noise is weighted by its ray's incidence on the surface.")
     camera_pose: tuple[float, ...] = setting(
         (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0), "Static pose of camera_frame in world_frame: [x, y, z, qx, qy, qz, qw] "
         "(the fallback when /tf does not know camera_frame).", range=(-1e3, 1e3), length=7)
