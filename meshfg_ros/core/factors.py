@@ -483,10 +483,7 @@ class PointToSurfaceFactor(Factor):
         # A viewpoint the back-face test found implausible (most points facing away) is not the
         # sensor's: its rays say nothing of the points' noise either.
         if initial_association is not None and self.noise.needs_surface and not self.back_facing_test_skipped:
-            a, b, c = triangle_corners(initial_vertices, self.triangles, initial_association.triangle)
-            normals = cross(b - a, c - a)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                normals /= np.linalg.norm(normals, axis=1)[:, None]
+            normals = self._unit_normals(initial_vertices, initial_association.triangle)
             self.noise = self.noise.on_surface(self.points, normals)
         self.weights = self.noise.point_weights(len(self.points))
         self.robust = robust
@@ -562,6 +559,14 @@ class PointToSurfaceFactor(Factor):
             return np.zeros(0)
         return (self.associate(states).closest - self.points).reshape(-1)
 
+    def _unit_normals(self, vertices: np.ndarray, index: np.ndarray) -> np.ndarray:
+        """Unit normals (K, 3) of the surface triangles `index` of `vertices` (NaN: degenerate)."""
+        a, b, c = triangle_corners(vertices, self.triangles, index)
+        normals = cross(b - a, c - a)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            normals /= np.linalg.norm(normals, axis=1)[:, None]
+        return normals
+
     def _distance_hessians(self, states, association, curvature, irls) -> tuple[np.ndarray, np.ndarray]:
         """Gauss-Newton terms of the points' robust costs, (triangles (H,), terms (H, 81)):
         `curvature` (K,) weights a point inside its face, `irls` (K,) one on an edge or a vertex.
@@ -588,11 +593,8 @@ class PointToSurfaceFactor(Factor):
         summed = np.bincount((9 * face_triangle[:, None] + np.arange(9)).reshape(-1), weights=moments.reshape(-1),
                              minlength=9 * triangle_count).reshape(triangle_count, 3, 3)
         seen = np.flatnonzero(np.bincount(face_triangle, minlength=triangle_count))
-        a, b, c = triangle_corners(vertices, self.triangles, seen)
-        normals = cross(b - a, c - a)
         # A degenerate triangle's NaN normal stays in its own row, as its points' terms would.
-        with np.errstate(invalid="ignore", divide="ignore"):
-            normals /= np.linalg.norm(normals, axis=1)[:, None]
+        normals = self._unit_normals(vertices, seen)
         normal_outer = normals[:, :, None] * normals[:, None, :]
         # Row 3 i + j, column 3 l + m: summed[i, l] * normal_outer[j, m].
         face_terms = (summed[seen][:, :, None, :, None] * normal_outer[:, None, :, None, :]).reshape(-1, 81)
