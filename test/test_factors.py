@@ -298,7 +298,7 @@ def test_ray_noise_weights_each_point_by_its_rays_incidence_on_its_face(cube):
     side = np.array([[0.1002, 0.05, 0.05], [0.0999, 0.03, 0.08]])
     points = np.concatenate([top, side])
     sigma = 1e-3
-    factor = PointToSurfaceFactor(0, points, cube.surface_triangles, state, RayNoise(sigma, camera, floor=0.1),
+    factor = PointToSurfaceFactor(0, points, cube.surface_triangles, state, RayNoise(sigma, floor=0.1),
                                   viewpoint=camera)
     assert factor.num_points == 5
     rays = factor.points - camera
@@ -309,22 +309,28 @@ def test_ray_noise_weights_each_point_by_its_rays_incidence_on_its_face(cube):
     np.testing.assert_allclose(factor.weights, 1.0 / expected**2, rtol=1e-9)
     assert incidence[~on_top].min() > incidence[on_top].max()  # the top face is the grazing one
     # With the floor above every point's incidence, all points weigh alike.
-    floored = PointToSurfaceFactor(0, points, cube.surface_triangles, state, RayNoise(sigma, camera, floor=1.0),
+    floored = PointToSurfaceFactor(0, points, cube.surface_triangles, state, RayNoise(sigma, floor=1.0),
                                    viewpoint=camera)
     np.testing.assert_allclose(floored.weights, 1.0 / sigma**2, rtol=1e-12)
     # A viewpoint most points face away from is not the sensor's (the back-face test is skipped):
     # its rays do not weight the points either.
     below = np.array([0.05, 0.05, -0.5])
-    wrong = PointToSurfaceFactor(0, points, cube.surface_triangles, state, RayNoise(sigma, below), viewpoint=below)
+    wrong = PointToSurfaceFactor(0, points, cube.surface_triangles, state, RayNoise(sigma), viewpoint=below)
     assert wrong.back_facing_test_skipped
     np.testing.assert_allclose(wrong.weights, 1.0 / sigma**2, rtol=1e-12)
+    # Without a viewpoint there are no rays: every point keeps the cloud's sigma.
+    unseen = PointToSurfaceFactor(0, points, cube.surface_triangles, state, RayNoise(sigma), gating_distance=0.01)
+    np.testing.assert_allclose(unseen.weights, 1.0 / sigma**2, rtol=1e-12)
     # A NaN normal (a degenerate face) takes the floor instead of a NaN weight.
-    noise = RayNoise(sigma, camera, floor=0.5).on_surface(top, np.array([[0.0, 0.0, 1.0], [np.nan] * 3, [0.0, 0.0, 1.0]]))
-    assert np.all(np.isfinite(noise.point_weights(3)))
+    normals = np.array([[0.0, 0.0, 1.0], [np.nan] * 3, [0.0, 0.0, 1.0]])
+    noise = RayNoise(sigma, floor=0.5).on_surface(top, normals, camera)
+    rays = top - camera
+    incidence = np.abs(rays[:, 2]) / np.linalg.norm(rays, axis=1)
+    incidence[1] = 0.5
+    incidence = np.maximum(incidence, 0.5)
+    np.testing.assert_allclose(noise.point_weights(3), (np.median(incidence) / (sigma * incidence)) ** 2, rtol=1e-12)
     with pytest.raises(NoiseModelError):
-        RayNoise(sigma, np.array([0.0, np.nan, 1.0]))
-    with pytest.raises(NoiseModelError):
-        RayNoise(sigma, camera, floor=0.0)
+        RayNoise(sigma, floor=0.0)
 
 
 def test_association_follows_the_surface_exactly(cube):

@@ -106,7 +106,7 @@ from meshfg_ros.core.input_checks import (
 from meshfg_ros.core.levenberg_marquardt import LevenbergMarquardtConfig, levenberg_marquardt
 from meshfg_ros.core.linear_solvers import LINEAR_SOLVERS, LinearSolveError, NotPositiveDefiniteError, make_linear_solver
 from meshfg_ros.core.mesh import TetMesh, signed_volumes
-from meshfg_ros.core.noise import IsotropicNoise, RayNoise
+from meshfg_ros.core.noise import RayNoise
 from meshfg_ros.core.robust import ROBUST_KERNELS, make_robust_kernel
 from meshfg_ros.core.settings import check_settings, dynamic_fields, setting
 from meshfg_ros.core.simulator import (
@@ -624,9 +624,8 @@ class SlidingWindowEstimator:
                 _MEDIAN_ABSOLUTE_TO_SIGMA * np.median(distances), sigma, GATE_SPREAD_CAP * sigma)))
             known = pending.association
             association = known[1] if known is not None and np.array_equal(known[0], pending.prediction) else None
-            noise = IsotropicNoise(sigma) if pending.viewpoint is None else RayNoise(sigma, pending.viewpoint)
             factor = PointToSurfaceFactor(key, points, graph.surface_triangles, pending.prediction,
-                                          noise, robust, gate, pending.viewpoint, association)
+                                          RayNoise(sigma), robust, gate, pending.viewpoint, association)
             pending.num_points, pending.num_points_gated = factor.num_points, factor.num_points_rejected
             pending.num_points_back_facing = factor.num_points_back_facing
             pending.back_facing_test_skipped = factor.back_facing_test_skipped

@@ -457,17 +457,23 @@ class PointToSurfaceFactor(Factor):
             raise FactorError(f"initial_association has {len(initial_association.triangle)} points, "
                               f"the cloud {len(points)}")
         self.num_points_back_facing, self.back_facing_test_skipped = 0, False
+        if viewpoint is not None:
+            viewpoint = np.asarray(viewpoint, dtype=np.float64).reshape(-1)
+            if viewpoint.shape != (3,) or not np.all(np.isfinite(viewpoint)):
+                raise FactorError(f"viewpoint must be 3 finite coordinates, got {viewpoint}")
         gated = callable(gating_distance) or np.isfinite(gating_distance)
-        if not (gated or viewpoint is not None or noise.needs_surface) or not len(points):
+        if not (gated or viewpoint is not None) or not len(points):
             initial_association = None
         elif initial_association is None:
             initial_association = ClosestPointIndex(initial_vertices, self.triangles).associate(points)
+        normals = None
         if initial_association is not None:
             if gated:
                 gate = gating_distance(initial_association.distance) if callable(gating_distance) else gating_distance
                 accepted = initial_association.distance <= gate
             if viewpoint is not None:
-                accepted = self._visible(accepted, initial_vertices, initial_association, viewpoint)
+                normals = self._unit_normals(initial_vertices, initial_association.triangle)
+                accepted = self._visible(accepted, normals, initial_association.closest, viewpoint)
         self.num_points_rejected = int(np.count_nonzero(~accepted))
         kept = np.flatnonzero(accepted)
         if initial_association is not None:
@@ -482,9 +488,8 @@ class PointToSurfaceFactor(Factor):
         self.noise = noise.subset(kept)
         # A viewpoint the back-face test found implausible (most points facing away) is not the
         # sensor's: its rays say nothing of the points' noise either.
-        if initial_association is not None and self.noise.needs_surface and not self.back_facing_test_skipped:
-            normals = self._unit_normals(initial_vertices, initial_association.triangle)
-            self.noise = self.noise.on_surface(self.points, normals)
+        if normals is not None and not self.back_facing_test_skipped:
+            self.noise = self.noise.on_surface(self.points, normals[kept], viewpoint)
         self.weights = self.noise.point_weights(len(self.points))
         self.robust = robust
         self._frozen_triangle: np.ndarray | None = None
@@ -492,13 +497,10 @@ class PointToSurfaceFactor(Factor):
         # cost associated, and after an extrapolated trial it did not take, at the trial before it.
         self._associations = [] if initial_association is None else [(initial_vertices.copy(), initial_association)]
 
-    def _visible(self, accepted, vertices, association, viewpoint) -> np.ndarray:
-        """`accepted` less the points whose closest triangle faces away from `viewpoint`."""
-        viewpoint = np.asarray(viewpoint, dtype=np.float64).reshape(-1)
-        if viewpoint.shape != (3,) or not np.all(np.isfinite(viewpoint)):
-            raise FactorError(f"viewpoint must be 3 finite coordinates, got {viewpoint}")
-        a, b, c = triangle_corners(vertices, self.triangles, association.triangle)
-        facing = np.einsum("ij,ij->i", cross(b - a, c - a), viewpoint - association.closest)
+    def _visible(self, accepted, normals, closest, viewpoint) -> np.ndarray:
+        """`accepted` less the points whose closest triangle (unit `normals`, NaN for a
+        degenerate one, which never counts as facing away) faces away from `viewpoint`."""
+        facing = np.einsum("ij,ij->i", normals, viewpoint - closest)
         back = accepted & (facing < 0.0)
         count = int(np.count_nonzero(back))
         if count > MAX_BACK_FACING_SHARE * max(int(np.count_nonzero(accepted)), 1):

@@ -46,15 +46,13 @@ class PointNoise:
     def point_weights(self, count: int) -> np.ndarray:
         raise NotImplementedError
 
-    # Whether the weights depend on where the points lie on the surface (`on_surface`).
-    needs_surface = False
-
     def subset(self, mask: np.ndarray) -> PointNoise:
         """The model of the points selected by `mask`: a boolean mask or indices (in their order)."""
         return self
 
-    def on_surface(self, points: np.ndarray, normals: np.ndarray) -> PointNoise:
-        """The model of `points` (K, 3) lying on surface patches of unit `normals` (K, 3)."""
+    def on_surface(self, points: np.ndarray, normals: np.ndarray, viewpoint: np.ndarray) -> PointNoise:
+        """The model of `points` (K, 3), seen from `viewpoint` (3,), lying on surface patches of
+        unit `normals` (K, 3). Models that do not depend on the geometry return themselves."""
         return self
 
     def whiten(self, residual: np.ndarray) -> np.ndarray:
@@ -140,7 +138,7 @@ class InformationMatrixNoise:
 
 
 class RayNoise(PointNoise):
-    """A depth sensor's noise: each point is off along its ray from `viewpoint`, so its distance
+    """A depth sensor's noise: each point is off along its ray from the viewpoint, so its distance
     to the surface it lies on varies with |cos theta| (theta between the ray and the surface
     normal), and a point seen at a grazing angle pins the surface's position more tightly than
     one seen head-on. Per point, sigma_k = sigma s_k / median(s) with s_k = max(|n_k . r_k|,
@@ -152,28 +150,24 @@ class RayNoise(PointNoise):
     Measured on the accuracy suite (docs/design-notes.md, "Weights"): with floor 0.5 the median
     factor-graph / simulation ratio falls on every seed, with 0.25 the grazing points' weights
     (up to 16 times a head-on point's) hurt the scenes with sharp silhouettes. Until placed
-    on a surface, every point has `sigma`."""
+    on a surface (`on_surface`: PointToSurfaceFactor does it when it has a plausible viewpoint),
+    every point has `sigma`."""
 
-    needs_surface = True
-
-    def __init__(self, sigma: float, viewpoint, floor: float = RAY_NOISE_FLOOR):
+    def __init__(self, sigma: float, floor: float = RAY_NOISE_FLOOR):
         if not (np.isfinite(sigma) and sigma > 0.0):
             raise NoiseModelError(f"sigma must be finite and > 0, got {sigma}")
-        viewpoint = np.asarray(viewpoint, dtype=np.float64).reshape(-1)
-        if viewpoint.shape != (3,) or not np.all(np.isfinite(viewpoint)):
-            raise NoiseModelError(f"viewpoint must be 3 finite coordinates, got {viewpoint}")
         if not (0.0 < floor <= 1.0):
             raise NoiseModelError(f"floor must lie in (0, 1], got {floor}")
-        self.sigma, self.viewpoint, self.floor = float(sigma), viewpoint, float(floor)
+        self.sigma, self.floor = float(sigma), float(floor)
 
     def point_weights(self, count: int) -> np.ndarray:
         return np.full(count, 1.0 / self.sigma**2)
 
-    def on_surface(self, points: np.ndarray, normals: np.ndarray) -> PointNoise:
+    def on_surface(self, points: np.ndarray, normals: np.ndarray, viewpoint: np.ndarray) -> PointNoise:
         points = np.asarray(points, dtype=np.float64)
         if not len(points):
             return self
-        rays = points - self.viewpoint
+        rays = points - np.asarray(viewpoint, dtype=np.float64)
         with np.errstate(invalid="ignore", divide="ignore"):
             rays /= np.linalg.norm(rays, axis=1)[:, None]
         # fmax: a degenerate triangle's NaN normal, or a point at the viewpoint, gets the floor.
@@ -181,4 +175,4 @@ class RayNoise(PointNoise):
         return PerPointNoise(self.sigma * incidence / float(np.median(incidence)))
 
     def __repr__(self) -> str:
-        return f"RayNoise(sigma={self.sigma:g}, viewpoint={self.viewpoint.tolist()}, floor={self.floor:g})"
+        return f"RayNoise(sigma={self.sigma:g}, floor={self.floor:g})"
