@@ -189,6 +189,11 @@ class PoseHistory:
         The caller keeps stamps within [oldest, newest + its horizon]: before the oldest sample
         this would extrapolate backwards. With one sample, that sample is the pose everywhere.
         Beyond the newest, the last two samples' motion continues (constant velocity).
+        A stamp that is a sample's gets that sample as stored, whatever came after it: at the
+        newest sample the formula runs from the one before with fraction 1, which rounds
+        differently from the fraction-0 path it takes once a later sample has arrived, and a live
+        node that looks up a cloud's stamp before or after the next /tf sample arrives must see
+        the same pose (the replay assumes the arrival order of the recording).
         """
         count = len(self)
         if count == 0:
@@ -205,4 +210,9 @@ class PoseHistory:
         start = Rotation.from_quat(poses[before, 3:])
         step = (start.inv() * Rotation.from_quat(poses[after, 3:])).as_rotvec()
         rotation = start * Rotation.from_rotvec(fraction[:, None] * step)
-        return np.concatenate([translation, rotation.as_quat(canonical=False)], axis=1)
+        result = np.concatenate([translation, rotation.as_quat(canonical=False)], axis=1)
+        sample = np.searchsorted(stamps, queries, side="left")
+        exact = sample < count
+        exact[exact] = stamps[sample[exact]] == queries[exact]
+        result[exact] = poses[sample[exact]]
+        return result
