@@ -210,15 +210,14 @@ def test_a_lookup_at_a_sample_stamp_does_not_depend_on_the_samples_after_it():
     stamps = EPOCH_NS + np.arange(8) * 100_000_000
     rotations = Rotation.random(8, random_state=rng)
     translations = rng.normal(size=(8, 3))
-    growing = TransformBuffer()
+    samples = [transform("world", "arm", int(stamps[k]), rotations[k], translations[k]) for k in range(8)]
+    complete, growing = TransformBuffer(), TransformBuffer()
+    complete.set_transforms(samples)
     for k in range(8):
-        growing.set_transform(transform("world", "arm", int(stamps[k]), rotations[k], translations[k]))
+        growing.set_transform(samples[k])
         if k == 0:
             continue
         newest = growing.lookup("world", "arm", int(stamps[k]))  # the stamp is the newest sample's
-        complete = TransformBuffer()
-        for j in range(8):
-            complete.set_transform(transform("world", "arm", int(stamps[j]), rotations[j], translations[j]))
         np.testing.assert_array_equal(newest, complete.lookup("world", "arm", int(stamps[k])))
 
 

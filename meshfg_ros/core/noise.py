@@ -137,7 +137,7 @@ class InformationMatrixNoise:
         return f"InformationMatrixNoise({self.information.shape[0]}x{self.information.shape[1]})"
 
 
-class RayNoise(PointNoise):
+class RayNoise(IsotropicNoise):
     """A depth sensor's noise: each point is off along its ray from the viewpoint, so its distance
     to the surface it lies on varies with |cos theta| (theta between the ray and the surface
     normal), and a point seen at a grazing angle pins the surface's position more tightly than
@@ -154,14 +154,10 @@ class RayNoise(PointNoise):
     every point has `sigma`."""
 
     def __init__(self, sigma: float, floor: float = RAY_NOISE_FLOOR):
-        if not (np.isfinite(sigma) and sigma > 0.0):
-            raise NoiseModelError(f"sigma must be finite and > 0, got {sigma}")
+        super().__init__(sigma)
         if not (0.0 < floor <= 1.0):
             raise NoiseModelError(f"floor must lie in (0, 1], got {floor}")
-        self.sigma, self.floor = float(sigma), float(floor)
-
-    def point_weights(self, count: int) -> np.ndarray:
-        return np.full(count, 1.0 / self.sigma**2)
+        self.floor = float(floor)
 
     def on_surface(self, points: np.ndarray, normals: np.ndarray, viewpoint: np.ndarray) -> PointNoise:
         points = np.asarray(points, dtype=np.float64)

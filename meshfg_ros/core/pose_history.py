@@ -202,7 +202,8 @@ class PoseHistory:
         if count == 1:
             return np.repeat(self._poses[self._start][None, :], queries.size, axis=0)
         stamps, poses = self.stamps_ns, self.poses
-        before = np.clip(np.searchsorted(stamps, queries, side="right") - 1, 0, count - 2)
+        at_or_before = np.searchsorted(stamps, queries, side="right") - 1
+        before = np.clip(at_or_before, 0, count - 2)
         after = before + 1
         # Integer differences first: exact for stamps far from the epoch, then one division.
         fraction = (queries - stamps[before]).astype(np.float64) / (stamps[after] - stamps[before]).astype(np.float64)
@@ -211,8 +212,6 @@ class PoseHistory:
         step = (start.inv() * Rotation.from_quat(poses[after, 3:])).as_rotvec()
         rotation = start * Rotation.from_rotvec(fraction[:, None] * step)
         result = np.concatenate([translation, rotation.as_quat(canonical=False)], axis=1)
-        sample = np.searchsorted(stamps, queries, side="left")
-        exact = sample < count
-        exact[exact] = stamps[sample[exact]] == queries[exact]
-        result[exact] = poses[sample[exact]]
+        exact = (at_or_before >= 0) & (stamps[np.maximum(at_or_before, 0)] == queries)
+        result[exact] = poses[at_or_before[exact]]
         return result
