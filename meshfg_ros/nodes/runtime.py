@@ -108,7 +108,7 @@ def run_nodes(program: str, node_factories: Sequence[Callable[[], Node]], args=N
             executor.add_node(node)
         while not stop_requested.is_set():
             executor.spin_once(timeout_sec=SPIN_PERIOD_S)
-    except ExternalShutdownException:
+    except (KeyboardInterrupt, ExternalShutdownException):  # KeyboardInterrupt: from a node's constructor
         pass
     except (ParameterError, ParameterException) as error:
         print(f"{program}: invalid parameters: {error}", file=sys.stderr)
