@@ -45,6 +45,10 @@ Design decisions (see also factors.py, factor_graph.py, levenberg_marquardt.py, 
   (the tool pose and radius are inputs), points farther from the predicted surface than five
   robust spreads (the spread clipped to [1, 10] sigmas) are gated, and the rest go through a
   Cauchy kernel of scale 2.4 sigma.
+- Published: the prediction plus the share alpha of the correction (optimum - prediction) that
+  persists from one update to the next (core/persistence.py, keep_persistent_correction): the
+  lag-one correlation of the corrections over their mean energy, 0 at the first update. The
+  newest state is moved there, so the next update's window starts from what was published.
 - The physics prior's scale makes mean(diag(scale K_rest)) = 1 / simulation_sigma^2 on the
   free dofs (factors.prior_scale); a ridge PRIOR_RIDGE / simulation_sigma^2 (1e-6 of the
   mean information) gives a free body's 6 rigid modes a tiny information. The prior
@@ -107,6 +111,7 @@ from meshfg_ros.core.levenberg_marquardt import LevenbergMarquardtConfig, levenb
 from meshfg_ros.core.linear_solvers import LINEAR_SOLVERS, LinearSolveError, NotPositiveDefiniteError, make_linear_solver
 from meshfg_ros.core.mesh import TetMesh, signed_volumes
 from meshfg_ros.core.noise import RayNoise
+from meshfg_ros.core.persistence import CorrectionPersistence
 from meshfg_ros.core.robust import ROBUST_KERNELS, make_robust_kernel
 from meshfg_ros.core.settings import check_settings, dynamic_fields, setting
 from meshfg_ros.core.simulator import (
@@ -264,6 +269,10 @@ class EstimatorConfig:
     estimate_weights: bool = setting(
         True, "Estimate the measurement noise online from the residuals and weight the physics prior with a "
         "tenth of it (core/weights.py); false: use measurement_sigma and simulation_sigma as given.")
+    keep_persistent_correction: bool = setting(
+        True, "Publish the prediction plus only the share of the factor graph's correction that persists "
+        "from one update to the next (core/persistence.py): noise fitted through the prior is left out; "
+        "false: publish the optimum as it is.")
     # In sphere mode, points inside the tool sphere (plus a margin) are leaks (see _outside_tool).
     tool_radius: float = setting(5e-3, TOOL_RADIUS_SETTING)
     tool_mode: str = setting("sphere", TOOL_MODE_SETTING)
@@ -364,6 +373,7 @@ class SlidingWindowEstimator:
             # kappa V_e per element: the prior's volume barrier in the prior's own units
             self.bulk_energy_scale = (self.model.lam + 2.0 * self.model.mu / 3.0) * self.model.volumes
         self.noise = MeasurementNoise(self.config.measurement_sigma)
+        self.persistence = CorrectionPersistence()
         # A sliding window's W block factors are made (their memory first touched) at the first
         # solve, not by the window-filling update.
         self.solver = make_linear_solver(self.config.linear_solver, tolerance=LINEAR_TOLERANCE,
@@ -497,7 +507,8 @@ class SlidingWindowEstimator:
         aside (the step runs degraded on the copy-forward), each said in the result's message.
         Settings changed by `reconfigure` apply from here on, also when the update fails."""
         self._apply_pending_changes()
-        saved = (_saved(self), _saved(self.graph), _saved(self.noise))
+        kept_objects = (self, self.graph, self.noise, self.persistence)
+        saved = [_saved(obj) for obj in kept_objects]
         try:
             result = self.solve(self._prepare(stamp_ns, points, predicted, tool_pose, viewpoint))
             if not _finite_result(result):
@@ -507,7 +518,7 @@ class SlidingWindowEstimator:
             # The solver's revision counter only grows: a block factor it made for a
             # linearisation of the failed update must never pass for a later one's.
             relinearizations = self.graph.relinearizations
-            for obj, kept in zip((self, self.graph, self.noise), saved):
+            for obj, kept in zip(kept_objects, saved):
                 _restore(obj, kept)
             self.graph.relinearizations = relinearizations
             if isinstance(error, (EstimatorInputError, EstimatorStepError)) or not isinstance(error, Exception):
@@ -664,6 +675,7 @@ class SlidingWindowEstimator:
         if self.config.estimate_weights:
             messages.append(f"weights: measurement sigma {1e3 * self.noise.sigma:.3g} mm, "
                             f"simulation sigma {1e3 * self.simulation_sigma:.3g} mm")
+        self._keep_persistent_correction(pending)
         positions = graph.states[pending.key].copy()
         self.last_estimate = positions
         std = self._position_std(messages)
@@ -677,6 +689,18 @@ class SlidingWindowEstimator:
             accepted_steps=accepted, measurement_sigma=self.noise.sigma,
             simulation_sigma=self.simulation_sigma, linear_solve_ms=solve_times,
         )
+
+    def _keep_persistent_correction(self, pending: PendingStep) -> None:
+        """Move the newest state to its prediction plus the persisting share of its correction
+        (core/persistence.py), for an update with a simulator prediction and a cloud."""
+        if (not self.config.keep_persistent_correction or "simulation" not in self.enabled or pending.degraded
+                or not pending.num_points):
+            return
+        key = pending.key
+        correction = self.graph.states[key] - pending.prediction
+        share = self.persistence.observe(correction)
+        self.graph.set_state(key, pending.prediction + share * correction)
+        pending.messages.append(f"correction kept {share:.2f} (the share persisting between updates)")
 
     @property
     def simulation_sigma(self) -> float:

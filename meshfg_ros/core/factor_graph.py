@@ -208,6 +208,15 @@ class FactorGraph:
     def set_x(self, x: np.ndarray) -> None:
         self.states = self.states_from_x(x)
 
+    def set_state(self, key, positions) -> None:
+        """Move state `key` to positions (N, 3); fixed vertices are reset."""
+        if key not in self.states:
+            raise FactorError(f"state {key!r} is not in the graph")
+        state = checked_state(positions, self.vertex_count, f"state {key!r}").copy()
+        if self.fixed_positions is not None:
+            state[self.fixed_vertices] = self.fixed_positions
+        self.states[key] = state
+
     # ------------------------------------------------------------------------ problem
     def state_factors(self, key) -> list:
         """The factors linearised into state `key`'s block and cached with it: those on `key`
