@@ -7,16 +7,22 @@ new each time (the cloud's noise and leaks fitted through the prior):
 
     c_t = s + n_t,   E[c_t . c_t-1] = |s|^2,   E[(|c_t|^2 + |c_t-1|^2) / 2] = |s|^2 + E|n|^2.
 
-Their ratio, summed over the updates so far,
+Their ratio, summed over the recent updates,
 
     alpha = clip(sum c_t . c_t-1 / sum (|c_t|^2 + |c_t-1|^2) / 2, 0, 1),
 
 is the share of a correction's energy that persists, and alpha c_t is the linear least-squares
 (Wiener) estimate of s from c_t. The estimator publishes Xhat_t + alpha c_t. On a scene whose
 simulation errs only where the camera cannot see it (a shear along the faces it sees flat on),
-the corrections are noise from one update to the next and alpha stays near 0.1: the estimate stays
-at the simulation instead of adding the noise to it. Where the simulation misses something
-systematic, consecutive corrections agree and alpha goes to 0.6-0.9 within a few updates.
+the corrections are noise from one update to the next and alpha stays near 0.1: the estimate
+stays at the simulation instead of adding the noise to it. Where the simulation misses
+something systematic, consecutive corrections agree and alpha goes to 0.6-0.9 within a few
+updates.
+
+The sums forget: each update weighs the earlier terms by 1 - 1 / HORIZON, so after a change of
+regime (a new load, the tool moving on to tissue the model fits differently) alpha follows
+within about HORIZON updates instead of being held by the whole history; over sequences
+shorter than HORIZON it is close to the plain sums.
 
 The first update has no pair to judge by; alpha is 0 there, so its estimate is the prediction.
 Updates without a prediction (degraded: the copy-forward stands in, and the correction is the
@@ -28,7 +34,13 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["CorrectionPersistence"]
+__all__ = ["HORIZON", "CorrectionPersistence"]
+
+# Updates over which the sums forget (20 s at a 1 Hz camera). Longer holds alpha steadier on
+# noise (its spread is about 1 / sqrt(HORIZON * the correction's effective dimension)), shorter
+# follows a change sooner.
+HORIZON = 20
+_KEEP = 1.0 - 1.0 / HORIZON
 
 
 class CorrectionPersistence:
@@ -40,8 +52,8 @@ class CorrectionPersistence:
 
     def __init__(self) -> None:
         self.previous: np.ndarray | None = None  # the last observed correction, flattened
-        self.products = 0.0   # sum of c_t . c_t-1
-        self.energies = 0.0   # sum of (|c_t|^2 + |c_t-1|^2) / 2
+        self.products = 0.0   # forgetting sum of c_t . c_t-1
+        self.energies = 0.0   # forgetting sum of (|c_t|^2 + |c_t-1|^2) / 2
         self.share = 0.0      # alpha after the last observation
 
     def observe(self, correction: np.ndarray) -> float:
@@ -53,8 +65,8 @@ class CorrectionPersistence:
         if previous is not None:
             if previous.shape != correction.shape:
                 raise ValueError(f"a correction of {correction.size} values after one of {previous.size}")
-            self.products += float(correction @ previous)
-            self.energies += 0.5 * float(correction @ correction + previous @ previous)
+            self.products = _KEEP * self.products + float(correction @ previous)
+            self.energies = _KEEP * self.energies + 0.5 * float(correction @ correction + previous @ previous)
             self.share = float(np.clip(self.products / self.energies, 0.0, 1.0)) if self.energies > 0.0 else 0.0
         self.previous = correction.copy()
         return self.share
