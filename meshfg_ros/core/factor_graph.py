@@ -165,9 +165,7 @@ class FactorGraph:
         """Append state `key` (newest) with initial positions (N, 3); fixed vertices are reset."""
         if key in self.states:
             raise FactorError(f"state {key!r} is already in the graph")
-        state = checked_state(initial, self.vertex_count, f"initial state {key!r}").copy()
-        if self.fixed_positions is not None:
-            state[self.fixed_vertices] = self.fixed_positions
+        state = self._held(initial, f"initial state {key!r}")
         self.keys.append(key)
         self.states[key] = state
 
@@ -212,10 +210,14 @@ class FactorGraph:
         """Move state `key` to positions (N, 3); fixed vertices are reset."""
         if key not in self.states:
             raise FactorError(f"state {key!r} is not in the graph")
-        state = checked_state(positions, self.vertex_count, f"state {key!r}").copy()
+        self.states[key] = self._held(positions, f"state {key!r}")
+
+    def _held(self, positions, name: str) -> np.ndarray:
+        """A checked copy of positions (N, 3) with the fixed vertices at their fixed positions."""
+        state = checked_state(positions, self.vertex_count, name).copy()
         if self.fixed_positions is not None:
             state[self.fixed_vertices] = self.fixed_positions
-        self.states[key] = state
+        return state
 
     # ------------------------------------------------------------------------ problem
     def state_factors(self, key) -> list:
