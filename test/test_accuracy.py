@@ -134,11 +134,37 @@ def test_accuracy_over_seeds_pools_every_seeds_scenes(tmp_path):
                  for metric in ("all", "unobserved_external")))
     assert pooled["worst_ratio"] == worst[0]
     assert pooled["worst"] == {"scene": worst[1], "seed": worst[2], "vertices": worst[3]}
+    worst_over_steps = max(((row[f"ratio_{metric}_mean"], row["scene"], row["seed"], metric) for row in rows
+                            for metric in ("all", "unobserved_external")))
+    assert pooled["worst_ratio_over_steps"] == worst_over_steps[0]
+    assert pooled["worst_over_steps"] == {"scene": worst_over_steps[1], "seed": worst_over_steps[2],
+                                          "vertices": worst_over_steps[3]}
     for target, count in pooled["seeds_met"].items():
         assert count == sum(seed_result["summary"]["met"][target] for seed_result in result["results"])
     assert "| liver-push | " in completed.stdout and "pooled over the 2 seeds' scenes" in completed.stdout
     assert f"seed {worst[2]})" in completed.stdout
     assert (out / "accuracy.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_a_scene_lost_step_after_step_fails_the_target_over_the_steps_whatever_its_final_step():
+    """The airway's pattern: the factor graph behind the simulation at every step but the last,
+    where the simulation alone jumps away from the truth."""
+    from meshfg_ros.evaluation.accuracy import format_table, summary
+
+    def row(scene, final, over_steps):
+        return {"scene": scene, "steps": 10, "converged_share": 1.0,
+                "ratio_all_final": final, "ratio_unobserved_external_final": final,
+                "ratio_all_mean": over_steps, "ratio_unobserved_external_mean": over_steps}
+
+    rows = [row("won", 0.5, 0.6), row("lost", 0.94, 1.09)]
+    result = summary(rows)
+    assert result["met"]["worst_ratio"] and result["worst_ratio"] == 0.94
+    assert not result["met"]["worst_ratio_over_steps"] and result["worst_ratio_over_steps"] == 1.09
+    assert result["worst_over_steps"] == {"scene": "lost", "seed": None, "vertices": "all"}
+    rows[1] = row("lost", 0.94, 0.99)
+    assert summary(rows)["met"]["worst_ratio_over_steps"]
+    assert "over the steps 1.09 (lost, all) (target <= 1, NOT met)" in format_table(
+        {"scenes": [], "summary": result})
 
 
 def test_the_command_line_names_the_suite_and_the_scenarios_it_can_synthesise():

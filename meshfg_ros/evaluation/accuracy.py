@@ -46,7 +46,11 @@ __all__ = ["BUNDLED_SCENES", "SCENES", "SYNTHESISED_SCENES", "TARGETS", "format_
 BUNDLED_SCENES = ("cube-shear-spd", "cao-push", "liver-push")
 SYNTHESISED_SCENES = ("slab-inclusion", "dome-tilted", "liver-gravity", "kidney-drag")
 SCENES = BUNDLED_SCENES + SYNTHESISED_SCENES
-TARGETS = {"median_ratio_all": 0.7, "median_ratio_unobserved": 0.8, "worst_ratio": 1.0, "converged_share": 0.95}
+# worst_ratio judges each scene's final step, worst_ratio_over_steps its error over the whole run
+# (mean vertex RMSE over the steps, FG over sim): a final step where the simulation alone
+# happens to jump away from the truth must not hide a run the factor graph lost step after step.
+TARGETS = {"median_ratio_all": 0.7, "median_ratio_unobserved": 0.8, "worst_ratio": 1.0, "worst_ratio_over_steps": 1.0,
+           "converged_share": 0.95}
 
 
 def _statuses(replay: Path) -> list[StatusRecord]:
@@ -104,26 +108,32 @@ def summary(rows: list[dict]) -> dict:
     def values(key):
         return [row[key] for row in rows if row[key] is not None]
 
+    def worst(when):
+        ratios = [(row[f"ratio_{metric}_{when}"], row["scene"], row.get("seed"), metric)
+                  for row in rows for metric in ("all", "unobserved_external") if row[f"ratio_{metric}_{when}"] is not None]
+        return max(ratios, default=None, key=lambda ratio: ratio[0])
+
+    def named(ratio):
+        return None if ratio is None else {"scene": ratio[1], "seed": ratio[2], "vertices": ratio[3]}
+
     ratios_all, ratios_unobserved = values("ratio_all_final"), values("ratio_unobserved_external_final")
     steps = sum(row["steps"] for row in rows)
     converged = sum(row["converged_share"] * row["steps"] for row in rows if row["converged_share"] is not None)
-    ratios = [(row[f"ratio_{metric}_final"], row["scene"], row.get("seed"), metric)
-              for row in rows for metric in ("all", "unobserved_external") if row[f"ratio_{metric}_final"] is not None]
-    worst = max(ratios, default=None, key=lambda ratio: ratio[0])
+    worst_final, worst_over_steps = worst("final"), worst("mean")
     result = {
         "median_ratio_all": float(np.median(ratios_all)) if ratios_all else None,
         "median_ratio_unobserved": float(np.median(ratios_unobserved)) if ratios_unobserved else None,
-        "worst_ratio": None if worst is None else worst[0],
-        "worst": None if worst is None else {"scene": worst[1], "seed": worst[2], "vertices": worst[3]},
+        "worst_ratio": None if worst_final is None else worst_final[0],
+        "worst": named(worst_final),
+        "worst_ratio_over_steps": None if worst_over_steps is None else worst_over_steps[0],
+        "worst_over_steps": named(worst_over_steps),
         "converged_share": converged / steps if steps else None,
     }
     result["targets"] = TARGETS
     result["met"] = {
-        "median_ratio_all": result["median_ratio_all"] is not None and result["median_ratio_all"] <= TARGETS["median_ratio_all"],
-        "median_ratio_unobserved": (result["median_ratio_unobserved"] is not None
-                                    and result["median_ratio_unobserved"] <= TARGETS["median_ratio_unobserved"]),
-        "worst_ratio": result["worst_ratio"] is not None and result["worst_ratio"] <= TARGETS["worst_ratio"],
-        "converged_share": result["converged_share"] is not None and result["converged_share"] >= TARGETS["converged_share"],
+        target: result[target] is not None and (result[target] >= bound if target == "converged_share"
+                                                else result[target] <= bound)
+        for target, bound in TARGETS.items()
     }
     return result
 
@@ -193,15 +203,16 @@ def _x(value) -> str:
 def format_table(result: dict) -> str:
     """Markdown table of the scenes and the summary line against the targets."""
     lines = [
-        "| scene | vertex RMSE all, FG / sim (mm) | ratio | unobserved ext., FG / sim (mm) | ratio | d_CD FG / sim (mm) "
-        "| converged | iterations | solve p50 / p95 (ms) |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| scene | vertex RMSE all, FG / sim (mm) | ratio | unobserved ext., FG / sim (mm) | ratio "
+        "| ratio over the steps: all / unobserved | d_CD FG / sim (mm) | converged | iterations | solve p50 / p95 (ms) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for row in result["scenes"]:
         lines.append(
             f"| {row['scene']} | {_mm(row['factor_graph_all_final_m'])} / {_mm(row['simulation_all_final_m'])} "
             f"| {_x(row['ratio_all_final'])} | {_mm(row['factor_graph_unobserved_external_final_m'])} / "
             f"{_mm(row['simulation_unobserved_external_final_m'])} | {_x(row['ratio_unobserved_external_final'])} "
+            f"| {_x(row['ratio_all_mean'])} / {_x(row['ratio_unobserved_external_mean'])} "
             f"| {_mm(row['factor_graph_chamfer_final_m'])} / {_mm(row['simulation_chamfer_final_m'])} "
             f"| {100 * row['converged_share']:.0f} % | {row['iterations_mean']:.1f} "
             f"| {row['solve_ms_p50']:.0f} / {row['solve_ms_p95']:.0f} |"
@@ -216,8 +227,8 @@ def format_table(result: dict) -> str:
     return "\n".join(lines)
 
 
-def _worst(summary_: dict, with_seed: bool) -> str:
-    worst = summary_.get("worst")
+def _worst(summary_: dict, with_seed: bool, key: str = "worst") -> str:
+    worst = summary_.get(key)
     if not worst:
         return ""
     seed = f", seed {worst['seed']}" if with_seed and worst.get("seed") is not None else ""
@@ -231,20 +242,24 @@ def _summary_line(s: dict, with_seed: bool = False) -> str:
         f"{'met' if met['median_ratio_all'] else 'NOT met'}), unobserved external {_x(s['median_ratio_unobserved'])} "
         f"(target <= {TARGETS['median_ratio_unobserved']}, {'met' if met['median_ratio_unobserved'] else 'NOT met'}); "
         f"worst ratio {_x(s['worst_ratio'])}{_worst(s, with_seed)} "
-        f"(target <= 1, {'met' if met['worst_ratio'] else 'NOT met'}); "
+        f"(target <= 1, {'met' if met['worst_ratio'] else 'NOT met'}), over the steps "
+        f"{_x(s['worst_ratio_over_steps'])}{_worst(s, with_seed, 'worst_over_steps')} "
+        f"(target <= 1, {'met' if met['worst_ratio_over_steps'] else 'NOT met'}); "
         f"LM converged in {100 * s['converged_share']:.0f} % of updates (target >= 95 %, "
         f"{'met' if met['converged_share'] else 'NOT met'})")
 
 
 def format_seeds_table(result: dict) -> str:
-    """Markdown table of each scene's final-step ratios (all / unobserved external) per seed,
-    each seed's summary line, and the summary pooled over the seeds."""
+    """Markdown table of each scene's ratios (all / unobserved external, final step, then over
+    the steps in parentheses) per seed, each seed's summary line, and the summary pooled over the seeds."""
     results, seeds = result["results"], result["seeds"]
-    lines = ["| scene | " + " | ".join(f"seed {seed}: all / unobserved" for seed in seeds) + " |",
+    lines = ["| scene | " + " | ".join(f"seed {seed}: all / unobserved (over the steps)" for seed in seeds) + " |",
              "|---|" + "---|" * len(seeds)]
     for index, row in enumerate(results[0]["scenes"]):
         cells = [f"{_x(r['scenes'][index]['ratio_all_final'])} / "
-                 f"{_x(r['scenes'][index]['ratio_unobserved_external_final'])}" for r in results]
+                 f"{_x(r['scenes'][index]['ratio_unobserved_external_final'])} "
+                 f"({_x(r['scenes'][index]['ratio_all_mean'])} / "
+                 f"{_x(r['scenes'][index]['ratio_unobserved_external_mean'])})" for r in results]
         lines.append(f"| {row['scene']} | " + " | ".join(cells) + " |")
     lines.append("")
     lines += [f"seed {seed}: {_summary_line(r['summary'])}" for seed, r in zip(seeds, results)]
@@ -257,8 +272,8 @@ def format_seeds_table(result: dict) -> str:
 
 
 def write_plot(result: dict, path: Path) -> None:
-    """PNG, three panels per scene: FG / simulation ratios (final vertex RMSE, all and unobserved
-    external), the share of converged updates, and the mean correction alignment per
+    """PNG, three panels per scene: FG / simulation ratios (final vertex RMSE as bars, over the
+    steps as markers; all and unobserved external), the share of converged updates, and the mean correction alignment per
     CORRECTION_SETS (a missing value is left out, not drawn as 0, which means "unrelated")."""
     from matplotlib.figure import Figure  # drawn by Agg, no pyplot state (as evaluation/render.py)
 
@@ -267,13 +282,15 @@ def write_plot(result: dict, path: Path) -> None:
     positions = np.arange(len(rows))
     figure = Figure(figsize=(16, 4.2))
     axes = figure.subplots(1, 3, gridspec_kw={"width_ratios": [3, 1, 3]})
-    for offset, key, label in ((-0.2, "ratio_all_final", "all vertices"),
-                               (0.2, "ratio_unobserved_external_final", "unobserved external")):
-        axes[0].bar(positions + offset, [row[key] or 0.0 for row in rows], width=0.4, label=label)
+    for offset, metric, label in ((-0.2, "all", "all vertices"), (0.2, "unobserved_external", "unobserved external")):
+        axes[0].bar(positions + offset, [row[f"ratio_{metric}_final"] or 0.0 for row in rows], width=0.4, label=label)
+        axes[0].scatter(positions + offset, [np.nan if row[f"ratio_{metric}_mean"] is None else row[f"ratio_{metric}_mean"]
+                                             for row in rows], marker="_", s=220, color="k", zorder=3,
+                        label="over the steps" if metric == "all" else None)
     axes[0].axhline(1.0, color="k", lw=1, label="simulation alone")
     axes[0].axhline(TARGETS["median_ratio_all"], color="tab:green", ls="--", lw=1, label="median target (all)")
     axes[0].set_xticks(positions, names, rotation=20, ha="right")
-    axes[0].set_ylabel("factor graph / simulation, final vertex RMSE")
+    axes[0].set_ylabel("factor graph / simulation, vertex RMSE")
     axes[0].legend(fontsize=8)
     axes[1].bar(positions, [100 * (row["converged_share"] or 0.0) for row in rows], color="tab:gray")
     axes[1].axhline(100 * TARGETS["converged_share"], color="tab:green", ls="--", lw=1)
