@@ -310,26 +310,31 @@ def write_plot(result: dict, path: Path) -> None:
 
 
 def write_seeds_plot(result: dict, path: Path) -> None:
-    """PNG: each scene's final-step FG / simulation ratios, one marker per seed (all vertices and
-    unobserved external), against the simulation alone and the median targets."""
+    """PNG: each scene's FG / simulation ratios, one marker per seed (all vertices and unobserved
+    external; filled: final step, hollow: over the steps), against the simulation alone and the
+    median targets."""
     from matplotlib.figure import Figure
 
     names = [row["scene"] for row in result["results"][0]["scenes"]]
     positions = np.arange(len(names))
     figure = Figure(figsize=(10, 4.2))
     axes = figure.subplots()
-    for offset, key, label, marker in ((-0.12, "ratio_all_final", "all vertices", "o"),
-                                       (0.12, "ratio_unobserved_external_final", "unobserved external", "s")):
+    for offset, metric, label, marker in ((-0.12, "all", "all vertices", "o"),
+                                          (0.12, "unobserved_external", "unobserved external", "s")):
+        color = f"C{0 if marker == 'o' else 1}"
         for number, (seed, seed_result) in enumerate(zip(result["seeds"], result["results"])):
-            values = [np.nan if row[key] is None else row[key] for row in seed_result["scenes"]]
-            axes.scatter(positions + offset, values, marker=marker, color=f"C{0 if marker == 'o' else 1}",
-                         alpha=0.75, s=22, label=label if number == 0 else None)
+            for when, filled in (("final", True), ("mean", False)):
+                values = [np.nan if row[f"ratio_{metric}_{when}"] is None else row[f"ratio_{metric}_{when}"]
+                          for row in seed_result["scenes"]]
+                axes.scatter(positions + offset, values, marker=marker, alpha=0.75, s=22,
+                             color=color if filled else "none", edgecolors=color,
+                             label=None if number else (f"{label}, final step" if filled else f"{label}, over the steps"))
     axes.axhline(1.0, color="k", lw=1, label="simulation alone")
     axes.axhline(TARGETS["median_ratio_all"], color="tab:green", ls="--", lw=1, label="median target (all)")
     axes.axhline(TARGETS["median_ratio_unobserved"], color="tab:olive", ls=":", lw=1,
                  label="median target (unobserved)")
     axes.set_xticks(positions, names, rotation=20, ha="right")
-    axes.set_ylabel("factor graph / simulation, final vertex RMSE")
+    axes.set_ylabel("factor graph / simulation, vertex RMSE")
     axes.set_title(f"seeds {', '.join(str(seed) for seed in result['seeds'])}")
     axes.legend(fontsize=8)
     figure.tight_layout()
