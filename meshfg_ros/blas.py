@@ -23,7 +23,10 @@ CPUs and cvxopt's bundled OpenBLAS on every other CPU (vendor_id in /proc/cpuinf
 - Intel (the 2-core Xeon VM the project was first tuned on), organ-scale state block (31,944
   dofs, METIS ordering): numeric factorisation 0.50 s (bundled) against 0.36 s (MKL, 1 thread)
   and 0.26 s (MKL, 2 threads); one solve 20.8 ms against 17.2 and 11.7 ms. Organ-scale window
-  update median 1.25 s against 0.88-0.92 s, paper-scale 25.9 ms against 23.2-24.9 ms.
+  update median 1.25 s against 0.88-0.92 s, paper-scale 25.9 ms against 23.2-24.9 ms. On a
+  later 2-core Xeon VM (AVX-512, KVM), `meshfg bench` with MESHFG_BLAS=mkl and =bundled back to
+  back: organ-scale update p95 0.83 s against 1.06 s (linear solves 34 against 51 ms per
+  update), paper scale 20.6 against 20.8 ms, one small-window update 17.3 against 18.0 ms.
 - AMD (2-core EPYC, Zen 4 with AVX-512, KVM), the same blocks (paper scale: 1,536 dofs, AMD
   ordering); medians of repeated factorisations and solves, each configuration in a fresh
   interpreter, best of five interleaved rounds (other processes shared the machine; see below):
