@@ -16,7 +16,7 @@ its prediction compares with the one the truth needed (evaluation.metrics.correc
 mean over steps) on the observed surface along its normal and across it, and on the unobserved
 surface; in the JSON also the body load the simulator had learnt by the last step
 (core/body_load.py). The targets it reports against are the accuracy issue's: the factor
-graph no worse than the simulation on every scene, median ratios <= 0.7 (all) and <= 0.8
+graph no worse than the simulation on every scene (at the final step and over the steps), median ratios <= 0.7 (all) and <= 0.8
 (unobserved external), LM converged in >= 95 % of updates. Over several seeds
 (`run_accuracy_seeds`, `meshfg accuracy --seeds`) each scene is re-synthesised per seed (every
 random draw of it) and the targets are judged pooled over all scenes of all seeds and per seed,
