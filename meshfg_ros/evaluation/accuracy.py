@@ -16,8 +16,9 @@ its prediction compares with the one the truth needed (evaluation.metrics.correc
 mean over steps) on the observed surface along its normal and across it, and on the unobserved
 surface; in the JSON also the body load the simulator had learnt by the last step
 (core/body_load.py). The targets it reports against are the accuracy issue's: the factor
-graph no worse than the simulation on every scene (at the final step and over the steps), median ratios <= 0.7 (all) and <= 0.8
-(unobserved external), LM converged in >= 95 % of updates. Over several seeds
+graph no worse than the simulation on every scene (at the final step and over the steps),
+median ratios <= 0.7 (all) and <= 0.8 (unobserved external), LM converged in >= 95 % of
+updates. Over several seeds
 (`run_accuracy_seeds`, `meshfg accuracy --seeds`) each scene is re-synthesised per seed (every
 random draw of it) and the targets are judged pooled over all scenes of all seeds and per seed,
 so that a change is judged on scenes it was not tuned on.
@@ -251,7 +252,8 @@ def _summary_line(s: dict, with_seed: bool = False) -> str:
 
 def format_seeds_table(result: dict) -> str:
     """Markdown table of each scene's ratios (all / unobserved external, final step, then over
-    the steps in parentheses) per seed, each seed's summary line, and the summary pooled over the seeds."""
+    the steps in parentheses) per seed, each seed's summary line, and the summary pooled over
+    the seeds."""
     results, seeds = result["results"], result["seeds"]
     lines = ["| scene | " + " | ".join(f"seed {seed}: all / unobserved (over the steps)" for seed in seeds) + " |",
              "|---|" + "---|" * len(seeds)]
@@ -273,8 +275,9 @@ def format_seeds_table(result: dict) -> str:
 
 def write_plot(result: dict, path: Path) -> None:
     """PNG, three panels per scene: FG / simulation ratios (final vertex RMSE as bars, over the
-    steps as markers; all and unobserved external), the share of converged updates, and the mean correction alignment per
-    CORRECTION_SETS (a missing value is left out, not drawn as 0, which means "unrelated")."""
+    steps as markers; all and unobserved external), the share of converged updates, and the mean
+    correction alignment per CORRECTION_SETS (a missing value is left out, not drawn as 0, which
+    means "unrelated")."""
     from matplotlib.figure import Figure  # drawn by Agg, no pyplot state (as evaluation/render.py)
 
     rows = result["scenes"]
