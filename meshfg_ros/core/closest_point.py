@@ -100,40 +100,36 @@ def project_onto_triangles(points, a, b, c) -> TriangleProjection:
     vc = d1 * d4 - d3 * d2
     vb = d5 * d2 - d1 * d6
     va = d3 * d6 - d5 * d4
-    # Ericson's tests in his order: the first region whose test passes wins.
-    conditions = [
-        (d1 <= 0.0) & (d2 <= 0.0),
-        (d3 >= 0.0) & (d4 <= d3),
-        (vc <= 0.0) & (d1 >= 0.0) & (d3 <= 0.0),
-        (d6 >= 0.0) & (d5 <= d6),
-        (vb <= 0.0) & (d2 >= 0.0) & (d6 <= 0.0),
-        (va <= 0.0) & (d4 - d3 >= 0.0) & (d5 - d6 >= 0.0),
-    ]
-    codes = [REGION_VERTEX_A, REGION_VERTEX_B, REGION_EDGE_AB, REGION_VERTEX_C, REGION_EDGE_AC, REGION_EDGE_BC]
-    region = np.select(conditions, codes, default=REGION_FACE).astype(np.int8)
+    # Ericson's tests in his order: the first region whose test passes wins, so they are
+    # written last to first, each overwriting the later ones (a third faster than np.select).
+    region = np.full(d1.shape, REGION_FACE, dtype=np.int8)
+    region[(va <= 0.0) & (d4 - d3 >= 0.0) & (d5 - d6 >= 0.0)] = REGION_EDGE_BC
+    region[(vb <= 0.0) & (d2 >= 0.0) & (d6 <= 0.0)] = REGION_EDGE_AC
+    region[(d6 >= 0.0) & (d5 <= d6)] = REGION_VERTEX_C
+    region[(vc <= 0.0) & (d1 >= 0.0) & (d3 <= 0.0)] = REGION_EDGE_AB
+    region[(d3 >= 0.0) & (d4 <= d3)] = REGION_VERTEX_B
+    region[(d1 <= 0.0) & (d2 <= 0.0)] = REGION_VERTEX_A
 
     def safe(x):
         return np.where(np.abs(x) > _TINY, x, _TINY)
 
-    # The face's barycentrics for every point (most lie inside a face), then each other
-    # region's on its own points.
+    # The face's barycentrics for every point (most lie inside a face), then the other regions'
+    # on the points outside their face, all at once: each edge's parameter is computed for all
+    # of them and kept where the point lies in that edge's region (elsewhere it may overflow
+    # and is dropped).
     inverse = 1.0 / safe(va + vb + vc)
     beta, gamma = vb * inverse, vc * inverse
-    present = np.flatnonzero(np.bincount(region, minlength=REGION_EDGE_BC + 1)[1:]) + 1  # the codes but the face
-    for code in present:
-        at = region == code
-        beta[at] = gamma[at] = 0.0
-        if code == REGION_VERTEX_B:
-            beta[at] = 1.0
-        elif code == REGION_VERTEX_C:
-            gamma[at] = 1.0
-        elif code == REGION_EDGE_AB:
-            beta[at] = d1[at] / safe(d1[at] - d3[at])
-        elif code == REGION_EDGE_AC:
-            gamma[at] = d2[at] / safe(d2[at] - d6[at])
-        elif code == REGION_EDGE_BC:
-            t_bc = (d4[at] - d3[at]) / safe((d4[at] - d3[at]) + (d5[at] - d6[at]))
-            beta[at], gamma[at] = 1.0 - t_bc, t_bc
+    outside = region != REGION_FACE
+    if outside.any():
+        o1, o2, o3, o4, o5, o6 = (d[outside] for d in (d1, d2, d3, d4, d5, d6))
+        with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
+            t_ab = o1 / safe(o1 - o3)
+            t_ac = o2 / safe(o2 - o6)
+            t_bc = (o4 - o3) / safe((o4 - o3) + (o5 - o6))
+        # Choices by region code minus one: vertex a, b, c, edge ab, ac, bc.
+        code = region[outside] - REGION_VERTEX_A
+        beta[outside] = np.choose(code, (0.0, 1.0, 0.0, t_ab, 0.0, 1.0 - t_bc))
+        gamma[outside] = np.choose(code, (0.0, 0.0, 1.0, 0.0, t_ac, t_bc))
     alpha = 1.0 - beta - gamma
     barycentric = np.stack([alpha, beta, gamma], axis=-1)
     closest = alpha[..., None] * a + beta[..., None] * b + gamma[..., None] * c

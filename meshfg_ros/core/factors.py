@@ -68,6 +68,10 @@ MAX_BACK_FACING_SHARE = 0.5
 # updates: 5.2 LM iterations per organ-scale update instead of 3.8, up to 10). Measurements in
 # docs/design-notes.md ("Curvature of the robust cost").
 CURVATURE_FLOOR = 0.5
+# Entry (3 i + j, 3 l + m) of a 9x9 Kronecker product A (x) B of 3x3 matrices sits at
+# (3 i + l, 3 j + m) of the outer product of the flattened A and B: the gather order from one
+# to the other (PointToSurfaceFactor._distance_hessians).
+_KRONECKER_ORDER = np.arange(81).reshape(3, 3, 3, 3).transpose(0, 2, 1, 3).reshape(-1)
 
 
 class FactorError(ValueError):
@@ -598,8 +602,10 @@ class PointToSurfaceFactor(Factor):
         # A degenerate triangle's NaN normal stays in its own row, as its points' terms would.
         normals = self._unit_normals(vertices, seen)
         normal_outer = normals[:, :, None] * normals[:, None, :]
-        # Row 3 i + j, column 3 l + m: summed[i, l] * normal_outer[j, m].
-        face_terms = (summed[seen][:, :, None, :, None] * normal_outer[:, None, :, None, :]).reshape(-1, 81)
+        # Row 3 i + j, column 3 l + m: summed[i, l] * normal_outer[j, m], gathered from the outer
+        # product of the two flattened 3x3 matrices (faster than the 5-d broadcast).
+        products = (summed[seen].reshape(-1, 9, 1) * normal_outer.reshape(-1, 1, 9)).reshape(-1, 81)
+        face_terms = np.take(products, _KRONECKER_ORDER, axis=1)
         if face.all():
             return seen, face_terms
         other = ~face
