@@ -535,12 +535,12 @@ def test_volume_barrier_gradient_hessian_and_bounds(cube):
 def test_volume_barrier_keeps_the_last_states_volumes(cube, monkeypatch):
     """LM evaluates a trial's cost and then linearises there: the barrier computes that state's
     volumes once. Another state, or the same array changed in place, is computed afresh."""
-    from meshfg_ros.core import factors
+    from meshfg_ros.core import factors, mesh
     from meshfg_ros.core.mesh import signed_volumes
 
     barrier = factors.VolumeBarrierFactor(0, cube.tetrahedra, signed_volumes(cube.vertices, cube.tetrahedra), 2.0)
     computed = []
-    monkeypatch.setattr(factors, "signed_volumes", lambda *args: computed.append(1) or signed_volumes(*args))
+    monkeypatch.setattr(mesh, "signed_volumes", lambda *args, **kw: computed.append(1) or signed_volumes(*args, **kw))
     state = deformed(cube, 1.0, seed=4)
     cost = barrier.cost({0: state})
     assert barrier.linearize({0: state}).cost == cost and len(computed) == 1
@@ -549,3 +549,31 @@ def test_volume_barrier_keeps_the_last_states_volumes(cube, monkeypatch):
     state[0] += 1e-3
     barrier.cost({0: state})
     assert len(computed) == 3
+
+
+def test_barriers_and_the_inversion_guard_share_the_window_volumes(cube, monkeypatch):
+    """The barriers of a window's states evaluate their volumes in one call, and the graph's
+    inversion guard at the same x reuses them; the values are those of signed_volumes."""
+    from meshfg_ros.core import factors, mesh
+    from meshfg_ros.core.mesh import signed_volumes
+
+    graph = FactorGraph(cube.vertex_count, cube.tetrahedra, cube.surface_triangles, cube.fixed_vertices,
+                        cube.vertices)
+    reference = signed_volumes(cube.vertices, cube.tetrahedra)
+    for key, seed in ((0, 7), (1, 8)):
+        graph.add_state(key, deformed(cube, 0.5, seed=seed))
+        graph.add_factor(factors.VolumeBarrierFactor(key, cube.tetrahedra, reference, 2.0,
+                                                     element_volumes=graph.element_volumes))
+    calls = []
+    monkeypatch.setattr(mesh, "signed_volumes", lambda vertices, *args, **kw: calls.append(np.shape(vertices))
+                        or signed_volumes(vertices, *args, **kw))
+    x = graph.get_x()
+    cost = graph.cost(x)
+    assert calls == [(2, cube.vertex_count, 3)]
+    graph.step_fraction(x, 1e-6 * np.ones_like(x))
+    assert len(calls) == 1
+    states = graph.states_from_x(x)
+    expected = sum(factors.VolumeBarrierFactor(key, cube.tetrahedra, reference, 2.0).cost(states) for key in (0, 1))
+    assert cost == pytest.approx(expected, rel=1e-12)
+    with pytest.raises(FactorError, match="other tetrahedra"):
+        factors.VolumeBarrierFactor(0, cube.tetrahedra[::-1], reference, 2.0, element_volumes=graph.element_volumes)

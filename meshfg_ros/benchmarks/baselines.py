@@ -146,7 +146,7 @@ class WhitenedProblem:
     def _point_residuals(factor: PointToSurfaceFactor, states: dict, with_jacobian: bool):
         """Whitened residuals of the points on their frozen triangles: a point projected inside
         its face gives the signed distance n.(q - m) (one row, Jacobian beta_i n: the
-        estimator's Gauss-Newton terms, see PointToSurfaceFactor._distance_hessians), one on an
+        estimator's Gauss-Newton terms, see factors._distance_hessians), one on an
         edge or a vertex the vector q - m (three rows). Same cost either way."""
         key = factor.keys[0]
         triangles = factor.triangles[factor.frozen_triangles]

@@ -625,7 +625,8 @@ class SlidingWindowEstimator:
                                               cfg.spd_projection, scale, PRIOR_RIDGE / sigma**2))
             factors.append(VolumeBarrierFactor(key, self.model.tetrahedra,
                                                signed_volumes(pending.prediction, self.model.tetrahedra),
-                                               scale * self.bulk_energy_scale))
+                                               scale * self.bulk_energy_scale,
+                                               element_volumes=graph.element_volumes))
         pending.num_points, pending.num_points_gated = 0, 0
         points = pending.points
         if "measurement" in self.enabled and points is not None and len(points):

@@ -17,7 +17,7 @@ import scipy.sparse
 
 from meshfg_ros.core.factors import Factor, FactorError, FactorLinearization, checked_state
 from meshfg_ros.core.linear_system import WindowSystem, diagonal_positions
-from meshfg_ros.core.mesh import cross, signed_volumes
+from meshfg_ros.core.mesh import ElementVolumes, cross
 
 __all__ = ["MIN_VOLUME_RATIO_PER_STEP", "FactorGraph"]
 
@@ -87,7 +87,8 @@ class FactorGraph:
         self.keys: list = []
         self.states: dict = {}
         self.factors: list[Factor] = []
-        self._state_volumes: dict = {}  # key -> (state, (signed volumes, longest edges)): see _window_geometry
+        # The states' element volumes, shared with their volume barriers (the estimator's).
+        self.element_volumes = ElementVolumes(self.tetrahedra)
         self._cache: dict = {}
         self._active: set = set()
         self.exact_keys: set = set()  # states re-linearised whenever they move at all
@@ -153,7 +154,7 @@ class FactorGraph:
         """3x3 information blocks (free vertices, 3, 3) of the newest state: its single-state
         factors at their last linearisation plus its temporal terms."""
         key = self.keys[-1]
-        cached = self._cache.get(key) or self._relinearize(key, self.states[key])
+        cached = self._cache.get(key) or self._relinearize([key], self.states)[key]
         blocks = cached.data[self._vertex_block_slots].copy()
         temporal = 0.0
         for factor in self._identity_factors():
@@ -173,7 +174,7 @@ class FactorGraph:
         """Drop state `key` and every factor touching it; returns its positions."""
         state = self.states.pop(key)
         self.keys.remove(key)
-        self._state_volumes.pop(key, None)
+        self.element_volumes.forget(key)
         self._cache.pop(key, None)
         self._active.discard(key)
         self.factors = [factor for factor in self.factors if key not in factor.keys]
@@ -236,20 +237,34 @@ class FactorGraph:
         for factor in factors:
             self.add_factor(factor)
 
-    def _relinearize(self, key, state: np.ndarray) -> _StateLinearization:
+    def _grouped_state_factors(self, keys) -> list[tuple[type, list]]:
+        """The `state_factors` of states `keys`, grouped by class (in order of appearance), for
+        the classes' batch evaluations (Factor.cost_batch, Factor.linearize_batch)."""
+        groups: dict = {}
+        for key in keys:
+            for factor in self.state_factors(key):
+                groups.setdefault(type(factor), []).append(factor)
+        return list(groups.items())
+
+    def _relinearize(self, keys, states: dict) -> dict:
+        """Fresh linearisations of the single-state factors of states `keys` at `states`:
+        key -> _StateLinearization. Each class's factors on those states are linearised
+        together; a state's terms are added in its factors' order whatever the batching."""
         nnz = self._pattern_keys.size
-        data = np.zeros(nnz + 1)
-        gradient = np.zeros(self.dof_count)
-        cost = 0.0
-        states = {key: state}
-        for factor in self.state_factors(key):
-            terms = factor.linearize(states)
-            cost += terms.cost
-            self._accumulate(terms, factor, data, gradient)
-        self.relinearizations += 1
+        out = {key: _StateLinearization(states[key].copy(), np.zeros(nnz + 1), np.zeros(self.dof_count), 0.0)
+               for key in keys}
+        for factor_class, factors in self._grouped_state_factors(keys):
+            for factor, terms in zip(factors, factor_class.linearize_batch(factors, states)):
+                linearization = out[factor.keys[0]]
+                linearization.cost += terms.cost
+                self._accumulate(terms, factor, linearization.data, linearization.gradient)
         pattern = self._pattern
-        block = scipy.sparse.csr_matrix((data[:nnz], pattern.indices, pattern.indptr), shape=pattern.shape)
-        return _StateLinearization(state.copy(), data, gradient, cost, block, self.relinearizations)
+        for linearization in out.values():
+            self.relinearizations += 1
+            linearization.revision = self.relinearizations
+            linearization.block = scipy.sparse.csr_matrix((linearization.data[:nnz], pattern.indices, pattern.indptr),
+                                                          shape=pattern.shape)
+        return out
 
     def _scattered_hessian(self, factor, matrix) -> np.ndarray:
         """A factor's sparse Hessian as values on the block pattern (nnz + 1,). Kept while the
@@ -311,27 +326,6 @@ class FactorGraph:
         threshold = 0.0 if key in self.exact_keys else self.relinearize_threshold
         return (cached.rebased and threshold == 0.0) or self._moved(cached, state) > threshold
 
-    def _window_geometry(self, states: dict, keys: list) -> tuple[np.ndarray, np.ndarray]:
-        """Signed volumes and longest edges at corner 0, each (len(keys), M), of those states.
-        Each state's last result is kept: LM asks at one x repeatedly (`step_fraction` at every
-        proposal from x), and a new update finds its older states where the last one left them."""
-        kept_values = [None] * len(keys)
-        missing = []
-        for t, key in enumerate(keys):
-            kept = self._state_volumes.get(key)
-            if kept is not None and np.array_equal(kept[0], states[key]):
-                kept_values[t] = kept[1]
-            else:
-                missing.append(t)
-        if missing:
-            volumes, edges = signed_volumes(np.stack([states[keys[t]] for t in missing]), self.tetrahedra,
-                                            longest_edges=True)
-            for t, values, longest in zip(missing, volumes, edges):
-                key = keys[t]
-                self._state_volumes[key] = (states[key].copy(), (values, longest))
-                kept_values[t] = (values, longest)
-        return np.stack([v[0] for v in kept_values]), np.stack([v[1] for v in kept_values])
-
     def _identity_factors(self) -> list:
         """The identity_blocks factors: evaluated directly, their terms go into the diagonal
         shift and the couplings of the window system."""
@@ -341,12 +335,15 @@ class FactorGraph:
         """Total cost: exact for active states and identity-block factors, cached model for the rest."""
         states = self.states_from_x(x)
         total = 0.0
+        exact = []
         for key in self.keys:
             cached = self._cache.get(key)
             if key in self._active or cached is None:
-                total += sum(factor.cost(states) for factor in self.state_factors(key))
+                exact.append(key)
             else:
                 total += self._model(cached, states[key])[0]
+        for factor_class, factors in self._grouped_state_factors(exact):
+            total += sum(factor_class.cost_batch(factors, states))
         total += sum(factor.cost(states) for factor in self._identity_factors())
         return float(total)
 
@@ -363,22 +360,25 @@ class FactorGraph:
         gradient = np.zeros((len(self.keys), self.dof_count))
         cost = 0.0
         position = {key: t for t, key in enumerate(self.keys)}
+        new = [key for key in self.keys if key not in self._cache]
+        rebased = [key for key in self.keys if key in self._cache and self._outdated(key, self._cache[key], states[key])]
+        self._cache.update(self._relinearize(new, states))
+        for key in rebased:
+            cached = self._cache[key]
+            cached.cost, cached.gradient = 0.0, np.zeros(self.dof_count)  # cached.data (the Hessian) is kept
+        for factor_class, factors in self._grouped_state_factors(rebased):
+            for factor, terms in zip(factors, factor_class.linearize_batch(factors, states, hessian=False)):
+                cached = self._cache[factor.keys[0]]
+                cached.cost += terms.cost
+                self._accumulate(terms, factor, None, cached.gradient)
+        for key in rebased:
+            cached = self._cache[key]
+            cached.x_lin = states[key].copy()
+            cached.rebased = True
+            cached.model_at = None
+        self._active.update(new, rebased)
         for t, key in enumerate(self.keys):
-            cached = self._cache.get(key)
-            if cached is None:
-                cached = self._cache[key] = self._relinearize(key, states[key])
-                self._active.add(key)
-            elif self._outdated(key, cached, states[key]):
-                cached.cost, cached.gradient = 0.0, np.zeros(self.dof_count)
-                for factor in self.state_factors(key):  # cached.data (the Hessian) is kept
-                    terms = factor.linearize({key: states[key]}, hessian=False)
-                    cached.cost += terms.cost
-                    self._accumulate(terms, factor, None, cached.gradient)
-                cached.x_lin = states[key].copy()
-                cached.rebased = True
-                cached.model_at = None
-                self._active.add(key)
-            cost_t, gradient[t] = self._model(cached, states[key])
+            cost_t, gradient[t] = self._model(self._cache[key], states[key])
             cost += cost_t
         for factor in self._identity_factors():
             terms = factor.linearize(states, hessian=False)
@@ -399,13 +399,13 @@ class FactorGraph:
         couplings = np.zeros(max(window - 1, 0))
         coupling_diagonal = np.zeros(window)
         cost = 0.0
-        self._active = set()
+        self._active = {key for key in self.keys
+                        if key not in self._cache or self._outdated(key, self._cache[key], states[key])}
+        self._cache.update(self._relinearize([key for key in self.keys if key in self._active], states))
         blocks, revisions = [], []
         for t, key in enumerate(self.keys):
-            cached = self._cache.get(key)
-            if cached is None or self._outdated(key, cached, states[key]):
-                cached = self._cache[key] = self._relinearize(key, states[key])
-                self._active.add(key)
+            cached = self._cache[key]
+            if key in self._active:
                 cost += cached.cost
                 gradient[t] = cached.gradient
             else:
@@ -466,7 +466,7 @@ class FactorGraph:
             return fractions
         keys = [self.keys[t] for t in moved]
         states = self.states_from_x(x)
-        volumes, longest = self._window_geometry(states, keys)
+        volumes, longest = self.element_volumes.of(states, keys)
         moves = np.zeros((len(keys), self.dof_count))
         moves[:, self.free_dofs] = step.reshape(len(self.keys), self.block_size)[moved]
         moves = moves.reshape(len(keys), -1, 3)
@@ -516,7 +516,7 @@ class FactorGraph:
         for _ in range(_STEP_FRACTION_HALVINGS):
             scaled = np.zeros_like(blocks)
             scaled[moved] = fractions[:, None] * blocks[moved]
-            trial_volumes = self._window_geometry(self.states_from_x(x + scaled.reshape(-1)), keys)[0]
+            trial_volumes = self.element_volumes.of(self.states_from_x(x + scaled.reshape(-1)), keys)[0]
             short = np.any(positive & (6.0 * trial_volumes < margin), axis=1)
             if not short.any():
                 return fractions
