@@ -68,10 +68,13 @@ MAX_BACK_FACING_SHARE = 0.5
 # updates: 5.2 LM iterations per organ-scale update instead of 3.8, up to 10). Measurements in
 # docs/design-notes.md ("Curvature of the robust cost").
 CURVATURE_FLOOR = 0.5
-# Entry (3 i + j, 3 l + m) of a 9x9 Kronecker product A (x) B of 3x3 matrices sits at
-# (3 i + l, 3 j + m) of the outer product of the flattened A and B: the gather order from one
-# to the other (_distance_hessians).
-_KRONECKER_ORDER = np.arange(81).reshape(3, 3, 3, 3).transpose(0, 2, 1, 3).reshape(-1)
+# Entry (3 i + j, 3 l + m) of a 9x9 Kronecker product A (x) B of 3x3 matrices is A[i, l] B[j, m]:
+# the entries of the flattened A and B that make each entry of the flattened product
+# (_distance_hessians: two gathers and a product, faster than a 5-d broadcast or a reordered
+# outer product).
+_KRONECKER_ROW, _KRONECKER_COLUMN = np.divmod(np.arange(81), 9)
+_KRONECKER_LEFT = 3 * (_KRONECKER_ROW // 3) + _KRONECKER_COLUMN // 3
+_KRONECKER_RIGHT = 3 * (_KRONECKER_ROW % 3) + _KRONECKER_COLUMN % 3
 # The upper triangle (row, column) of a symmetric 3x3 matrix, and the position in that list of
 # each entry of the flattened matrix.
 _UPPER_ROWS, _UPPER_COLUMNS = np.triu_indices(3)
@@ -503,11 +506,8 @@ def _distance_hessians(parts: list, states: dict) -> list[tuple[np.ndarray, np.n
                        for k in range(_UPPER_ROWS.size)], axis=1)[seen][:, _SYMMETRIC_FROM_UPPER]
     # A degenerate triangle's NaN normal stays in its own row, as its points' terms would.
     normals = _unit_normals(vertices, triangles, seen)
-    normal_outer = normals[:, :, None] * normals[:, None, :]
-    # Row 3 i + j, column 3 l + m: summed[i, l] * normal_outer[j, m], gathered from the outer
-    # product of the two flattened 3x3 matrices (faster than the 5-d broadcast).
-    products = (summed.reshape(-1, 9, 1) * normal_outer.reshape(-1, 1, 9)).reshape(-1, 81)
-    index, terms = seen, np.take(products, _KRONECKER_ORDER, axis=1)
+    normal_outer = (normals[:, :, None] * normals[:, None, :]).reshape(-1, 9)
+    index, terms = seen, summed[:, _KRONECKER_LEFT] * normal_outer[:, _KRONECKER_RIGHT]
     if not face.all():
         other = ~face
         jacobian = projection_jacobian(points[other], *triangle_corners(vertices, triangles, triangle[other]),
