@@ -86,14 +86,18 @@ def signed_volumes(vertices: np.ndarray, tetrahedra: np.ndarray, longest_edges: 
 
     The triple product of the edge vectors at corner 0, written out coordinate by coordinate on
     contiguous coordinate rows: the estimator evaluates it at every trial of its volume barrier
-    and inversion guard, and it takes a tenth of the time of np.linalg.det on (M, 3, 3) stacks
-    (and half that of np.cross and einsum on (W, M, 4, 3) corners)."""
+    and inversion guard. Each coordinate's corners are gathered in two np.take calls (corner 0,
+    corners 1-3), which takes a quarter less time than one gather per corner and coordinate
+    on a small window's three states (216 vertices) and 8 ms against 21 ms on five organ-scale
+    states (55k elements); np.linalg.det on (M, 3, 3) stacks takes three to eight times as
+    long. One gather of all corners at once, into (3, W, 4, M), was as fast in some processes
+    and more than twice as slow in others."""
     x, y, z = np.ascontiguousarray(np.moveaxis(np.asarray(vertices, dtype=np.float64), -1, 0))
-    first, second, third, fourth = np.asarray(tetrahedra).T
-    x0, y0, z0 = x[..., first], y[..., first], z[..., first]
-    ux, uy, uz = x[..., second] - x0, y[..., second] - y0, z[..., second] - z0
-    vx, vy, vz = x[..., third] - x0, y[..., third] - y0, z[..., third] - z0
-    wx, wy, wz = x[..., fourth] - x0, y[..., fourth] - y0, z[..., fourth] - z0
+    corners = np.asarray(tetrahedra).T
+    # Per coordinate, the edges u, v, w at corner 0, each ([W,] M).
+    (ux, vx, wx), (uy, vy, wy), (uz, vz, wz) = [
+        list(np.take(row, corners[1:], axis=-1).swapaxes(0, -2) - np.take(row, corners[0], axis=-1))
+        for row in (x, y, z)]
     volumes = ((uy * vz - uz * vy) * wx + (uz * vx - ux * vz) * wy + (ux * vy - uy * vx) * wz) / 6.0
     if not longest_edges:
         return volumes
