@@ -172,6 +172,48 @@ def test_linearize_equals_weighted_normal_equations(cube, model):
         assert terms.cost == pytest.approx(expected_cost, rel=1e-12)
 
 
+@pytest.mark.parametrize("frozen", [False, True])
+def test_point_factors_evaluated_together_equal_each_alone(cube, frozen):
+    """A graph linearises the point factors of several states in one pass (linearize_batch,
+    cost_batch): each factor's cost, gradient blocks and Hessian rows are those it gives alone,
+    for clouds of different sizes (one empty, one far off the surface, so that edge and vertex
+    points fall on every state) with a robust kernel."""
+    states = {key: deformed(cube, 0.3 * (key + 1), seed=30 + key) for key in range(4)}
+
+    def factors():
+        made = []
+        for key, count in zip(states, (150, 0, 90, 40)):
+            points = noisy_points(states[key], cube.surface_triangles, max(count, 1), seed=key)[:count]
+            if key == 3:
+                points = cube.vertices.mean(axis=0) + 1.3 * (points - cube.vertices.mean(axis=0))
+            factor = PointToSurfaceFactor(key, points, cube.surface_triangles, states[key], IsotropicNoise(1e-3),
+                                          CauchyKernel(2e-3))
+            if frozen:
+                factor.freeze_association(states)
+            made.append(factor)
+        return made
+
+    together = factors()
+    regions = np.concatenate([factor.associate(states).region for factor in together])
+    assert np.count_nonzero(regions != REGION_FACE) >= 10
+    linearized = PointToSurfaceFactor.linearize_batch(together, states)
+    gradient_only = PointToSurfaceFactor.linearize_batch(together, states, hessian=False)
+    costs = PointToSurfaceFactor.cost_batch(together, states)
+    for factor, terms, without, cost in zip(factors(), linearized, gradient_only, costs):
+        alone = factor.linearize(states)
+        assert terms.cost == pytest.approx(alone.cost, rel=1e-13) and cost == pytest.approx(alone.cost, rel=1e-13)
+        assert without.cost == pytest.approx(alone.cost, rel=1e-13)
+        if not factor.num_points:
+            assert not terms.point_blocks and alone.cost == 0.0
+            continue
+        blocks, expected = terms.point_blocks[factor.keys[0]], alone.point_blocks[factor.keys[0]]
+        np.testing.assert_array_equal(blocks.triangle, expected.triangle)
+        np.testing.assert_allclose(blocks.gradient, expected.gradient, rtol=1e-13, atol=0.0)
+        np.testing.assert_array_equal(blocks.hessian_triangle, expected.hessian_triangle)
+        np.testing.assert_allclose(blocks.hessian, expected.hessian, rtol=1e-13, atol=1e-9 * np.abs(expected.hessian).max())
+        assert without.point_blocks[factor.keys[0]].hessian is None
+
+
 @pytest.mark.parametrize("distance_in_scales", [0.3, 0.5, 2.0])
 def test_face_point_term_is_the_cost_curvature_along_the_normal(cube, distance_in_scales):
     """Moving a point's triangle along its normal by t changes the point's distance by t: the
