@@ -361,7 +361,8 @@ class FactorGraph:
         cost = 0.0
         position = {key: t for t, key in enumerate(self.keys)}
         new = [key for key in self.keys if key not in self._cache]
-        rebased = [key for key in self.keys if key in self._cache and self._outdated(key, self._cache[key], states[key])]
+        rebased = [key for key in self.keys
+                   if key in self._cache and self._outdated(key, self._cache[key], states[key])]
         self._cache.update(self._relinearize(new, states))
         for key in rebased:
             cached = self._cache[key]

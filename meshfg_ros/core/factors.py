@@ -319,25 +319,28 @@ class VolumeBarrierFactor(Factor):
         """J_e at `state` (its volumes from, or kept in, element_volumes)."""
         return self.element_volumes.volumes(self.keys[0], state) / self.reference_volumes
 
-    @classmethod
-    def _evaluate_volumes(cls, factors: list, states: dict) -> None:
-        """Have each factor's element_volumes keep its state's volumes, those of the factors
-        that share one made in one call."""
+    @staticmethod
+    def _batch_ratios(factors: list, states: dict) -> list[np.ndarray]:
+        """Each factor's J_e at `states`; the volumes of the factors that share an
+        element_volumes are looked up, or made, in one call."""
         groups: dict = {}
-        for factor in factors:
-            groups.setdefault(id(factor.element_volumes), []).append(factor)
-        for group in groups.values():
-            group[0].element_volumes.of(states, [factor.keys[0] for factor in group])
+        for index, factor in enumerate(factors):
+            groups.setdefault(id(factor.element_volumes), []).append(index)
+        ratios: list = [None] * len(factors)
+        for indices in groups.values():
+            volumes, _ = factors[indices[0]].element_volumes.of(states, [factors[i].keys[0] for i in indices])
+            for index, state_volumes in zip(indices, volumes):
+                ratios[index] = state_volumes / factors[index].reference_volumes
+        return ratios
 
     @classmethod
     def cost_batch(cls, factors, states):
-        cls._evaluate_volumes(factors, states)
-        return super().cost_batch(factors, states)
+        return [factor._cost(ratio) for factor, ratio in zip(factors, cls._batch_ratios(factors, states))]
 
     @classmethod
     def linearize_batch(cls, factors, states, hessian=True):
-        cls._evaluate_volumes(factors, states)
-        return super().linearize_batch(factors, states, hessian)
+        return [factor._linearize(states[factor.keys[0]], ratio, hessian)
+                for factor, ratio in zip(factors, cls._batch_ratios(factors, states))]
 
     def _psi(self, ratio: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """psi, psi', psi'' at ratios in (0, J_c)."""
@@ -345,7 +348,9 @@ class VolumeBarrierFactor(Factor):
         return (q - 1.0) ** 2, -2.0 * (q - 1.0) * q / ratio, (2.0 * q * q + 4.0 * (q - 1.0) * q) / ratio**2
 
     def cost(self, states):
-        ratio = self._ratios(states[self.keys[0]])
+        return self._cost(self._ratios(states[self.keys[0]]))
+
+    def _cost(self, ratio: np.ndarray) -> float:
         if np.any(~(ratio > 0.0)):
             return np.inf
         active = ratio < self.threshold
@@ -361,9 +366,8 @@ class VolumeBarrierFactor(Factor):
         values[ratio <= 0.0] = np.inf
         return values
 
-    def _terms(self, state):
-        """(active tetrahedra, cost, psi', psi'', dJ (P, 12)) at `state`."""
-        ratio = self._ratios(state)
+    def _terms(self, state, ratio):
+        """(active tetrahedra, cost, psi', psi'', dJ (P, 12)) at `state`, whose J_e are `ratio`."""
         active = np.flatnonzero((ratio > 0.0) & (ratio < self.threshold))
         if not active.size:  # every plausible state
             return active, 0.0, np.zeros(0), np.zeros(0), np.zeros((0, 12))
@@ -375,7 +379,7 @@ class VolumeBarrierFactor(Factor):
     def jacobians(self, states):
         key = self.keys[0]
         state = states[key]
-        active, _, slope, _, ratio_gradient = self._terms(state)
+        active, _, slope, _, ratio_gradient = self._terms(state, self._ratios(state))
         values = self.residual(states)[active]
         scale = np.where(values > 0.0, self.stiffness[active] * slope / np.maximum(values, 1e-300), 0.0)
         columns = (3 * self.tetrahedra[active][:, :, None] + np.arange(3)).reshape(-1, 12)
@@ -385,8 +389,12 @@ class VolumeBarrierFactor(Factor):
         return {key: matrix}
 
     def linearize(self, states, hessian=True):
+        state = states[self.keys[0]]
+        return self._linearize(state, self._ratios(state), hessian)
+
+    def _linearize(self, state, ratio, hessian):
         key = self.keys[0]
-        active, cost, slope, curvature, ratio_gradient = self._terms(states[key])
+        active, cost, slope, curvature, ratio_gradient = self._terms(state, ratio)
         if not active.size:
             return FactorLinearization(cost=cost)
         weight = self.stiffness[active]
@@ -645,10 +653,11 @@ class PointToSurfaceFactor(Factor):
         associations, pending = [], []
         for factor in factors:
             vertices = states[factor.keys[0]]
-            kept = next((kept for kept_vertices, kept in factor._associations
+            kept = next((kept for kept_vertices, kept in reversed(factor._associations)
                          if np.array_equal(kept_vertices, vertices)), None)
             if kept is None and factor._frozen_triangle is None:
-                kept = factor._remember(vertices, ClosestPointIndex(vertices, factor.triangles).associate(factor.points))
+                found = ClosestPointIndex(vertices, factor.triangles).associate(factor.points)
+                kept = factor._remember(vertices, found)
             elif kept is None:
                 pending.append((len(associations), factor, vertices))
             associations.append(kept)

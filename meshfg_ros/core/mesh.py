@@ -140,7 +140,7 @@ class ElementVolumes:
         return kept[0] if kept is not None else self.of({key: state}, [key])[0][0]
 
     def _kept_values(self, key, state: np.ndarray) -> tuple | None:
-        for kept_state, kept in self._kept.get(key, ()):
+        for kept_state, kept in reversed(self._kept.get(key, ())):  # the newest first: most asks
             if np.array_equal(kept_state, state):
                 return kept
         return None
