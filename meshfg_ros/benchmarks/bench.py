@@ -164,7 +164,7 @@ def bench_baselines(repeats: int = 3, progress: bool = True) -> dict:
     (W=10, ~40k factors) take longer than 25 minutes here, so the three-way comparison runs on
     a smaller window (BASELINE_SCALE); meshfg against scipy is also measured at paper scale.
     Medians of `repeats` runs (GTSAM: one); the small window, where one run of meshfg takes
-    ~25 ms and its median over 3 moved by 15% between runs, gets 7 (scipy too). meshfg's and
+    15-25 ms and its median over 3 moved by 15% between runs, gets 7 (scipy too). meshfg's and
     scipy's runs alternate (`_compare`): each starts from the caches the other left, as one
     update in a running node does. Measured on the 2-core VM: run in blocks instead, each
     solver's repeats warm the caches for its next (small window: scipy 165-172 ms in blocks,
