@@ -317,7 +317,7 @@ class VolumeBarrierFactor(Factor):
 
     def _ratios(self, state: np.ndarray) -> np.ndarray:
         """J_e at `state` (its volumes from, or kept in, element_volumes)."""
-        return self.element_volumes.volumes(self.keys[0], state) / self.reference_volumes
+        return self._batch_ratios([self], {self.keys[0]: state})[0]
 
     @staticmethod
     def _batch_ratios(factors: list, states: dict) -> list[np.ndarray]:
@@ -348,7 +348,7 @@ class VolumeBarrierFactor(Factor):
         return (q - 1.0) ** 2, -2.0 * (q - 1.0) * q / ratio, (2.0 * q * q + 4.0 * (q - 1.0) * q) / ratio**2
 
     def cost(self, states):
-        return self._cost(self._ratios(states[self.keys[0]]))
+        return self.cost_batch([self], states)[0]
 
     def _cost(self, ratio: np.ndarray) -> float:
         if np.any(~(ratio > 0.0)):
@@ -389,8 +389,7 @@ class VolumeBarrierFactor(Factor):
         return {key: matrix}
 
     def linearize(self, states, hessian=True):
-        state = states[self.keys[0]]
-        return self._linearize(state, self._ratios(state), hessian)
+        return self.linearize_batch([self], states, hessian)[0]
 
     def _linearize(self, state, ratio, hessian):
         key = self.keys[0]
@@ -648,8 +647,8 @@ class PointToSurfaceFactor(Factor):
         """`associate` of each of `factors` at `states`. The frozen factors' projections that
         are not kept from an earlier call are made in one call over all their points: the
         projection is some 40 numpy operations, whose fixed cost, paid once instead of once per
-        state, is most of its time on a small window's states (600 points: 126 us, of which a
-        third is per point)."""
+        state, is most of its time on a small window's states (149, 210 and 330 us for 600,
+        1,200 and 2,400 points)."""
         associations, pending = [], []
         for factor in factors:
             vertices = states[factor.keys[0]]

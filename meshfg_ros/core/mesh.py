@@ -134,11 +134,6 @@ class ElementVolumes:
                 self._kept[keys[t]] = [*self._kept.get(keys[t], [])[-1:], (state, values[t])]
         return np.stack([v[0] for v in values]), np.stack([v[1] for v in values])
 
-    def volumes(self, key, state: np.ndarray) -> np.ndarray:
-        """Signed volumes (M,) of `state` as state `key`."""
-        kept = self._kept_values(key, state)
-        return kept[0] if kept is not None else self.of({key: state}, [key])[0][0]
-
     def _kept_values(self, key, state: np.ndarray) -> tuple | None:
         for kept_state, kept in reversed(self._kept.get(key, ())):  # the newest first: most asks
             if np.array_equal(kept_state, state):
