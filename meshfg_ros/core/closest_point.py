@@ -32,8 +32,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
 import igl
+import numba
+import numpy as np
 
 from meshfg_ros.core.mesh import cross
 
@@ -51,6 +52,7 @@ __all__ = [
     "MAX_COORDINATE",
     "TriangleProjection",
     "brute_force_closest",
+    "project_onto_mesh_triangles",
     "project_onto_triangles",
     "projection_jacobian",
     "triangle_corners",
@@ -87,54 +89,86 @@ def _dot(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.einsum("...i,...i->...", u, v)
 
 
+@numba.njit(inline="always")
+def _safe(x):
+    """x, or _TINY where |x| is not above it (a degenerate triangle's divisor)."""
+    return x if abs(x) > _TINY else _TINY
+
+
+@numba.njit(cache=True, boundscheck=True, error_model="numpy")
+def _project(points, vertices, triangles, index):
+    """Closest point on triangle triangles[index[i]] of `vertices` to points[i]: (closest,
+    barycentric, region, squared distance). Ericson's tests point by point, in his order (the
+    first region whose test passes wins).
+
+    Compiled (numba) rather than numpy: as numpy passes over all points the projection is some
+    40 operations and a gather per corner, whose fixed cost is most of its time on a window's
+    clouds (146 us against 8 us for 600 points, 293 against 23 us for 2,000, on the 2-core AMD
+    EPYC VM)."""
+    count = points.shape[0]
+    closest = np.empty((count, 3))
+    barycentric = np.empty((count, 3))
+    region = np.empty(count, dtype=np.int8)
+    squared = np.empty(count)
+    for i in range(count):
+        a, b, c = vertices[triangles[index[i], 0]], vertices[triangles[index[i], 1]], vertices[triangles[index[i], 2]]
+        p = points[i]
+        ab0, ab1, ab2 = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+        ac0, ac1, ac2 = c[0] - a[0], c[1] - a[1], c[2] - a[2]
+        ap0, ap1, ap2 = p[0] - a[0], p[1] - a[1], p[2] - a[2]
+        bp0, bp1, bp2 = p[0] - b[0], p[1] - b[1], p[2] - b[2]
+        cp0, cp1, cp2 = p[0] - c[0], p[1] - c[1], p[2] - c[2]
+        d1, d2 = ab0 * ap0 + ab1 * ap1 + ab2 * ap2, ac0 * ap0 + ac1 * ap1 + ac2 * ap2
+        d3, d4 = ab0 * bp0 + ab1 * bp1 + ab2 * bp2, ac0 * bp0 + ac1 * bp1 + ac2 * bp2
+        d5, d6 = ab0 * cp0 + ab1 * cp1 + ab2 * cp2, ac0 * cp0 + ac1 * cp1 + ac2 * cp2
+        vc = d1 * d4 - d3 * d2
+        vb = d5 * d2 - d1 * d6
+        va = d3 * d6 - d5 * d4
+        if d1 <= 0.0 and d2 <= 0.0:
+            code, beta, gamma = REGION_VERTEX_A, 0.0, 0.0
+        elif d3 >= 0.0 and d4 <= d3:
+            code, beta, gamma = REGION_VERTEX_B, 1.0, 0.0
+        elif vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+            code, beta, gamma = REGION_EDGE_AB, d1 / _safe(d1 - d3), 0.0
+        elif d6 >= 0.0 and d5 <= d6:
+            code, beta, gamma = REGION_VERTEX_C, 0.0, 1.0
+        elif vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+            code, beta, gamma = REGION_EDGE_AC, 0.0, d2 / _safe(d2 - d6)
+        elif va <= 0.0 and d4 - d3 >= 0.0 and d5 - d6 >= 0.0:
+            t = (d4 - d3) / _safe((d4 - d3) + (d5 - d6))
+            code, beta, gamma = REGION_EDGE_BC, 1.0 - t, t
+        else:
+            inverse = 1.0 / _safe(va + vb + vc)
+            code, beta, gamma = REGION_FACE, vb * inverse, vc * inverse
+        alpha = 1.0 - beta - gamma
+        region[i] = code
+        barycentric[i, 0], barycentric[i, 1], barycentric[i, 2] = alpha, beta, gamma
+        distance = 0.0
+        for k in range(3):
+            closest[i, k] = alpha * a[k] + beta * b[k] + gamma * c[k]
+            distance += (closest[i, k] - p[k]) ** 2
+        squared[i] = distance
+    return closest, barycentric, region, squared
+
+
+def project_onto_mesh_triangles(points, vertices, triangles, index) -> TriangleProjection:
+    """Closest point on triangle triangles[index[i]] of `vertices` (N, 3) to points[i], points
+    (P, 3) float64, index (P,) into triangles (F, 3)."""
+    return TriangleProjection(*_project(np.ascontiguousarray(points, dtype=np.float64),
+                                        np.ascontiguousarray(vertices, dtype=np.float64),
+                                        np.ascontiguousarray(triangles, dtype=np.int64),
+                                        np.ascontiguousarray(index, dtype=np.int64)))
+
+
 def project_onto_triangles(points, a, b, c) -> TriangleProjection:
     """Closest point on triangle (a[i], b[i], c[i]) to points[i], all arrays (P, 3) float64."""
-    p = np.asarray(points, dtype=np.float64)
-    a, b, c = (np.asarray(x, dtype=np.float64) for x in (a, b, c))
-    ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = _dot(ab, ap), _dot(ac, ap)
-    bp = p - b
-    d3, d4 = _dot(ab, bp), _dot(ac, bp)
-    cp = p - c
-    d5, d6 = _dot(ab, cp), _dot(ac, cp)
-    vc = d1 * d4 - d3 * d2
-    vb = d5 * d2 - d1 * d6
-    va = d3 * d6 - d5 * d4
-    # Ericson's tests in his order: the first region whose test passes wins, so they are
-    # written last to first, each overwriting the later ones (a third faster than np.select).
-    region = np.full(d1.shape, REGION_FACE, dtype=np.int8)
-    region[(va <= 0.0) & (d4 - d3 >= 0.0) & (d5 - d6 >= 0.0)] = REGION_EDGE_BC
-    region[(vb <= 0.0) & (d2 >= 0.0) & (d6 <= 0.0)] = REGION_EDGE_AC
-    region[(d6 >= 0.0) & (d5 <= d6)] = REGION_VERTEX_C
-    region[(vc <= 0.0) & (d1 >= 0.0) & (d3 <= 0.0)] = REGION_EDGE_AB
-    region[(d3 >= 0.0) & (d4 <= d3)] = REGION_VERTEX_B
-    region[(d1 <= 0.0) & (d2 <= 0.0)] = REGION_VERTEX_A
-
-    def safe(x):
-        return np.where(np.abs(x) > _TINY, x, _TINY)
-
-    # The face's barycentrics for every point (most lie inside a face), then the other regions'
-    # on the points outside their face, all at once: each edge's parameter is computed for all
-    # of them and kept where the point lies in that edge's region (elsewhere it may overflow
-    # and is dropped).
-    inverse = 1.0 / safe(va + vb + vc)
-    beta, gamma = vb * inverse, vc * inverse
-    outside = region != REGION_FACE
-    if outside.any():
-        o1, o2, o3, o4, o5, o6 = (d[outside] for d in (d1, d2, d3, d4, d5, d6))
-        with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
-            t_ab = o1 / safe(o1 - o3)
-            t_ac = o2 / safe(o2 - o6)
-            t_bc = (o4 - o3) / safe((o4 - o3) + (o5 - o6))
-        # Choices by region code minus one: vertex a, b, c, edge ab, ac, bc.
-        code = region[outside] - REGION_VERTEX_A
-        beta[outside] = np.choose(code, (0.0, 1.0, 0.0, t_ab, 0.0, 1.0 - t_bc))
-        gamma[outside] = np.choose(code, (0.0, 0.0, 1.0, 0.0, t_ac, t_bc))
-    alpha = 1.0 - beta - gamma
-    barycentric = np.stack([alpha, beta, gamma], axis=-1)
-    closest = alpha[..., None] * a + beta[..., None] * b + gamma[..., None] * c
-    difference = closest - p
-    return TriangleProjection(closest, barycentric, region, _dot(difference, difference))
+    points = np.asarray(points, dtype=np.float64)
+    corners = [np.broadcast_to(np.asarray(x, dtype=np.float64), points.shape) for x in (a, b, c)]
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise InvalidGeometryError(f"points must have shape (P, 3), got {points.shape}")
+    count = len(points)
+    return project_onto_mesh_triangles(points, np.concatenate(corners), np.arange(3 * count).reshape(3, count).T,
+                                       np.arange(count))
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
@@ -279,7 +313,7 @@ def triangle_corners(vertices: np.ndarray, triangles: np.ndarray, index: np.ndar
 
 def _association(points, vertices, triangles, triangle, max_distance=np.inf) -> Association:
     """Points associated with the given (closest) triangles by the closed-form projection."""
-    projection = project_onto_triangles(points, *triangle_corners(vertices, triangles, triangle))
+    projection = project_onto_mesh_triangles(points, vertices, triangles, triangle)
     distance = np.sqrt(projection.squared_distance)
     found = distance <= max_distance
     if found.all():

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 import scipy.sparse
 
@@ -24,7 +25,7 @@ from meshfg_ros.core.closest_point import (
     REGION_FACE,
     Association,
     ClosestPointIndex,
-    project_onto_triangles,
+    project_onto_mesh_triangles,
     projection_jacobian,
     triangle_corners,
 )
@@ -68,17 +69,6 @@ MAX_BACK_FACING_SHARE = 0.5
 # updates: 5.2 LM iterations per organ-scale update instead of 3.8, up to 10). Measurements in
 # docs/design-notes.md ("Curvature of the robust cost").
 CURVATURE_FLOOR = 0.5
-# Entry (3 i + j, 3 l + m) of a 9x9 Kronecker product A (x) B of 3x3 matrices is A[i, l] B[j, m]:
-# the entries of the flattened A and B that make each entry of the flattened product
-# (_distance_hessians: two gathers and a product, faster than a 5-d broadcast or a reordered
-# outer product).
-_KRONECKER_ROW, _KRONECKER_COLUMN = np.divmod(np.arange(81), 9)
-_KRONECKER_LEFT = 3 * (_KRONECKER_ROW // 3) + _KRONECKER_COLUMN // 3
-_KRONECKER_RIGHT = 3 * (_KRONECKER_ROW % 3) + _KRONECKER_COLUMN % 3
-# The upper triangle (row, column) of a symmetric 3x3 matrix, and the position in that list of
-# each entry of the flattened matrix.
-_UPPER_ROWS, _UPPER_COLUMNS = np.triu_indices(3)
-_SYMMETRIC_FROM_UPPER = np.array([0, 1, 2, 1, 3, 4, 2, 4, 5])
 
 
 class FactorError(ValueError):
@@ -467,6 +457,50 @@ def _unit_normals(vertices: np.ndarray, triangles: np.ndarray, index: np.ndarray
     return normals
 
 
+@numba.njit(cache=True, boundscheck=True, error_model="numpy")
+def _face_terms(vertices, triangles, triangle, barycentric, weight, face):
+    """The face points' Gauss-Newton terms summed per triangle: (triangles seen (H,), terms
+    (H, 81)), row h (sum_k w_k beta_k beta_k^T) (x) n n^T of triangle seen[h] with unit normal n
+    (NaN for a degenerate triangle, whose terms stay in its own row), entry (3 i + r, 3 l + m)
+    the moment (i, l) times n_r n_m. The moments' upper triangle is summed and mirrored, so
+    each term is exactly symmetric.
+
+    Compiled (numba): as numpy passes (a bincount per moment, gathers for the Kronecker
+    product), mostly fixed cost on a window's clouds, _distance_hessians took 390-660 us on a
+    small window's three states against 210-220 us with this loop, its terms bit-identical."""
+    moments = np.zeros((triangles.shape[0], 6))
+    seen = np.zeros(triangles.shape[0], dtype=np.bool_)
+    for k in range(triangle.shape[0]):
+        if face[k]:
+            t = triangle[k]
+            seen[t] = True
+            entry = 0
+            for i in range(3):
+                weighted = weight[k] * barycentric[k, i]
+                for l in range(i, 3):
+                    moments[t, entry] += weighted * barycentric[k, l]
+                    entry += 1
+    index = np.flatnonzero(seen)
+    terms = np.empty((index.size, 81))
+    upper = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])
+    normal = np.empty(3)
+    for h in range(index.size):
+        t = index[h]
+        a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+        u0, u1, u2 = vertices[b, 0] - vertices[a, 0], vertices[b, 1] - vertices[a, 1], vertices[b, 2] - vertices[a, 2]
+        v0, v1, v2 = vertices[c, 0] - vertices[a, 0], vertices[c, 1] - vertices[a, 1], vertices[c, 2] - vertices[a, 2]
+        normal[0], normal[1], normal[2] = u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0
+        length = np.sqrt(normal[0] ** 2 + normal[1] ** 2 + normal[2] ** 2)
+        normal /= length
+        for i in range(3):
+            for l in range(3):
+                moment = moments[t, upper[i, l]]
+                for r in range(3):
+                    for m in range(3):
+                        terms[h, (3 * i + r) * 9 + 3 * l + m] = moment * (normal[r] * normal[m])
+    return index, terms
+
+
 def _distance_hessians(parts: list, states: dict) -> list[tuple[np.ndarray, np.ndarray]]:
     """Gauss-Newton terms of point factors' robust costs, (triangles (H,), terms (H, 81)) per
     part (factor, association, curvature, irls): `curvature` (K,) weights a point inside its
@@ -487,7 +521,8 @@ def _distance_hessians(parts: list, states: dict) -> list[tuple[np.ndarray, np.n
     points, weighted the conservative way), in a row of its own.
 
     The parts' states are stacked into one mesh (vertex and triangle indices offset), so that
-    all states take one pass: its fixed cost is about half of a 600-point state's time."""
+    the edge and vertex points of all states take one numpy pass (projection_jacobian), whose
+    fixed cost is most of its time on a window's few such points."""
     factors = [factor for factor, *_ in parts]
     vertex_offsets = np.cumsum([0] + [factor.vertex_count for factor in factors])
     triangle_offsets = np.cumsum([0] + [len(factor.triangles) for factor in factors])
@@ -502,26 +537,14 @@ def _distance_hessians(parts: list, states: dict) -> list[tuple[np.ndarray, np.n
     irls = np.concatenate([part[3] for part in parts])
 
     face = region == REGION_FACE
-    triangle_count = len(triangles)
-    # The six distinct entries of sum_k c_k beta_k beta_k^T per triangle, one bincount each over
-    # every point (weight 0 off the faces): a third of the time of one bincount over the nine
-    # entries of the face points, picked out by a mask.
-    weighted = np.where(face, curvature, 0.0)[:, None] * barycentric
-    moments = weighted[:, _UPPER_ROWS] * barycentric[:, _UPPER_COLUMNS]
-    seen = np.flatnonzero(np.bincount(triangle, weights=face, minlength=triangle_count))
-    summed = np.stack([np.bincount(triangle, weights=moments[:, k], minlength=triangle_count)
-                       for k in range(_UPPER_ROWS.size)], axis=1)[seen][:, _SYMMETRIC_FROM_UPPER]
-    # A degenerate triangle's NaN normal stays in its own row, as its points' terms would.
-    normals = _unit_normals(vertices, triangles, seen)
-    normal_outer = (normals[:, :, None] * normals[:, None, :]).reshape(-1, 9)
-    index, terms = seen, summed[:, _KRONECKER_LEFT] * normal_outer[:, _KRONECKER_RIGHT]
+    index, terms = _face_terms(vertices, triangles, triangle, barycentric, curvature, face)
     if not face.all():
         other = ~face
         jacobian = projection_jacobian(points[other], *triangle_corners(vertices, triangles, triangle[other]),
                                        region[other])
         # Batched matmul: 5x faster than the equivalent einsum on (K, 3, 9) stacks.
         other_terms = ((jacobian * irls[other][:, None, None]).transpose(0, 2, 1) @ jacobian).reshape(-1, 81)
-        index, terms = np.concatenate([seen, triangle[other]]), np.concatenate([terms, other_terms])
+        index, terms = np.concatenate([index, triangle[other]]), np.concatenate([terms, other_terms])
     if len(parts) == 1:
         return [(index, terms)]
     owner = np.searchsorted(triangle_offsets, index, side="right") - 1
@@ -644,35 +667,22 @@ class PointToSurfaceFactor(Factor):
 
     @classmethod
     def associate_batch(cls, factors: list, states: dict) -> list[Association]:
-        """`associate` of each of `factors` at `states`. The frozen factors' projections that
-        are not kept from an earlier call are made in one call over all their points: the
-        projection is some 40 numpy operations, whose fixed cost, paid once instead of once per
-        state, is most of its time on a small window's states (149, 210 and 330 us for 600,
-        1,200 and 2,400 points)."""
-        associations, pending = [], []
+        """`associate` of each of `factors` at `states` (what a factor kept from an earlier
+        call at the same state serves again)."""
+        associations = []
         for factor in factors:
             vertices = states[factor.keys[0]]
             kept = next((kept for kept_vertices, kept in reversed(factor._associations)
                          if np.array_equal(kept_vertices, vertices)), None)
             if kept is None and factor._frozen_triangle is None:
-                found = ClosestPointIndex(vertices, factor.triangles).associate(factor.points)
-                kept = factor._remember(vertices, found)
+                kept = factor._remember(vertices, ClosestPointIndex(vertices, factor.triangles).associate(factor.points))
             elif kept is None:
-                pending.append((len(associations), factor, vertices))
+                projection = project_onto_mesh_triangles(factor.points, vertices, factor.triangles,
+                                                         factor._frozen_triangle)
+                kept = factor._remember(vertices, Association(
+                    factor._frozen_triangle, projection.closest, projection.barycentric, projection.region,
+                    np.sqrt(projection.squared_distance)))
             associations.append(kept)
-        if not pending:
-            return associations
-        corners = [triangle_corners(vertices, factor.triangles, factor._frozen_triangle)
-                   for _, factor, vertices in pending]
-        projection = project_onto_triangles(np.concatenate([factor.points for _, factor, _ in pending]),
-                                            *(np.concatenate([c[k] for c in corners]) for k in range(3)))
-        distance = np.sqrt(projection.squared_distance)
-        end = np.cumsum([factor.num_points for _, factor, _ in pending])
-        for (index, factor, vertices), stop in zip(pending, end):
-            part = slice(stop - factor.num_points, stop)
-            associations[index] = factor._remember(vertices, Association(
-                factor._frozen_triangle, projection.closest[part], projection.barycentric[part],
-                projection.region[part], distance[part]))
         return associations
 
     def _remember(self, vertices, association: Association) -> Association:
@@ -739,8 +749,8 @@ class PointToSurfaceFactor(Factor):
 
     @classmethod
     def linearize_batch(cls, factors, states, hessian=True):
-        """`linearize` of each factor; the associations and the Hessian terms of all of them
-        are made in one pass each (associate_batch, _distance_hessians)."""
+        """`linearize` of each factor; the Hessian terms of all of them are made in one pass
+        (_distance_hessians)."""
         measured = [factor for factor in factors if factor.num_points]
         linearizations, parts = [], []
         for factor, association in zip(measured, cls.associate_batch(measured, states)):
