@@ -17,6 +17,7 @@ from meshfg_ros.core.closest_point import (
     ClosestPointIndex,
     InvalidGeometryError,
     brute_force_closest,
+    project_onto_mesh_triangles,
     project_onto_triangles,
     projection_jacobian,
 )
@@ -166,6 +167,25 @@ def test_index_association_equals_brute_force(cube_surface):
     corners = vertices[triangles[fast.triangle]]
     own = project_onto_triangles(points, corners[:, 0], corners[:, 1], corners[:, 2])
     np.testing.assert_allclose(np.sqrt(own.squared_distance), slow.distance, rtol=0, atol=1e-14)
+
+
+def test_projection_on_mesh_triangles_equals_the_corner_form_and_checks_its_indices(cube_surface):
+    """The form LM's frozen associations use (triangle indices into a state's vertices) gives
+    what the corner form gives, and an index past the triangles (or past the vertices) is an
+    IndexError, not a read of other memory (the compiled loop is bounds-checked)."""
+    vertices, triangles = cube_surface
+    rng = np.random.default_rng(11)
+    points = rng.uniform(-0.3, 1.3, size=(300, 3))
+    index = rng.integers(0, len(triangles), size=300)
+    on_mesh = project_onto_mesh_triangles(points, vertices, triangles, index)
+    corners = vertices[triangles[index]]
+    by_corners = project_onto_triangles(points, corners[:, 0], corners[:, 1], corners[:, 2])
+    np.testing.assert_allclose(on_mesh.closest, by_corners.closest, rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(on_mesh.region, by_corners.region)
+    with pytest.raises(IndexError):
+        project_onto_mesh_triangles(points[:2], vertices, triangles, np.array([0, len(triangles)]))
+    with pytest.raises(IndexError):
+        project_onto_mesh_triangles(points[:1], vertices, np.array([[0, 1, len(vertices)]]), np.array([0]))
 
 
 def test_index_gating_rejects_far_points(cube_surface):
