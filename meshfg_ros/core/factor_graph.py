@@ -18,7 +18,7 @@ import scipy.sparse
 
 from meshfg_ros.core.factors import Factor, FactorError, FactorLinearization, checked_state
 from meshfg_ros.core.linear_system import WindowSystem, diagonal_positions
-from meshfg_ros.core.mesh import ElementVolumes, cross
+from meshfg_ros.core.mesh import ElementVolumes
 
 __all__ = ["MIN_VOLUME_RATIO_PER_STEP", "FactorGraph"]
 
@@ -69,8 +69,7 @@ class FactorGraph:
     def __init__(self, vertex_count: int, tetrahedra, surface_triangles, fixed_vertices=(), fixed_positions=None,
                  relinearize_threshold: float = 0.0):
         self.vertex_count = int(vertex_count)
-        self.tetrahedra = np.asarray(tetrahedra, dtype=np.int64)
-        self._corner_columns = np.ascontiguousarray(self.tetrahedra.T)  # (4, M): each corner's vertices
+        self.tetrahedra = np.ascontiguousarray(tetrahedra, dtype=np.int64)
         self.surface_triangles = np.asarray(surface_triangles, dtype=np.int64)
         fixed = np.unique(np.asarray(fixed_vertices, dtype=np.int64))
         self.fixed_vertices = fixed
@@ -459,56 +458,20 @@ class FactorGraph:
 
     def _state_fractions(self, x: np.ndarray, step: np.ndarray, moved: np.ndarray) -> np.ndarray:
         """step_fraction's alpha_t of the states `moved` (indices into keys), (len(moved),)."""
-        fractions = np.ones(moved.size)
         if not moved.size:
-            return fractions
+            return np.ones(0)
         keys = [self.keys[t] for t in moved]
         states = self.states_from_x(x)
         volumes, longest = self.element_volumes.of(states, keys)
         moves = np.zeros((len(keys), self.dof_count))
         moves[:, self.free_dofs] = step.reshape(len(self.keys), self.block_size)[moved]
         moves = moves.reshape(len(keys), -1, 3)
-        squared = np.einsum("wni,wni->wn", moves, moves)
-        first, second, third, fourth = self._corner_columns
-        largest = np.sqrt(np.maximum(np.maximum(squared[:, first], squared[:, second]),
-                                     np.maximum(squared[:, third], squared[:, fourth])))  # (moved states, M)
-        margin = MIN_VOLUME_RATIO_PER_STEP * 6.0 * volumes
-        candidates = (volumes > 0.0) & ((longest + 2.0 * largest) ** 3 - longest**3 >= 6.0 * volumes - margin)
-        if not candidates.any():
-            return fractions
-        state_index, element = np.nonzero(candidates)
         window = np.stack([states[key] for key in keys])
-        corners = window[state_index[:, None], self.tetrahedra[element]]      # (P, 4, 3)
-        corner_moves = moves[state_index[:, None], self.tetrahedra[element]]  # (P, 4, 3)
-        u, v, w = (corners[:, k] - corners[:, 0] for k in (1, 2, 3))
-        du, dv, dw = (corner_moves[:, k] - corner_moves[:, 0] for k in (1, 2, 3))
-
-        def dot(a, b):
-            return np.einsum("pi,pi->p", a, b)
-
-        # 6 V(alpha) = (u + a du) . ((v + a dv) x (w + a dw)), expanded in a with four cross products.
-        vw, dvdw = cross(v, w), cross(dv, dw)
-        mixed = cross(dv, w) + cross(v, dw)
-        coefficients = np.stack([
-            dot(u, vw),
-            dot(du, vw) + dot(u, mixed),
-            dot(du, mixed) + dot(u, dvdw),
-            dot(du, dvdw),
-        ])  # (4, P): 6 V(alpha) = sum_k c_k alpha^k
-        bound = margin[candidates]
-        grid = np.linspace(0.0, 1.0, _STEP_FRACTION_GRID + 1)[1:]
-        crossed = np.polynomial.polynomial.polyval(grid[:, None], coefficients, tensor=False) < bound  # (G, P)
-        hit = crossed.any(axis=0)
-        if not hit.any():
+        fractions = _first_crossings(window, moves, self.tetrahedra, volumes, longest, MIN_VOLUME_RATIO_PER_STEP,
+                                     _STEP_FRACTION_GRID, _STEP_FRACTION_BISECTIONS)
+        if np.all(fractions == 1.0):
             return fractions
-        first = np.argmax(crossed[:, hit], axis=0)
-        low, high = np.where(first > 0, grid[first - 1], 0.0), grid[first]
-        chosen, chosen_bound = coefficients[:, hit], bound[hit]
-        for _ in range(_STEP_FRACTION_BISECTIONS):
-            middle = 0.5 * (low + high)
-            bad = np.polynomial.polynomial.polyval(middle, chosen, tensor=False) < chosen_bound
-            high, low = np.where(bad, middle, high), np.where(bad, low, middle)
-        np.minimum.at(fractions, state_index[hit], low)
+        margin = MIN_VOLUME_RATIO_PER_STEP * 6.0 * volumes
         positive = volumes > 0.0
         blocks = step.reshape(len(self.keys), self.block_size)
         for _ in range(_STEP_FRACTION_HALVINGS):
@@ -537,3 +500,62 @@ def _scatter_add_flat(target, index, values):
     values on a small window's state)."""
     for k in range(index.size):
         target[index[k]] += values[k]
+
+
+@numba.njit(cache=True, boundscheck=True)
+def _first_crossings(states, moves, tetrahedra, volumes, longest, ratio, grid_count, bisections):
+    """Per state s, the smallest fraction alpha in [0, 1] of its move at which one of its
+    elements with a positive volume first falls below `ratio` of it (1 where none does), to
+    1/grid_count then bisected `bisections` times from below: FactorGraph.step_fraction's
+    bracketing (its docstring), before the check on exact volumes.
+
+    Compiled (numba): as numpy passes over the elements that the bound cannot clear this took
+    most of LM's inversion guard, some 40 operations of fixed cost on a small window's states."""
+    fractions = np.ones(states.shape[0])
+    for s in range(states.shape[0]):
+        x, move = states[s], moves[s]
+        for e in range(tetrahedra.shape[0]):
+            volume = volumes[s, e]
+            if not volume > 0.0:
+                continue
+            largest = 0.0
+            for k in range(4):
+                vertex = tetrahedra[e, k]
+                largest = max(largest, move[vertex, 0] ** 2 + move[vertex, 1] ** 2 + move[vertex, 2] ** 2)
+            largest = np.sqrt(largest)
+            bound = ratio * 6.0 * volume
+            if (longest[s, e] + 2.0 * largest) ** 3 - longest[s, e] ** 3 < 6.0 * volume - bound:
+                continue
+            i0, i1, i2, i3 = tetrahedra[e, 0], tetrahedra[e, 1], tetrahedra[e, 2], tetrahedra[e, 3]
+            u, v, w = x[i1] - x[i0], x[i2] - x[i0], x[i3] - x[i0]
+            du, dv, dw = move[i1] - move[i0], move[i2] - move[i0], move[i3] - move[i0]
+            # 6 V(alpha) = (u + a du) . ((v + a dv) x (w + a dw)) = c0 + c1 a + c2 a^2 + c3 a^3.
+            vw, dvdw = _cross(v, w), _cross(dv, dw)
+            mixed = _cross(dv, w) + _cross(v, dw)
+            c0 = _dot3(u, vw)
+            c1 = _dot3(du, vw) + _dot3(u, mixed)
+            c2 = _dot3(du, mixed) + _dot3(u, dvdw)
+            c3 = _dot3(du, dvdw)
+            for g in range(1, grid_count + 1):
+                high = g / grid_count
+                if c0 + high * (c1 + high * (c2 + high * c3)) < bound:
+                    low = (g - 1) / grid_count
+                    for _ in range(bisections):
+                        middle = 0.5 * (low + high)
+                        if c0 + middle * (c1 + middle * (c2 + middle * c3)) < bound:
+                            high = middle
+                        else:
+                            low = middle
+                    fractions[s] = min(fractions[s], low)
+                    break
+    return fractions
+
+
+@numba.njit(inline="always")
+def _cross(a, b):
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+@numba.njit(inline="always")
+def _dot3(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
