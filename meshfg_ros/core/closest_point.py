@@ -35,7 +35,9 @@ from dataclasses import dataclass
 import igl
 import numba
 import numpy as np
+from numba.types import float64, int64
 
+from meshfg_ros.core.kernel_types import read_only
 from meshfg_ros.core.mesh import cross
 
 __all__ = [
@@ -95,7 +97,8 @@ def _safe(x):
     return x if abs(x) > _TINY else _TINY
 
 
-@numba.njit(cache=True, boundscheck=True, error_model="numpy")
+@numba.njit((read_only(float64, 2), read_only(float64, 2), read_only(int64, 2), read_only(int64, 1)), cache=True,
+            boundscheck=True, error_model="numpy")
 def _project(points, vertices, triangles, index):
     """Closest point on triangle triangles[index[i]] of `vertices` to points[i]: (closest,
     barycentric, region, squared distance). Ericson's tests point by point, in his order (the

@@ -15,8 +15,10 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 import scipy.sparse
+from numba.types import float64, int64
 
 from meshfg_ros.core.factors import Factor, FactorError, FactorLinearization, checked_state
+from meshfg_ros.core.kernel_types import read_only, writable
 from meshfg_ros.core.linear_system import WindowSystem, diagonal_positions
 from meshfg_ros.core.mesh import ElementVolumes
 
@@ -493,7 +495,7 @@ def _scatter_add(target: np.ndarray, index: np.ndarray, values: np.ndarray) -> N
                       np.ascontiguousarray(values, dtype=np.float64).reshape(-1))
 
 
-@numba.njit(cache=True, boundscheck=True)
+@numba.njit((writable(float64, 1), read_only(int64, 1), read_only(float64, 1)), cache=True, boundscheck=True)
 def _scatter_add_flat(target, index, values):
     """Compiled (numba): np.add.at is several times slower, and a bincount over the whole target
     allocates and adds a target-sized array for each factor's few hundred terms (18k block
@@ -502,7 +504,18 @@ def _scatter_add_flat(target, index, values):
         target[index[k]] += values[k]
 
 
-@numba.njit(cache=True, boundscheck=True)
+@numba.njit(inline="always")
+def _cross(a, b):
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+@numba.njit(inline="always")
+def _dot3(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+@numba.njit((read_only(float64, 3), read_only(float64, 3), read_only(int64, 2), read_only(float64, 2),
+             read_only(float64, 2), float64, int64, int64), cache=True, boundscheck=True)
 def _first_crossings(states, moves, tetrahedra, volumes, longest, ratio, grid_count, bisections):
     """Per state s, the smallest fraction alpha in [0, 1] of its move at which one of its
     elements with a positive volume first falls below `ratio` of it (1 where none does), to
@@ -549,13 +562,3 @@ def _first_crossings(states, moves, tetrahedra, volumes, longest, ratio, grid_co
                     fractions[s] = min(fractions[s], low)
                     break
     return fractions
-
-
-@numba.njit(inline="always")
-def _cross(a, b):
-    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
-
-
-@numba.njit(inline="always")
-def _dot3(a, b):
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]

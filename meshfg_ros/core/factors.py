@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import numba
 import numpy as np
 import scipy.sparse
+from numba.types import boolean, float64, int64
 
 from meshfg_ros.core.closest_point import (
     REGION_FACE,
@@ -29,6 +30,7 @@ from meshfg_ros.core.closest_point import (
     projection_jacobian,
     triangle_corners,
 )
+from meshfg_ros.core.kernel_types import read_only
 from meshfg_ros.core.mesh import ElementVolumes, cross
 from meshfg_ros.core.noise import IdentityNoise, InformationMatrixNoise, PointNoise
 from meshfg_ros.core.robust import RobustKernel
@@ -457,7 +459,8 @@ def _unit_normals(vertices: np.ndarray, triangles: np.ndarray, index: np.ndarray
     return normals
 
 
-@numba.njit(cache=True, boundscheck=True, error_model="numpy")
+@numba.njit((read_only(float64, 2), read_only(int64, 2), read_only(int64, 1), read_only(float64, 2),
+             read_only(float64, 1), read_only(boolean, 1)), cache=True, boundscheck=True, error_model="numpy")
 def _face_terms(vertices, triangles, triangle, barycentric, weight, face):
     """The face points' Gauss-Newton terms summed per triangle: (triangles seen (H,), terms
     (H, 81)), row h (sum_k w_k beta_k beta_k^T) (x) n n^T of triangle seen[h] with unit normal n
@@ -537,7 +540,8 @@ def _distance_hessians(parts: list, states: dict) -> list[tuple[np.ndarray, np.n
     irls = np.concatenate([part[3] for part in parts])
 
     face = region == REGION_FACE
-    index, terms = _face_terms(vertices, triangles, triangle, barycentric, curvature, face)
+    index, terms = _face_terms(vertices, triangles, triangle.astype(np.int64, copy=False), barycentric,
+                               curvature.astype(np.float64, copy=False), face)
     if not face.all():
         other = ~face
         jacobian = projection_jacobian(points[other], *triangle_corners(vertices, triangles, triangle[other]),

@@ -15,6 +15,9 @@ from pathlib import Path
 
 import numba
 import numpy as np
+from numba.types import float64, int64
+
+from meshfg_ros.core.kernel_types import read_only
 
 __all__ = [
     "DegenerateMeshError",
@@ -93,7 +96,7 @@ def signed_volumes(vertices: np.ndarray, tetrahedra: np.ndarray, longest_edges: 
     return volumes.reshape(shape), longest.reshape(shape)
 
 
-@numba.njit(cache=True, boundscheck=True)
+@numba.njit((read_only(float64, 3), read_only(int64, 2)), cache=True, boundscheck=True)
 def _volumes_and_longest_edges(states, tetrahedra):
     """signed_volumes of states (W, N, 3): the triple product of the edge vectors u, v, w at
     corner 0, ((u x v) . w) / 6, and the longest of the three, each (W, M).
