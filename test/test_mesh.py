@@ -117,6 +117,23 @@ def test_cross_and_volumes_are_numpys_values(liver):
     np.testing.assert_allclose(volumes, determinants, rtol=1e-12, atol=1e-15 * np.abs(determinants).max())
 
 
+def test_volumes_take_read_only_strided_and_stacked_states_alike(liver):
+    """The compiled volumes are typed once (kernel_types.py): a read-only state (a mesh's), a
+    strided one, int32 element indices and a stack of states all give the writable state's
+    values, and the longest edges are those of the edge vectors at corner 0."""
+    volumes, longest = signed_volumes(liver.vertices, liver.tetrahedra, longest_edges=True)
+    read_only = liver.vertices.copy()
+    read_only.setflags(write=False)
+    strided = np.asfortranarray(liver.vertices)
+    for vertices in (read_only, strided):
+        assert np.array_equal(signed_volumes(vertices, liver.tetrahedra.astype(np.int32)), volumes)
+    stacked = signed_volumes(np.stack([liver.vertices, 2.0 * liver.vertices]), liver.tetrahedra)
+    np.testing.assert_allclose(stacked, [volumes, 8.0 * volumes], rtol=1e-14)
+    corners = liver.vertices[liver.tetrahedra]
+    edges = np.linalg.norm(corners[:, 1:] - corners[:, :1], axis=2).max(axis=1)
+    np.testing.assert_allclose(longest, edges, rtol=1e-14)
+
+
 def test_degenerate_element_raises_naming_its_index():
     vertices, tets = unit_tetrahedron_pair()
     vertices = np.vstack([vertices, [[0.5, 0.5, 0.0]]])  # on the plane of vertices 0, 1, 2
