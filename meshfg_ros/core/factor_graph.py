@@ -497,9 +497,8 @@ def _scatter_add(target: np.ndarray, index: np.ndarray, values: np.ndarray) -> N
 
 @numba.njit((writable(float64, 1), read_only(int64, 1), read_only(float64, 1)), cache=True, boundscheck=True)
 def _scatter_add_flat(target, index, values):
-    """Compiled (numba): np.add.at is several times slower, and a bincount over the whole target
-    allocates and adds a target-sized array for each factor's few hundred terms (18k block
-    values on a small window's state)."""
+    """Compiled (numba): a bincount over the whole target allocates and adds a target-sized
+    array for each factor's few hundred terms (18k block values on a small window's state)."""
     for k in range(index.size):
         target[index[k]] += values[k]
 
