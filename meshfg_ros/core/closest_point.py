@@ -166,9 +166,9 @@ def project_onto_mesh_triangles(points, vertices, triangles, index) -> TriangleP
 def project_onto_triangles(points, a, b, c) -> TriangleProjection:
     """Closest point on triangle (a[i], b[i], c[i]) to points[i], all arrays (P, 3) float64."""
     points = np.asarray(points, dtype=np.float64)
-    corners = [np.broadcast_to(np.asarray(x, dtype=np.float64), points.shape) for x in (a, b, c)]
     if points.ndim != 2 or points.shape[1] != 3:
         raise InvalidGeometryError(f"points must have shape (P, 3), got {points.shape}")
+    corners = [np.broadcast_to(np.asarray(x, dtype=np.float64), points.shape) for x in (a, b, c)]
     count = len(points)
     return project_onto_mesh_triangles(points, np.concatenate(corners), np.arange(3 * count).reshape(3, count).T,
                                        np.arange(count))

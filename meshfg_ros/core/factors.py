@@ -31,7 +31,7 @@ from meshfg_ros.core.closest_point import (
     triangle_corners,
 )
 from meshfg_ros.core.kernel_types import read_only
-from meshfg_ros.core.mesh import ElementVolumes, cross
+from meshfg_ros.core.mesh import ElementVolumes, cross, cross3, dot3
 from meshfg_ros.core.noise import IdentityNoise, InformationMatrixNoise, PointNoise
 from meshfg_ros.core.robust import RobustKernel
 
@@ -486,15 +486,11 @@ def _face_terms(vertices, triangles, triangle, barycentric, weight, face):
     index = np.flatnonzero(seen)
     terms = np.empty((index.size, 81))
     upper = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])
-    normal = np.empty(3)
     for h in range(index.size):
+        a, b, c = vertices[triangles[index[h], 0]], vertices[triangles[index[h], 1]], vertices[triangles[index[h], 2]]
+        normal = cross3(b - a, c - a)
+        normal /= np.sqrt(dot3(normal, normal))
         t = index[h]
-        a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
-        u0, u1, u2 = vertices[b, 0] - vertices[a, 0], vertices[b, 1] - vertices[a, 1], vertices[b, 2] - vertices[a, 2]
-        v0, v1, v2 = vertices[c, 0] - vertices[a, 0], vertices[c, 1] - vertices[a, 1], vertices[c, 2] - vertices[a, 2]
-        normal[0], normal[1], normal[2] = u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0
-        length = np.sqrt(normal[0] ** 2 + normal[1] ** 2 + normal[2] ** 2)
-        normal /= length
         for i in range(3):
             for l in range(3):
                 moment = moments[t, upper[i, l]]
@@ -666,28 +662,17 @@ class PointToSurfaceFactor(Factor):
         return self._frozen_triangle
 
     def associate(self, states) -> Association:
-        """Closest triangle per point on the surface of the current state (or the frozen ones)."""
-        return self.associate_batch([self], states)[0]
-
-    @classmethod
-    def associate_batch(cls, factors: list, states: dict) -> list[Association]:
-        """`associate` of each of `factors` at `states` (what a factor kept from an earlier
-        call at the same state serves again)."""
-        associations = []
-        for factor in factors:
-            vertices = states[factor.keys[0]]
-            kept = next((kept for kept_vertices, kept in reversed(factor._associations)
-                         if np.array_equal(kept_vertices, vertices)), None)
-            if kept is None and factor._frozen_triangle is None:
-                kept = factor._remember(vertices, ClosestPointIndex(vertices, factor.triangles).associate(factor.points))
-            elif kept is None:
-                projection = project_onto_mesh_triangles(factor.points, vertices, factor.triangles,
-                                                         factor._frozen_triangle)
-                kept = factor._remember(vertices, Association(
-                    factor._frozen_triangle, projection.closest, projection.barycentric, projection.region,
-                    np.sqrt(projection.squared_distance)))
-            associations.append(kept)
-        return associations
+        """Closest triangle per point on the surface of the current state (or the frozen ones);
+        what was found at the same state by an earlier call serves again."""
+        vertices = states[self.keys[0]]
+        for kept_vertices, kept in reversed(self._associations):
+            if np.array_equal(kept_vertices, vertices):
+                return kept
+        if self._frozen_triangle is None:
+            return self._remember(vertices, ClosestPointIndex(vertices, self.triangles).associate(self.points))
+        projection = project_onto_mesh_triangles(self.points, vertices, self.triangles, self._frozen_triangle)
+        return self._remember(vertices, Association(self._frozen_triangle, projection.closest, projection.barycentric,
+                                                    projection.region, np.sqrt(projection.squared_distance)))
 
     def _remember(self, vertices, association: Association) -> Association:
         """Keep `association` as this factor's at `vertices` (with the one before it)."""
@@ -747,9 +732,7 @@ class PointToSurfaceFactor(Factor):
 
     @classmethod
     def cost_batch(cls, factors, states):
-        measured = [factor for factor in factors if factor.num_points]
-        associations = iter(cls.associate_batch(measured, states))
-        return [factor._terms(next(associations))[2] if factor.num_points else 0.0 for factor in factors]
+        return [factor._terms(factor.associate(states))[2] if factor.num_points else 0.0 for factor in factors]
 
     @classmethod
     def linearize_batch(cls, factors, states, hessian=True):
@@ -757,7 +740,8 @@ class PointToSurfaceFactor(Factor):
         (_distance_hessians)."""
         measured = [factor for factor in factors if factor.num_points]
         linearizations, parts = [], []
-        for factor, association in zip(measured, cls.associate_batch(measured, states)):
+        for factor in measured:
+            association = factor.associate(states)
             residual, squared, cost, irls = factor._terms(association)
             # J^T W r without J: q is the closest point of the triangle, so (dq/dX)^T r equals
             # the derivative with the barycentrics held fixed, beta_i r for corner i (envelope
