@@ -154,6 +154,19 @@ def test_corotational_under_rigid_rotation_is_rotated_linear(cube_model):
     assert np.abs(forces).max() < 1e-9 * YOUNGS_MODULUS * 0.05**2
 
 
+def test_corotational_stiffness_is_the_sum_of_rotated_rest_element_matrices(cube_model):
+    """K(X) = sum_e R_e K0_e R_e^T at a general deformed state, the rotations and the rest
+    element matrices taken from the model's public functions and rotated here."""
+    rng = np.random.default_rng(4)
+    state = cube_model.rest_vertices + 0.004 * rng.standard_normal(cube_model.rest_vertices.shape)
+    rotations = polar_rotations(cube_model.deformation_gradients(state))  # (M, 3, 3)
+    rest_matrices = cube_model.element_matrices(None, kind="linear")  # (M, 12, 12)
+    block_rotations = np.einsum("ab,eij->eaibj", np.eye(4), rotations).reshape(-1, 12, 12)
+    rotated = block_rotations @ rest_matrices @ block_rotations.transpose(0, 2, 1)
+    expected = cube_model.assemble(rotated)
+    assert relative_difference(cube_model.stiffness(state, kind="corotational"), expected) < 1e-12
+
+
 def test_polar_rotations_match_svd_and_fix_reflections():
     rng = np.random.default_rng(1)
     matrices = np.eye(3) + 0.4 * rng.standard_normal((400, 3, 3))

@@ -23,8 +23,8 @@ was classified into is used (the same choice as autograd through the closed form
 libigl's AABB tree (a bounding-volume hierarchy over the triangles, built per surface state),
 then re-projects the point on that triangle with `project_onto_triangles`, so association,
 residual and Jacobian all come from the one closed form above. Measured on the paper-scale
-surface (588 triangles, 2,000 points): tree and query 1.6 ms, against 9 ms for the k-d tree
-over centroids with an exact candidate screen that it replaced; organ scale (5,292 triangles,
+surface (588 triangles, 2,000 points): tree and query 1.6 ms, against 9 ms for a k-d tree
+over centroids with an exact candidate screen; organ scale (5,292 triangles,
 20,000 points) 14 ms against about 100 ms.
 """
 

@@ -20,7 +20,10 @@ Every element matrix has the closed form
                     + z eps_ikm (F (G_a x G_b))_m ],
 with gram_ab = G_a . G_b and per-kind vectors p^t_a, u_a (G_a, R G_a, cof(F) G_a, F G_a), so
 it is evaluated entry by entry on element-major arrays (element index last), which keeps
-numpy's inner loops long. Arrays named *_em are element-major: shape (..., M).
+numpy's inner loops long. The corotational K, the physics prior's default information, is
+summed into its slots in one compiled pass instead (`_corotational_upper_sums`), and the
+deformation gradients of every kind come from one compiled pass over the elements
+(`_deformation_gradients`). Arrays named *_em are element-major: shape (..., M).
 
 Conventions: dofs are ordered x0 y0 z0 x1 y1 z1 ...; an element matrix (12, 12) uses local
 dofs 3 * a + i for element vertex a and axis i; `internal_forces` is the energy gradient
@@ -265,6 +268,56 @@ def _upper_entries(pairs, gram, rank_one=(), swapped=None, skew=None) -> np.ndar
     return entries
 
 
+@numba.njit((read_only(float64, 3), read_only(float64, 1), read_only(float64, 3), float64, float64,
+             read_only(int64, 1), read_only(int64, 1), read_only(int64, 1), read_only(int64, 1), read_only(int64, 1),
+             int64), cache=True, boundscheck=True)
+def _corotational_upper_sums(rotated, volumes, gram, mu, lam, a_index, i_index, b_index, k_index, slot, count):
+    """Global upper-triangle sums (count,) of the corotational element matrices
+    K_{ai,bk} = V (mu gram_ab delta_ik + lam g_ai g_bk + mu g_ak g_bi), g_a = R G_a the rotated
+    gradients (4, 3, M): `_upper_entries` followed by `_scatter_upper` in one pass, with the same
+    operations in the same order (entry by entry, elements within an entry), so the sums are
+    those of the two numpy passes.
+
+    Compiled (numba): the numpy passes write all 78 entries of every element and bincount reads
+    them back; here each entry goes straight into its slot."""
+    elements = volumes.shape[0]
+    sums = np.zeros(count)
+    for p in range(a_index.shape[0]):
+        a, i, b, k = a_index[p], i_index[p], b_index[p], k_index[p]
+        start = p * elements
+        for e in range(elements):
+            volume = volumes[e]
+            value = (mu * volume) * gram[a, b, e] if i == k else 0.0
+            value += (lam * (rotated[a, i, e] * volume)) * rotated[b, k, e]
+            value += (mu * (rotated[a, k, e] * volume)) * rotated[b, i, e]
+            sums[slot[start + e]] += value
+    return sums
+
+
+@numba.njit((read_only(float64, 2), read_only(int64, 2), read_only(float64, 3)), cache=True, boundscheck=True)
+def _deformation_gradients(state, tetrahedra, gradients):
+    """F_e = sum_{a>0} (x_a - x_0) (grad N_a)^T of every element, element-major (3, 3, M), from
+    the state (N, 3), the tetrahedra (M, 4) and the shape-function gradients (4, 3, M). Edge
+    vectors rather than positions keep a large rigid translation out of the rounding.
+
+    Compiled (numba): gathering the corners and contracting them as numpy passes takes 0.42 and
+    11.7 ms for 2,000 and 55,000 elements."""
+    elements = tetrahedra.shape[0]
+    deformation = np.empty((3, 3, elements))
+    edge = np.empty((3, 3))
+    for e in range(elements):
+        origin = tetrahedra[e, 0]
+        for a in range(3):
+            corner = tetrahedra[e, a + 1]
+            for i in range(3):
+                edge[a, i] = state[corner, i] - state[origin, i]
+        for i in range(3):
+            for j in range(3):
+                deformation[i, j, e] = (edge[0, i] * gradients[1, j, e] + edge[1, i] * gradients[2, j, e]
+                                        + edge[2, i] * gradients[3, j, e])
+    return deformation
+
+
 def _unpack(entries: np.ndarray, pairs, size: int) -> np.ndarray:
     """Symmetric (M, size, size) matrices from their upper-triangle entries (P, M)."""
     a, i, b, k = pairs
@@ -415,13 +468,9 @@ class ElasticModel:
         return state
 
     def _deformation_em(self, state: np.ndarray) -> np.ndarray:
-        """F = sum_{a>0} (x_a - x_0) (grad N_a)^T, element-major (3, 3, M).
-
-        Edge vectors rather than positions keep a large rigid translation out of the rounding.
-        """
-        tets = self.tetrahedra
-        edges = (state[tets[:, 1:]] - state[tets[:, :1]]).transpose(1, 2, 0)  # (3 edges, 3, M)
-        return np.einsum("aim,ajm->ijm", edges, self._gradients_em[1:])
+        """F = sum_{a>0} (x_a - x_0) (grad N_a)^T, element-major (3, 3, M) (`_deformation_gradients`)."""
+        return _deformation_gradients(np.ascontiguousarray(state, dtype=np.float64), self.tetrahedra,
+                                      self._gradients_em)
 
     def deformation_gradients(self, current=None) -> np.ndarray:
         """F_e = sum_a x_a (grad N_a)^T of every element at `current`, (M, 3, 3)."""
@@ -554,8 +603,13 @@ class ElasticModel:
             return self._csr(self._rest_upper_sums)
         if kind == "neo_hookean" and spd_projection:
             return self.assemble(self._projected_element_matrices(state))
-        entries = self._upper_entries_of(kind, self._deformation_em(state), self._gradients_em)
-        return self._csr(self._scatter_upper(entries))
+        deformation = self._deformation_em(state)
+        if kind == "corotational":
+            rotated = _apply_em(_polar_rotations_em(deformation), self._gradients_em)
+            return self._csr(_corotational_upper_sums(
+                np.ascontiguousarray(rotated), self.volumes, self._grams_em[4], self.mu, self.lam,
+                *self._element_pairs, self._upper_slot, self._upper_count))
+        return self._csr(self._scatter_upper(self._upper_entries_of(kind, deformation, self._gradients_em)))
 
     # ------------------------------------------------------------------- energy / forces
 
