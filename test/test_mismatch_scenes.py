@@ -17,7 +17,7 @@ from meshfg_ros.synthetic.mismatch_scenes import build_scene, radius_ratios
 SEED = 3
 STEPS = 2
 MESH_CACHES = (mismatch_scenes._slab_mesh, mismatch_scenes._dome_mesh, mismatch_scenes._liver_mesh,
-               mismatch_scenes._kidney_mesh)
+               mismatch_scenes._kidney_mesh, mismatch_scenes._flap_mesh)
 
 
 @pytest.fixture(scope="module", params=MISMATCH_SCENARIOS)
@@ -49,7 +49,7 @@ def open_loop(scene):
 
 def test_scenes_are_registered():
     assert set(MISMATCH_SCENARIOS) <= set(SCENARIOS)
-    assert len(set(SCENARIOS)) == len(SCENARIOS) == 9
+    assert len(set(SCENARIOS)) == len(SCENARIOS) == 10
 
 
 def test_same_seed_gives_equal_scenes(scene_pair):

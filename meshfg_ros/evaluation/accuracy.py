@@ -1,9 +1,9 @@
 """The accuracy suite (`meshfg accuracy`): the factor graph against the simulation alone on
 scenes nobody tuned the estimator on, with the default settings.
 
-Seven scenes: the three bundled recordings (bags/: cube-shear-spd, cao-push, liver-push, whose
-truth is the package's own simulator with other constants) and the four mismatch scenes of
-meshfg_ros.synthetic (slab-inclusion, dome-tilted, liver-gravity, kidney-drag, whose truth is a
+Eight scenes: the three bundled recordings (bags/: cube-shear-spd, cao-push, liver-push, whose
+truth is the package's own simulator with other constants) and the five mismatch scenes of
+meshfg_ros.synthetic (slab-inclusion, dome-tilted, liver-gravity, kidney-drag, flap-bend, whose truth is a
 heterogeneous compressible neo-Hookean FEM at equilibrium with stiff inclusions, unmodelled
 loads, sticky contact, tool calibration errors, noisy cameras and 10-25 % segmentation leaks).
 Each scene is replayed exactly as `meshfg replay` does, with only what a user knows of it: the
@@ -45,7 +45,7 @@ __all__ = ["BUNDLED_SCENES", "SCENES", "SYNTHESISED_SCENES", "TARGETS", "format_
            "run_accuracy", "run_accuracy_seeds", "write_plot", "write_seeds_plot"]
 
 BUNDLED_SCENES = ("cube-shear-spd", "cao-push", "liver-push")
-SYNTHESISED_SCENES = ("slab-inclusion", "dome-tilted", "liver-gravity", "kidney-drag")
+SYNTHESISED_SCENES = ("slab-inclusion", "dome-tilted", "liver-gravity", "kidney-drag", "flap-bend")
 SCENES = BUNDLED_SCENES + SYNTHESISED_SCENES
 # worst_ratio judges each scene's final step, worst_ratio_over_steps its error over the whole run
 # (mean vertex RMSE over the steps, FG over sim): a final step where the simulation alone

@@ -23,7 +23,7 @@ from meshfg_ros.synthetic.meshing import airway_phantom, cube_mesh
 from meshfg_ros.evaluation.metrics import sample_surface
 from meshfg_ros.core.simulator import ElasticSimulator, SimulatorConfig
 
-MISMATCH_SCENARIOS = ("slab-inclusion", "dome-tilted", "liver-gravity", "kidney-drag")
+MISMATCH_SCENARIOS = ("slab-inclusion", "dome-tilted", "liver-gravity", "kidney-drag", "flap-bend")
 SCENARIOS = ("cube-translate", "cube-shear-spd", "cube-shear-nonspd", "cao-push", "liver-push", *MISMATCH_SCENARIOS)
 STEP_PERIOD_NS = 1_000_000_000  # 1 Hz, as the paper's capture
 FIRST_STAMP_NS = 1_000_000_000
