@@ -628,8 +628,8 @@ def _flap_mesh() -> _SceneMesh:
 def _flap_bend(seed: int, steps: int) -> Scenario:
     """A tissue flap attached at one end, bent down near its free end by an oblique push.
 
-    Unmodelled: a 4x stiffer vessel along the flap, a stiffness 1.7x the nominal, near
-    incompressibility, a tether load ramping up (the flap's connections pulling it down and
+    Unmodelled: a 4x stiffer vessel along the flap, tissue 1.7x stiffer than the nominal (2x in
+    the volume mean, with the vessel), near incompressibility, a tether load ramping up (the flap's connections pulling it down and
     sideways), adhesive contact, a 0.6 mm tool calibration error. Unlike the other scenes the
     flap bends as a plate, with large rotations, rather than being indented. Camera above the
     flap, to the side of the vessel; the tool and its shaft occlude it.
@@ -652,8 +652,9 @@ def _flap_bend(seed: int, steps: int) -> Scenario:
     )
     return _assemble("flap-bend", seed, rng, scene_mesh, loading, FLAP_NOMINAL_E,
                      f"50x30x8 mm flap attached at one end, 4x stiff vessel (r 2.5 mm) along it, bent by a 4 mm tool "
-                     f"pushing {FLAP_PUSH_PER_STEP * 1e3:g} mm/step 20 deg off the vertical near its free end, tether "
-                     f"load ramping to {np.linalg.norm(FLAP_TETHER_LOAD):g} N/m^3, tool calibration error 0.6 mm")
+                     f"pushing {FLAP_PUSH_PER_STEP * 1e3:g} mm/step {np.rad2deg(FLAP_TILT):g} deg off the vertical near its "
+                     f"free end, tether load ramping to {np.linalg.norm(FLAP_TETHER_LOAD):g} N/m^3, tool calibration "
+                     f"error 0.6 mm")
 
 
 _BUILDERS = {
