@@ -110,6 +110,22 @@ def test_points_on_the_tool_are_leaks_in_sphere_mode_only(scene, tool_mode, drop
     assert with_tool.num_points_rejected - without.num_points_rejected == (on_tool if dropped else 0)
 
 
+def test_the_tool_margin_is_at_most_one_radius_however_large_the_sigma(scene):
+    """A nominal sigma far too large (here 3 sigma = 3.75 radii) must not drop the cloud around
+    the tool: only points within two radii of its centre are leaks onto it."""
+    mesh, sequence = scene
+    step = sequence[0]
+    tool = np.array([*step.points[0], 0.0, 0.0, 0.0, 1.0])
+    config = replace(BASE, tool_radius=4e-3, measurement_sigma=5e-3, estimate_weights=False)
+    distances = np.linalg.norm(step.points - tool[:3], axis=1)
+    within_two_radii = int(np.count_nonzero(distances <= 2 * config.tool_radius))
+    uncapped = config.tool_radius + estimator_module.TOOL_MARGIN_SIGMAS * config.measurement_sigma
+    assert np.count_nonzero(distances <= uncapped) > within_two_radii  # the bound matters here
+    with_tool = SlidingWindowEstimator(mesh, config).update(step.stamp_ns, step.points, step.predicted, tool)
+    without = SlidingWindowEstimator(mesh, config).update(step.stamp_ns, step.points, step.predicted)
+    assert with_tool.num_points_rejected - without.num_points_rejected == within_two_radii
+
+
 def test_a_restart_keeps_applied_settings_and_changes_still_pending(scene):
     """A change made while the estimator restarts (the node's parameter callback against its
     solver thread) reaches the restarted estimator, as do the changes applied before."""
