@@ -126,6 +126,18 @@ def test_the_tool_margin_is_at_most_one_radius_however_large_the_sigma(scene):
     assert with_tool.num_points_rejected - without.num_points_rejected == within_two_radii
 
 
+@pytest.mark.parametrize("measurement_sigma, off_nominal", [(5e-4, False), (5e-2, True), (5e-6, True)])
+def test_a_measurement_sigma_far_from_the_clouds_spread_is_reported(scene, measurement_sigma, off_nominal):
+    """The scene's points spread 0.5 mm about the surface: a measurement_sigma 100x too large or
+    too small (a value in the wrong units) is named in the status, and flagged for the node's
+    diagnostics, at every update; the right one is not."""
+    mesh, sequence = scene
+    results = updates(SlidingWindowEstimator(mesh, replace(BASE, measurement_sigma=measurement_sigma)), sequence)
+    assert [result.noise_off_nominal for result in results] == [off_nominal] * len(results)
+    assert all((estimator_module.NOISE_OFF_NOMINAL in result.message) is off_nominal for result in results)
+    assert all(np.all(np.isfinite(result.positions)) for result in results)
+
+
 def test_a_restart_keeps_applied_settings_and_changes_still_pending(scene):
     """A change made while the estimator restarts (the node's parameter callback against its
     solver thread) reaches the restarted estimator, as do the changes applied before."""

@@ -54,6 +54,17 @@ def test_degraded_gated_unconverged_and_lagging_steps_are_warnings():
                                                          "did not converge")
 
     health = EstimatorHealth(stalled_after_s=2.0)
+    healthy_steps(health, HEALTH_WINDOW // 2)
+    for _ in range(HEALTH_WINDOW // 2):  # half is not most
+        health.record(degraded=False, converged=True, points_used=900, points_set_aside=100, noise_off_nominal=True)
+    assert health.assess(counters, False, 0.0) == (OK, "estimating")
+    health.record(degraded=False, converged=True, points_used=900, points_set_aside=100, noise_off_nominal=True)
+    level, message = health.assess(counters, False, 0.0)
+    assert level == WARN and message.startswith(f"in {HEALTH_WINDOW // 2 + 1} of the last {HEALTH_WINDOW} updates the "
+                                                "cloud spread more than 10x above or below measurement_sigma")
+    assert message.endswith("check it and its units")
+
+    health = EstimatorHealth(stalled_after_s=2.0)
     lagging = healthy_steps(health)
     lagging.queued_clouds, lagging.median_latency_ms = 7, 2400.0
     level, message = health.assess(lagging, False, 0.0)

@@ -165,6 +165,9 @@ GATE_SIGMAS = 5.0
 # leaks or garbage must not widen the gate to its own scale.
 GATE_SPREAD_CAP = 10.0
 TOOL_MARGIN_SIGMAS = 3.0
+# Status text of an update whose cloud spreads more than MeasurementNoise.bounds times above or
+# below the nominal measurement_sigma about the estimate (a value in the wrong units, say).
+NOISE_OFF_NOMINAL = "measurement_sigma far from the clouds' spread: check it and its units"
 _MEDIAN_ABSOLUTE_TO_SIGMA = 1.4826
 # An update whose estimated measurement sigma moved by more than REWEIGHT_CHANGE (relative) is
 # solved again with it, at most MAX_REWEIGHT_ROUNDS times (the first update, from the nominal).
@@ -310,6 +313,7 @@ class StepResult:
     measurement_sigma: float = 0.0   # m, the measurement noise the update was weighted with (estimated)
     simulation_sigma: float = 0.0    # m, the simulation sigma the prior's weight corresponds to (estimated)
     linear_solve_ms: list = field(default_factory=list)  # wall time of each linear solve of the update's LM runs
+    noise_off_nominal: bool = False  # the points' spread is beyond the noise estimate's bounds (NOISE_OFF_NOMINAL)
 
 
 @dataclass
@@ -678,9 +682,14 @@ class SlidingWindowEstimator:
         if pending.back_facing_test_skipped:
             messages.append(f"back-face test skipped: over {MAX_BACK_FACING_SHARE:.0%} of the points lie against faces "
                             "turned away from the viewpoint, which cannot be the camera's")
+        noise_off_nominal = self.config.estimate_weights and self.noise.spread_beyond_bounds
         if self.config.estimate_weights:
             messages.append(f"weights: measurement sigma {1e3 * self.noise.sigma:.3g} mm, "
                             f"simulation sigma {1e3 * self.simulation_sigma:.3g} mm")
+        if noise_off_nominal:
+            messages.append(f"{NOISE_OFF_NOMINAL} (the points spread {1e3 * self.noise.spread:.3g} mm about the "
+                            f"estimate, measurement_sigma is {1e3 * self.noise.nominal_sigma:.3g} mm; the noise "
+                            f"estimate is held within {self.noise.bounds:g}x of it)")
         self._keep_persistent_correction(pending)
         positions = graph.states[pending.key].copy()
         self.last_estimate = positions
@@ -694,6 +703,7 @@ class SlidingWindowEstimator:
             message="; ".join(messages), cost_history=result["cost_history"],
             accepted_steps=accepted, measurement_sigma=self.noise.sigma,
             simulation_sigma=self.simulation_sigma, linear_solve_ms=solve_times,
+            noise_off_nominal=noise_off_nominal,
         )
 
     def _keep_persistent_correction(self, pending: PendingStep) -> None:

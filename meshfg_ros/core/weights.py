@@ -27,9 +27,11 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["PRIOR_NOISE_RATIO", "MeasurementNoise", "WeightError"]
+__all__ = ["NOISE_BOUNDS", "PRIOR_NOISE_RATIO", "MeasurementNoise", "WeightError"]
 
 PRIOR_NOISE_RATIO = 0.1
+# The noise estimate stays within this factor below and above the nominal sigma.
+NOISE_BOUNDS = 10.0
 # sigma of a zero-mean normal from the median of its absolute values.
 _MEDIAN_ABSOLUTE_TO_SIGMA = 1.4826
 
@@ -41,9 +43,12 @@ class WeightError(ValueError):
 class MeasurementNoise:
     """The measurement sigma: starts at the nominal value; each `observe` moves it towards the
     robust spread of an update's residual distances by at most a factor `max_step`, within
-    `bounds` (a factor below and above the nominal value)."""
+    `bounds` (a factor below and above the nominal value). `spread_beyond_bounds` says whether
+    the last observed spread lay outside those bounds: the nominal value is then off by more
+    than `bounds` (the suite's clouds spread 0.8-2.2x their datasheet sigma), as a value given
+    in the wrong units is."""
 
-    def __init__(self, nominal_sigma: float, max_step: float = 4.0, bounds: float = 10.0):
+    def __init__(self, nominal_sigma: float, max_step: float = 4.0, bounds: float = NOISE_BOUNDS):
         for name, value, low in (("nominal_sigma", nominal_sigma, 0.0), ("max_step", max_step, 1.0),
                                  ("bounds", bounds, 1.0)):
             if not (np.isfinite(value) and value > low):
@@ -51,6 +56,8 @@ class MeasurementNoise:
         self.nominal_sigma = float(nominal_sigma)
         self.sigma = self.nominal_sigma
         self.max_step, self.bounds = float(max_step), float(bounds)
+        self.spread = float("nan")  # m, the last observed robust spread
+        self.spread_beyond_bounds = False
 
     def observe(self, distances: np.ndarray) -> float:
         """Move sigma towards 1.4826 median(distances) [m]; returns the relative change (>= 0).
@@ -59,6 +66,8 @@ class MeasurementNoise:
         if distances.size < MIN_POINTS:
             return 0.0
         target = _MEDIAN_ABSOLUTE_TO_SIGMA * float(np.median(distances))
+        self.spread = target
+        self.spread_beyond_bounds = not (self.nominal_sigma / self.bounds <= target <= self.nominal_sigma * self.bounds)
         log_step = np.clip(np.log(max(target, 1e-300) / self.sigma), -np.log(self.max_step), np.log(self.max_step))
         sigma = float(np.clip(self.sigma * np.exp(log_step), self.nominal_sigma / self.bounds,
                               self.nominal_sigma * self.bounds))

@@ -18,6 +18,7 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
 from meshfg_ros.core.input_checks import rejections_in
+from meshfg_ros.core.weights import NOISE_BOUNDS
 from meshfg_ros.io.messages import RclpyMessageFactory, header_msg
 
 _RCLPY = RclpyMessageFactory()
@@ -58,6 +59,7 @@ class EstimatorCounters(_Counters):
     failed_steps: int = 0
     nonfinite_estimates: int = 0
     unconverged_steps: int = 0
+    steps_noise_off_nominal: int = 0    # the cloud spread beyond NOISE_BOUNDS x measurement_sigma about the estimate
     points_used: int = 0
     points_set_aside: int = 0           # on the tool, far, non-finite or gated out
     queued_clouds: int = 0              # waiting for a prediction or the solver
@@ -72,6 +74,7 @@ class EstimatorCounters(_Counters):
         self.steps += 1
         self.degraded_steps += int(result.degraded)
         self.unconverged_steps += int(not result.converged)
+        self.steps_noise_off_nominal += int(result.noise_off_nominal)
         self.points_used += result.num_points
         self.points_set_aside += result.num_points_rejected
         for counter in rejections_in(result.message):
@@ -171,13 +174,14 @@ class EstimatorHealth:
 
     def __init__(self, stalled_after_s: float) -> None:
         self.stalled_after_s = stalled_after_s
-        self._recent: deque[tuple[bool, bool, int, int]] = deque(maxlen=HEALTH_WINDOW)
+        self._recent: deque[tuple[bool, bool, int, int, bool]] = deque(maxlen=HEALTH_WINDOW)
         self._failed_seen = 0
         self._rejected_seen = 0
 
-    def record(self, degraded: bool, converged: bool, points_used: int, points_set_aside: int) -> None:
+    def record(self, degraded: bool, converged: bool, points_used: int, points_set_aside: int,
+               noise_off_nominal: bool = False) -> None:
         """One step's outcome."""
-        self._recent.append((degraded, converged, points_used, points_set_aside))
+        self._recent.append((degraded, converged, points_used, points_set_aside, noise_off_nominal))
 
     def assess(self, counters: EstimatorCounters, waiting_for_mesh: bool, unanswered_s: float,
                last_rejection: str = "") -> tuple[bytes, str]:
@@ -215,6 +219,11 @@ class EstimatorHealth:
             unconverged = sum(not step[1] for step in recent)
             if unconverged > MOSTLY * len(recent):
                 return WARN, f"{unconverged} of the last {len(recent)} updates did not converge"
+            off_nominal = sum(step[4] for step in recent)
+            if off_nominal > MOSTLY * len(recent):
+                return WARN, (f"in {off_nominal} of the last {len(recent)} updates the cloud spread more than "
+                              f"{NOISE_BOUNDS:g}x above or below measurement_sigma about the estimate: check it and "
+                              "its units")
         if new_rejections:
             return WARN, f"{new_rejections} clouds rejected since the last report"
         if counters.steps == 0:

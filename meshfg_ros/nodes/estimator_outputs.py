@@ -98,7 +98,8 @@ class EstimatorOutputs:
             self._latencies.append(1e3 * (done - step.arrival_s))
             self.counters.record_step(result, 1e3 * (start_s - step.arrival_s), 1e3 * (done - publish_start),
                                       list(self._latencies))
-            self.health.record(result.degraded, result.converged, result.num_points, result.num_points_rejected)
+            self.health.record(result.degraded, result.converged, result.num_points, result.num_points_rejected,
+                               result.noise_off_nominal)
             self._unanswered_since_s = None
             self._markers_job = (result.positions, result.position_std, step.points, step.stamp_ns)
         self._wake.trigger()
