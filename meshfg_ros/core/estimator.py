@@ -584,9 +584,9 @@ class SlidingWindowEstimator:
         """Points inside the tool sphere (sphere mode), grown by TOOL_MARGIN_SIGMAS measurement
         sigmas but by at most its radius, are leaks of the segmentation onto the tool (the
         commonest leak): dropped and counted. A point farther than a radius off the sphere is no
-        noisy point of it; without that bound a nominal sigma ten times too large dropped most of
-        the cloud around the tool, and the noise estimate, made from what was left (mostly
-        leaks), came down over seven updates instead of one (docs/design-notes.md, "Weights")."""
+        noisy point of it; without the bound a nominal sigma ten times too large drops most of
+        the cloud around the tool, and the noise estimate, made from what is left (mostly
+        leaks), takes seven updates to come down instead of one (docs/design-notes.md, "Weights")."""
         if points is None or tool_pose is None or self.config.tool_mode != "sphere":
             return points
         centre = np.asarray(tool_pose, dtype=np.float64).reshape(-1)[:3]
