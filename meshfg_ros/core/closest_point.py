@@ -104,10 +104,9 @@ def _project(points, vertices, triangles, index):
     barycentric, region, squared distance). Ericson's tests point by point, in his order (the
     first region whose test passes wins).
 
-    Compiled (numba) rather than numpy: as numpy passes over all points the projection is some
-    40 operations and a gather per corner, whose fixed cost is most of its time on a window's
-    clouds (146 us against 8 us for 600 points, 293 against 23 us for 2,000, on the 2-core AMD
-    EPYC VM)."""
+    Compiled (numba) rather than numpy passes over all points, whose fixed cost was most of
+    their time on a window's clouds: 146 us against 8 us for 600 points, 293 against 23 us for
+    2,000, on the 2-core AMD EPYC VM."""
     count = points.shape[0]
     closest = np.empty((count, 3))
     barycentric = np.empty((count, 3))

@@ -725,14 +725,10 @@ class PointToSurfaceFactor(Factor):
         return {self.keys[0]: matrix}
 
     def cost(self, states):
-        return self.cost_batch([self], states)[0]
+        return self._terms(self.associate(states))[2] if self.num_points else 0.0
 
     def linearize(self, states, hessian=True):
         return self.linearize_batch([self], states, hessian)[0]
-
-    @classmethod
-    def cost_batch(cls, factors, states):
-        return [factor._terms(factor.associate(states))[2] if factor.num_points else 0.0 for factor in factors]
 
     @classmethod
     def linearize_batch(cls, factors, states, hessian=True):
