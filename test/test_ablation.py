@@ -1,4 +1,5 @@
 """Table I ablation on a short deforming-cube run: the paper's ordering of configurations."""
+import copy
 import json
 import subprocess
 import sys
@@ -6,7 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from meshfg_ros.evaluation.ablation import ABLATION_CONFIGURATIONS, VERTEX_SETS, format_table, run_ablation, write_plot
+from meshfg_ros.evaluation.ablation import (ABLATION_CONFIGURATIONS, PAPER_SHEAR_MM, VERTEX_SETS, format_table,
+                                          paper_ranking_holds, run_ablation, write_plot)
 
 MESHFG = Path(sys.executable).with_name("meshfg")
 
@@ -28,11 +30,25 @@ def test_configurations_order_as_in_the_paper(shear_table):
     worst_with_simulation = max(mean["simulation+measurement"], mean["full"])
     assert worst_with_simulation < mean["temporal"] < mean["measurement"]
     assert mean["measurement"] > mean["temporal+measurement"] > worst_with_simulation
+    assert paper_ranking_holds(shear_table)
+    assert "ranking over all vertices (measurement > temporal+measurement > temporal > " \
+           "simulation+measurement and full): holds" in format_table(shear_table)
+
+
+def test_a_ranking_unlike_the_paper_is_reported(shear_table):
+    """temporal+measurement below temporal, as in no row of the paper: the verdict says so."""
+    swapped = copy.deepcopy(shear_table)
+    rows = swapped["configurations"]
+    rows["temporal"]["all"]["mean_mm"] = 2.0 * rows["temporal+measurement"]["all"]["mean_mm"]
+    assert not paper_ranking_holds(swapped)
+    assert "does NOT hold" in format_table(swapped)
 
 
 def test_table_and_json_layout(shear_table, tmp_path):
     text = format_table(shear_table)
     assert all(name in text for name in ABLATION_CONFIGURATIONS)
+    assert "The paper's Table I, shear case (mm)" in text
+    assert all(f"{PAPER_SHEAR_MM[name][0]:>18g}" in text for name in ABLATION_CONFIGURATIONS)
     assert set(shear_table["configurations"]) == set(ABLATION_CONFIGURATIONS)
     for row in shear_table["configurations"].values():
         assert set(row) == set(VERTEX_SETS)

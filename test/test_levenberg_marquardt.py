@@ -80,6 +80,31 @@ def test_curve_fit_matches_scipy():
     assert result.cost_history[0] == result.initial_cost and result.cost_history[-1] == result.final_cost
 
 
+class OverestimatedCurvature:
+    """F(x) = 0.5 (x - 3)^2 with a Hessian four times the true curvature, as Gauss-Newton's
+    is where systematic residuals' second-order terms are dropped: undamped steps reach a
+    quarter of the way to the minimum."""
+
+    def cost(self, x):
+        return 0.5 * float((x[0] - 3.0) ** 2)
+
+    def linearize(self, x):
+        return WindowSystem.single(np.array([[4.0]])), np.array([x[0] - 3.0]), self.cost(x)
+
+
+def test_a_step_that_beats_its_model_is_extrapolated_and_reported():
+    """From 0 the model's step is 0.75 and lowers F by 1.97 against the 1.13 predicted (gain
+    1.75 > EXTRAPOLATION_GAIN): the parabola through F(0), the slope and F(0.75) puts the
+    minimiser at 4 steps, the minimum itself (the damping leaves it a hair short of that, and
+    the cap on the extrapolation at MAX_EXTRAPOLATION steps holds it there). Without the
+    extrapolation each step closes a quarter of the gap: some 75 to reach 1e-9."""
+    result = levenberg_marquardt(OverestimatedCurvature(), np.array([0.0]), TIGHT, CholeskySolver())
+    assert result.extrapolated_steps >= 1
+    assert result.x[0] == pytest.approx(3.0, abs=1e-9)
+    assert result.iterations <= 5
+    assert f"{result.extrapolated_steps} extrapolated" in result.summary()
+
+
 @pytest.mark.parametrize("solver", [CholeskySolver(), PCGSolver(tolerance=1e-12)])
 def test_indefinite_hessian_raises_damping_and_converges(solver):
     problem = Rosenbrock()

@@ -118,6 +118,8 @@ class LevenbergMarquardtResult:
         text = f"{state} ({self.reason}){where}; {self.accepted_steps} of {self.iterations} steps accepted"
         if self.shortened_steps:
             text += f", {self.shortened_steps} shortened to keep element volumes"
+        if self.extrapolated_steps:
+            text += f", {self.extrapolated_steps} extrapolated"
         return text
 
 

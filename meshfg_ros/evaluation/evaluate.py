@@ -55,7 +55,6 @@ from meshfg_ros.topics import (
     SIMULATION_ONLY_MESH_TOPIC,
 )
 
-METHODS = ("factor_graph", "simulation", "measurements")
 METHOD_TITLES = {"factor_graph": "Factor Graph", "simulation": "Simulation", "measurements": "Measurements"}
 REGIONS = ("full", "unobserved", "observable")
 SURFACE_METRICS = ("chamfer", "rmse", "h95")

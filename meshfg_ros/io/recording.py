@@ -41,7 +41,6 @@ from meshfg_ros.io.messages import (
 )
 from meshfg_ros.io.pointcloud import PointCloudError, cloud_record_from_msg, cloud_record_to_msg
 
-Record = MeshState | StatusRecord | PoseRecord | PointCloudRecord
 RecordT = TypeVar("RecordT", MeshState, StatusRecord, PoseRecord, PointCloudRecord)
 
 # Record class -> (ROS message type, record -> rosbags message, message -> record).
