@@ -19,7 +19,10 @@ cases before it left it):
   negative and looped-back stamps, far, off and wrong-frame tool poses). Passes: finite steps,
   for exactly the clouds the stamp and frame rules keep.
 - recovery: one fault injected into a replay of the recording (RECOVERY_FAULTS); the estimate's
-  vertex error against the fault-free replay at the faulty step and after it.
+  vertex error against the fault-free replay at the faulty step and after it, and, where the
+  recording has a ground truth, the factor graph's and the simulation alone's vertex RMSE
+  against it at the last step, with the fault and without (the simulation alone meets the same
+  fault: a tool pose or a stamp; a faulty prediction is the estimator's input only).
 
 Each case runs in a worker process under a time limit: a case that overruns it is a hang (the
 worker is replaced and the campaign goes on). Counts: crashes (an exception outside the
@@ -275,6 +278,7 @@ class _Fixture:
     inputs: Any
     params: dict
     steps: tuple
+    truth: dict | None  # stamp -> ground-truth positions (N, 3), where the recording has them
 
 
 _FIXTURES: dict = {}
@@ -287,8 +291,20 @@ def _fixture(bag) -> _Fixture:
     if bag not in _FIXTURES:
         inputs = load_inputs(bag)
         params = replay_parameters(inputs)
-        _FIXTURES[bag] = _Fixture(bag, inputs, params, tuple(iterate_replay(inputs, params)))
+        _FIXTURES[bag] = _Fixture(bag, inputs, params, tuple(iterate_replay(inputs, params)), _ground_truth(bag))
     return _FIXTURES[bag]
+
+
+def _ground_truth(bag: Path) -> dict | None:
+    """stamp -> ground-truth positions of a synthetic recording, None for one without."""
+    from meshfg_ros.io.messages import MeshState
+    from meshfg_ros.io.recording import RecordingReader
+    from meshfg_ros.topics import GROUND_TRUTH_TOPIC
+
+    with RecordingReader(bag) as reader:
+        if GROUND_TRUTH_TOPIC not in reader.topics:
+            return None
+        return {state.stamp_ns: state.positions for state in reader.records(GROUND_TRUTH_TOPIC, MeshState)}
 
 
 # ------------------------------------------------------------------------------------- update
@@ -690,7 +706,28 @@ class RecoveryCampaign:
         message = steps[faulty_stamp].result.message if faulty_stamp in steps else "no estimate (cloud dropped)"
         if not all(np.isfinite(value).all() for value in errors.values()):
             return Outcome(NAN, fault, "non-finite estimate")
-        return Outcome(OK, fault, message, figures=dict(fault=fault, errors=errors, steps=len(free) - RECOVERY_STEP))
+        return Outcome(OK, fault, message, figures=dict(fault=fault, errors=errors, steps=len(free) - RECOVERY_STEP,
+                                                        against_truth=self._against_truth(steps)))
+
+    def _against_truth(self, steps: dict) -> dict | None:
+        """Vertex RMSE against the ground truth at the last step that has one, estimated in
+        both replays: {"factor_graph" | "simulation": (with the fault, without)}, or None."""
+        truth = self.fixture.truth
+        if truth is None:
+            return None
+        stamps = [step.stamp_ns for step in self.fixture.steps if step.stamp_ns in truth and step.stamp_ns in steps]
+        if not stamps:
+            return None
+        free = next(step for step in self.fixture.steps if step.stamp_ns == stamps[-1])
+        faulty, reference = steps[stamps[-1]], truth[stamps[-1]]
+
+        def rmse(positions) -> float:
+            return float(np.sqrt(np.mean(np.sum((positions - reference) ** 2, axis=1))))
+
+        figures = {"factor_graph": (rmse(faulty.result.positions), rmse(free.result.positions))}
+        if faulty.simulation_only is not None and free.simulation_only is not None:
+            figures["simulation"] = (rmse(faulty.simulation_only), rmse(free.simulation_only))
+        return figures
 
 
 CAMPAIGNS: dict[str, type] = {"decoder": DecoderCampaign, "update": UpdateCampaign, "replay": ReplayCampaign,
@@ -829,6 +866,15 @@ def format_report(results: list[CampaignCounts]) -> str:
                 error = figures["errors"].get(offset)
                 cells.append("no estimate" if error is None else f"{1e3 * error[0]:.3g} / {1e3 * error[1]:.3g}")
             lines.append(f"{figures['fault']:<34}" + "".join(f"{cell:>17}" for cell in cells))
+        judged = [figures for figures in recovery if figures.get("against_truth")]
+        if judged:
+            lines += ["", f"recovery: vertex RMSE against the ground truth at the last step (+{last}), in mm, with the "
+                          "fault / without it",
+                      f"{'fault':<34}{'factor graph':>17}{'simulation alone':>20}"]
+            for figures in judged:
+                cells = [figures["against_truth"].get(method) for method in ("factor_graph", "simulation")]
+                cells = ["n/a" if cell is None else f"{1e3 * cell[0]:.3g} / {1e3 * cell[1]:.3g}" for cell in cells]
+                lines.append(f"{figures['fault']:<34}{cells[0]:>17}{cells[1]:>20}")
     failures = sum(counts.failures for counts in results)
     lines += ["", "goal met: no crash, hang, NaN or wrong answer" if not failures else f"{failures} failure(s)"]
     return "\n".join(lines)

@@ -91,6 +91,17 @@ def test_recovery_from_single_faults():
     assert max(max(error) for error in errors["cloud with 5 points at 1e308"].values()) < 1e-12
     # The backward stamp's cloud is dropped: no estimate for it, then as after a missed cloud.
     assert 0 not in errors["backward stamp"] and errors["backward stamp"][1][0] < 0.2e-3
+    # Against the recording's ground truth at the last step: the simulation alone never sees a
+    # faulty prediction or cloud, and its sticky contact carries a wrong tool pose on (0.88 mm
+    # against 0.48 mm without the fault), which the clouds pull the factor graph back from.
+    truth = {figures["fault"]: figures["against_truth"] for figures in counts.figures}
+    for fault in ("prediction shifted 1 m", "predicted vertex at 1e20", "cloud with 5 points at 1e308"):
+        faulty, free = truth[fault]["simulation"]
+        assert faulty == pytest.approx(free, abs=1e-9)
+    graph_faulty, graph_free = truth["tool pose 3 mm off for one step"]["factor_graph"]
+    simulation_faulty, simulation_free = truth["tool pose 3 mm off for one step"]["simulation"]
+    assert simulation_faulty > simulation_free + 0.2e-3
+    assert graph_faulty < simulation_faulty
 
 
 @pytest.mark.slow
@@ -100,6 +111,7 @@ def test_the_fuzz_command_reports_counts_and_recovery(tmp_path):
                           "--json", str(out)], capture_output=True, text=True, timeout=900)
     assert run.returncode == 0, run.stderr
     assert "goal met" in run.stdout and "prediction shifted 1 m" in run.stdout
+    assert "vertex RMSE against the ground truth at the last step" in run.stdout
     saved = {entry["name"]: entry for entry in json.loads(out.read_text())}
     assert saved["decoder"]["cases"] == 60 and saved["update"]["cases"] == 12 and saved["replay"]["cases"] == 1
     assert len(saved["recovery"]["figures"]) == len(fuzz.RECOVERY_FAULTS)
