@@ -10,6 +10,7 @@ import pytest
 from offline_helpers import BAGS, MESHFG
 
 from meshfg_ros.core.estimator import EstimatorConfig
+from meshfg_ros.evaluation import accuracy
 from meshfg_ros.core.scheduler import OfflinePipeline, run_offline
 from meshfg_ros.parameters import estimator_config, load_parameters, simulator_config
 from meshfg_ros.synthetic.scenarios import generate
@@ -178,3 +179,17 @@ def test_the_command_line_names_the_suite_and_the_scenarios_it_can_synthesise():
     synth = next(action for action in cli.build_parser()._subparsers._group_actions[0].choices["synth"]._actions
                  if action.dest == "scenario")
     assert all(name in synth.help for name in SCENARIOS)
+
+
+def test_the_summary_judges_ratios_just_above_one_visibly():
+    """A worst ratio of 1.004 misses the target <= 1; the summary line must not print it as 1.00."""
+    def row(scene, all_final, unobserved_final):
+        return {"scene": scene, "steps": 10, "converged_share": 1.0, "ratio_all_final": all_final,
+                "ratio_unobserved_external_final": unobserved_final, "ratio_all_mean": 0.9,
+                "ratio_unobserved_external_mean": 0.9}
+
+    summary = accuracy.summary([row("a", 0.5, 0.6), row("b", 1.004, 0.99)])
+    assert summary["worst_ratio"] == pytest.approx(1.004) and not summary["met"]["worst_ratio"]
+    line = accuracy.format_table({"scenes": [], "summary": summary}).splitlines()[-1]
+    assert "worst ratio 1.004 (b, all) (target <= 1, NOT met)" in line
+    assert "median FG/sim ratio: all 0.752" in line

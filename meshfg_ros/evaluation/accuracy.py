@@ -201,6 +201,12 @@ def _x(value) -> str:
     return "-" if value is None else f"{value:.2f}"
 
 
+def _x3(value) -> str:
+    """A ratio the summary line judges against a target: three decimals, so that a ratio just
+    above 1 does not read as 1.00 beside "NOT met"."""
+    return "-" if value is None else f"{value:.3f}"
+
+
 def format_table(result: dict) -> str:
     """Markdown table of the scenes and the summary line against the targets."""
     lines = [
@@ -239,12 +245,12 @@ def _worst(summary_: dict, with_seed: bool, key: str = "worst") -> str:
 def _summary_line(s: dict, with_seed: bool = False) -> str:
     met = s["met"]
     return (
-        f"median FG/sim ratio: all {_x(s['median_ratio_all'])} (target <= {TARGETS['median_ratio_all']}, "
-        f"{'met' if met['median_ratio_all'] else 'NOT met'}), unobserved external {_x(s['median_ratio_unobserved'])} "
+        f"median FG/sim ratio: all {_x3(s['median_ratio_all'])} (target <= {TARGETS['median_ratio_all']}, "
+        f"{'met' if met['median_ratio_all'] else 'NOT met'}), unobserved external {_x3(s['median_ratio_unobserved'])} "
         f"(target <= {TARGETS['median_ratio_unobserved']}, {'met' if met['median_ratio_unobserved'] else 'NOT met'}); "
-        f"worst ratio {_x(s['worst_ratio'])}{_worst(s, with_seed)} "
+        f"worst ratio {_x3(s['worst_ratio'])}{_worst(s, with_seed)} "
         f"(target <= 1, {'met' if met['worst_ratio'] else 'NOT met'}), over the steps "
-        f"{_x(s['worst_ratio_over_steps'])}{_worst(s, with_seed, 'worst_over_steps')} "
+        f"{_x3(s['worst_ratio_over_steps'])}{_worst(s, with_seed, 'worst_over_steps')} "
         f"(target <= 1, {'met' if met['worst_ratio_over_steps'] else 'NOT met'}); "
         f"LM converged in {100 * s['converged_share']:.0f} % of updates (target >= 95 %, "
         f"{'met' if met['converged_share'] else 'NOT met'})")
