@@ -164,7 +164,7 @@ def test_a_scene_lost_step_after_step_fails_the_target_over_the_steps_whatever_i
     assert result["worst_over_steps"] == {"scene": "lost", "seed": None, "vertices": "all"}
     rows[1] = row("lost", 0.94, 0.99)
     assert summary(rows)["met"]["worst_ratio_over_steps"]
-    assert "over the steps 1.09 (lost, all) (target <= 1, NOT met)" in format_table(
+    assert "over the steps 1.090 (lost, all) (target <= 1, NOT met)" in format_table(
         {"scenes": [], "summary": result})
 
 
