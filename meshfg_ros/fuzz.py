@@ -297,14 +297,12 @@ def _fixture(bag) -> _Fixture:
 
 def _ground_truth(bag: Path) -> dict | None:
     """stamp -> ground-truth positions of a synthetic recording, None for one without."""
-    from meshfg_ros.io.messages import MeshState
+    from meshfg_ros.evaluation.evaluate import mesh_series
     from meshfg_ros.io.recording import RecordingReader
     from meshfg_ros.topics import GROUND_TRUTH_TOPIC
 
     with RecordingReader(bag) as reader:
-        if GROUND_TRUTH_TOPIC not in reader.topics:
-            return None
-        return {state.stamp_ns: state.positions for state in reader.records(GROUND_TRUTH_TOPIC, MeshState)}
+        return mesh_series(reader, GROUND_TRUTH_TOPIC)[1] if GROUND_TRUTH_TOPIC in reader.topics else None
 
 
 # ------------------------------------------------------------------------------------- update
@@ -712,21 +710,19 @@ class RecoveryCampaign:
     def _against_truth(self, steps: dict) -> dict | None:
         """Vertex RMSE against the ground truth at the last step that has one, estimated in
         both replays: {"factor_graph" | "simulation": (with the fault, without)}, or None."""
+        from meshfg_ros.evaluation.metrics import vertex_rmse
+
         truth = self.fixture.truth
-        if truth is None:
+        free = None if truth is None else next(
+            (step for step in reversed(self.fixture.steps) if step.stamp_ns in truth and step.stamp_ns in steps), None)
+        if free is None:
             return None
-        stamps = [step.stamp_ns for step in self.fixture.steps if step.stamp_ns in truth and step.stamp_ns in steps]
-        if not stamps:
-            return None
-        free = next(step for step in self.fixture.steps if step.stamp_ns == stamps[-1])
-        faulty, reference = steps[stamps[-1]], truth[stamps[-1]]
-
-        def rmse(positions) -> float:
-            return float(np.sqrt(np.mean(np.sum((positions - reference) ** 2, axis=1))))
-
-        figures = {"factor_graph": (rmse(faulty.result.positions), rmse(free.result.positions))}
+        faulty, reference = steps[free.stamp_ns], truth[free.stamp_ns]
+        figures = {"factor_graph": (vertex_rmse(faulty.result.positions, reference),
+                                    vertex_rmse(free.result.positions, reference))}
         if faulty.simulation_only is not None and free.simulation_only is not None:
-            figures["simulation"] = (rmse(faulty.simulation_only), rmse(free.simulation_only))
+            figures["simulation"] = (vertex_rmse(faulty.simulation_only, reference),
+                                     vertex_rmse(free.simulation_only, reference))
         return figures
 
 

@@ -45,4 +45,3 @@ def test_a_spread_beyond_the_bounds_is_flagged():
     assert noise.spread_beyond_bounds and noise.spread == pytest.approx(0.05e-3, rel=0.1)
     noise.observe(half_normal(15e-3, 1000))  # fifteen times
     assert noise.spread_beyond_bounds
-

@@ -487,10 +487,10 @@ def _face_terms(vertices, triangles, triangle, barycentric, weight, face):
     terms = np.empty((index.size, 81))
     upper = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])
     for h in range(index.size):
-        a, b, c = vertices[triangles[index[h], 0]], vertices[triangles[index[h], 1]], vertices[triangles[index[h], 2]]
+        t = index[h]
+        a, b, c = vertices[triangles[t, 0]], vertices[triangles[t, 1]], vertices[triangles[t, 2]]
         normal = cross3(b - a, c - a)
         normal /= np.sqrt(dot3(normal, normal))
-        t = index[h]
         for i in range(3):
             for l in range(3):
                 moment = moments[t, upper[i, l]]

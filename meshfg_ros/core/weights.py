@@ -57,7 +57,12 @@ class MeasurementNoise:
         self.sigma = self.nominal_sigma
         self.max_step, self.bounds = float(max_step), float(bounds)
         self.spread = float("nan")  # m, the last observed robust spread
-        self.spread_beyond_bounds = False
+
+    @property
+    def spread_beyond_bounds(self) -> bool:
+        """Whether the last observed spread lay outside the bounds about the nominal sigma."""
+        low, high = self.nominal_sigma / self.bounds, self.nominal_sigma * self.bounds
+        return bool(np.isfinite(self.spread) and not low <= self.spread <= high)
 
     def observe(self, distances: np.ndarray) -> float:
         """Move sigma towards 1.4826 median(distances) [m]; returns the relative change (>= 0).
@@ -67,7 +72,6 @@ class MeasurementNoise:
             return 0.0
         target = _MEDIAN_ABSOLUTE_TO_SIGMA * float(np.median(distances))
         self.spread = target
-        self.spread_beyond_bounds = not (self.nominal_sigma / self.bounds <= target <= self.nominal_sigma * self.bounds)
         log_step = np.clip(np.log(max(target, 1e-300) / self.sigma), -np.log(self.max_step), np.log(self.max_step))
         sigma = float(np.clip(self.sigma * np.exp(log_step), self.nominal_sigma / self.bounds,
                               self.nominal_sigma * self.bounds))

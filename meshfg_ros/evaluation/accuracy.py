@@ -3,9 +3,10 @@ scenes nobody tuned the estimator on, with the default settings.
 
 Eight scenes: the three bundled recordings (bags/: cube-shear-spd, cao-push, liver-push, whose
 truth is the package's own simulator with other constants) and the five mismatch scenes of
-meshfg_ros.synthetic (slab-inclusion, dome-tilted, liver-gravity, kidney-drag, flap-bend, whose truth is a
-heterogeneous compressible neo-Hookean FEM at equilibrium with stiff inclusions, unmodelled
-loads, sticky contact, tool calibration errors, noisy cameras and 10-25 % segmentation leaks).
+meshfg_ros.synthetic (slab-inclusion, dome-tilted, liver-gravity, kidney-drag, flap-bend, whose
+truth is a heterogeneous compressible neo-Hookean FEM at equilibrium with stiff inclusions,
+unmodelled loads, sticky contact, tool calibration errors, noisy cameras and 10-25 %
+segmentation leaks).
 Each scene is replayed exactly as `meshfg replay` does, with only what a user knows of it: the
 recording's nominal model (E, nu, tool radius) and the sensor's nominal sigma. Per scene:
 vertex RMSE of the factor graph and of the simulation alone (all free vertices, unobserved
@@ -197,14 +198,10 @@ def _mm(value) -> str:
     return "-" if value is None else f"{1e3 * value:.3f}"
 
 
-def _x(value) -> str:
-    return "-" if value is None else f"{value:.2f}"
-
-
-def _x3(value) -> str:
-    """A ratio the summary line judges against a target: three decimals, so that a ratio just
-    above 1 does not read as 1.00 beside "NOT met"."""
-    return "-" if value is None else f"{value:.3f}"
+def _x(value, digits: int = 2) -> str:
+    """A ratio; the summary line, which judges ratios against targets, gives three digits, so
+    that a ratio just above 1 does not read as 1.00 beside "NOT met"."""
+    return "-" if value is None else f"{value:.{digits}f}"
 
 
 def format_table(result: dict) -> str:
@@ -245,12 +242,12 @@ def _worst(summary_: dict, with_seed: bool, key: str = "worst") -> str:
 def _summary_line(s: dict, with_seed: bool = False) -> str:
     met = s["met"]
     return (
-        f"median FG/sim ratio: all {_x3(s['median_ratio_all'])} (target <= {TARGETS['median_ratio_all']}, "
-        f"{'met' if met['median_ratio_all'] else 'NOT met'}), unobserved external {_x3(s['median_ratio_unobserved'])} "
+        f"median FG/sim ratio: all {_x(s['median_ratio_all'], 3)} (target <= {TARGETS['median_ratio_all']}, "
+        f"{'met' if met['median_ratio_all'] else 'NOT met'}), unobserved external {_x(s['median_ratio_unobserved'], 3)} "
         f"(target <= {TARGETS['median_ratio_unobserved']}, {'met' if met['median_ratio_unobserved'] else 'NOT met'}); "
-        f"worst ratio {_x3(s['worst_ratio'])}{_worst(s, with_seed)} "
+        f"worst ratio {_x(s['worst_ratio'], 3)}{_worst(s, with_seed)} "
         f"(target <= 1, {'met' if met['worst_ratio'] else 'NOT met'}), over the steps "
-        f"{_x3(s['worst_ratio_over_steps'])}{_worst(s, with_seed, 'worst_over_steps')} "
+        f"{_x(s['worst_ratio_over_steps'], 3)}{_worst(s, with_seed, 'worst_over_steps')} "
         f"(target <= 1, {'met' if met['worst_ratio_over_steps'] else 'NOT met'}); "
         f"LM converged in {100 * s['converged_share']:.0f} % of updates (target >= 95 %, "
         f"{'met' if met['converged_share'] else 'NOT met'})")

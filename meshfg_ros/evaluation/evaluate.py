@@ -106,7 +106,8 @@ class EvaluationInputs:
         return a.tetrahedra.shape == b.tetrahedra.shape and bool(np.array_equal(a.tetrahedra, b.tetrahedra))
 
 
-def _mesh_series(reader: RecordingReader, topic: str) -> tuple[MeshState, dict[int, np.ndarray]]:
+def mesh_series(reader: RecordingReader, topic: str) -> tuple[MeshState, dict[int, np.ndarray]]:
+    """The first mesh of a topic and stamp -> positions of every mesh on it."""
     states = list(reader.records(topic, MeshState))
     if not states:
         raise EvaluationError(f"{reader.path}: topic {topic} holds no meshes")
@@ -116,19 +117,19 @@ def _mesh_series(reader: RecordingReader, topic: str) -> tuple[MeshState, dict[i
 def load_inputs(replay_path: str | Path, truth_path: str | Path) -> EvaluationInputs:
     """Read the replay output and the ground truth; check that they belong together."""
     with RecordingReader(truth_path) as truth_reader:
-        truth_mesh, truth = _mesh_series(truth_reader, GROUND_TRUTH_TOPIC)
+        truth_mesh, truth = mesh_series(truth_reader, GROUND_TRUTH_TOPIC)
         metadata = read_metadata(truth_reader)
         camera_center = None
         if CAMERA_POSE_TOPIC in truth_reader.topics:
             camera_center = next(iter(truth_reader.records(CAMERA_POSE_TOPIC, PoseRecord))).pose[:3].copy()
     with RecordingReader(replay_path) as replay_reader:
-        estimate_mesh, estimated = _mesh_series(replay_reader, ESTIMATED_MESH_TOPIC)
+        estimate_mesh, estimated = mesh_series(replay_reader, ESTIMATED_MESH_TOPIC)
         estimates = {"factor_graph": estimated}
         if SIMULATION_ONLY_MESH_TOPIC in replay_reader.topics:
-            estimates["simulation"] = _mesh_series(replay_reader, SIMULATION_ONLY_MESH_TOPIC)[1]
+            estimates["simulation"] = mesh_series(replay_reader, SIMULATION_ONLY_MESH_TOPIC)[1]
         predictions = {}
         if PREDICTED_MESH_TOPIC in replay_reader.topics:
-            predictions = _mesh_series(replay_reader, PREDICTED_MESH_TOPIC)[1]
+            predictions = mesh_series(replay_reader, PREDICTED_MESH_TOPIC)[1]
         clouds = {cloud.stamp_ns: cloud.points for cloud in replay_reader.records(POINTS_TOPIC, PointCloudRecord)}
     stamps = tuple(sorted(
         stamp for stamp in set(estimated) & set(truth) & set(clouds)

@@ -629,8 +629,9 @@ def _flap_bend(seed: int, steps: int) -> Scenario:
     """A tissue flap attached at one end, bent down near its free end by an oblique push.
 
     Unmodelled: a 4x stiffer vessel along the flap, tissue 1.7x stiffer than the nominal (2x in
-    the volume mean, with the vessel), near incompressibility, a tether load ramping up (the flap's connections pulling it down and
-    sideways), adhesive contact, a 0.6 mm tool calibration error. Unlike the other scenes the
+    the volume mean, with the vessel), near incompressibility, a tether load ramping up (the
+    flap's connections pulling it down and sideways), adhesive contact, a 0.6 mm tool
+    calibration error. Unlike the other scenes the
     flap bends as a plate, with large rotations, rather than being indented. Camera above the
     flap, to the side of the vessel; the tool and its shaft occlude it.
     """
