@@ -49,7 +49,6 @@ from meshfg_ros.core.input_checks import (
     stamp_order,
 )
 from meshfg_ros.core.body_load import BodyLoadEstimate
-from meshfg_ros.core.poisson_ratio import PoissonRatioEstimate
 from meshfg_ros.core.mesh import TetMesh
 from meshfg_ros.core.patient_mesh import PatientMeshError, check_against_clouds
 from meshfg_ros.core.pose_history import InvalidPoseError, as_pose
@@ -123,8 +122,6 @@ class PredictionScheduler:
         self.simulator = ElasticSimulator(mesh, model, grasped_vertices)
         self.body_load = (BodyLoadEstimate(self.simulator)
                           if model.estimate_body_load and self.simulator.movable_vertices.size else None)
-        self.poisson_ratio = (PoissonRatioEstimate(self.simulator)
-                              if model.estimate_poisson_ratio and self.simulator.movable_vertices.size else None)
         self.timeouts = timeouts
         self._jump_ns = _jump_ns(clock_jump_threshold)
         self._poses = ToolPoseBuffer(extrapolation_horizon_s=tool_pose_extrapolation)
@@ -146,8 +143,6 @@ class PredictionScheduler:
         self._predicted: Prediction | None = None  # the last prediction, for its estimate's correction
         if self.body_load is not None:
             self.body_load.reset()
-        if self.poisson_ratio is not None:
-            self.poisson_ratio.reset()
 
     @property
     def state_stamp_ns(self) -> int | None:
@@ -207,18 +202,10 @@ class PredictionScheduler:
                              "non-finite positions or positions far outside the scene: ignored")
         if self._state_ns is None or stamp_ns > self._state_ns:
             self._state, self._state_ns = positions, stamp_ns
-            if not degraded and self._predicted is not None and self._predicted.stamp_ns == stamp_ns:
-                self._learn(self._predicted.positions, positions)
+            if (self.body_load is not None and not degraded and self._predicted is not None
+                    and self._predicted.stamp_ns == stamp_ns):
+                self.body_load.update(self._predicted.positions, positions)
         return None
-
-    def _learn(self, predicted: np.ndarray, estimate: np.ndarray) -> None:
-        """What the model misses, from an estimate's correction of its prediction: the body
-        load, then the Poisson ratio from what the load's increment leaves."""
-        correction = estimate - predicted
-        if self.body_load is not None:
-            correction = correction - self.body_load.response(self.body_load.update(predicted, estimate))
-        if self.poisson_ratio is not None:
-            self.poisson_ratio.update(predicted, correction)
 
     def poll(self, now_s: float = 0.0, flush: bool = False) -> list[Prediction]:
         """Answer the requests that are ready, oldest first (module docstring)."""
@@ -269,8 +256,6 @@ class PredictionScheduler:
         self.simulator.reset(pose)
         if self.body_load is not None:
             self.body_load.reset()
-        if self.poisson_ratio is not None:
-            self.poisson_ratio.reset()
 
     def _previous_settled(self) -> bool:
         """Whether the state to predict from is known: the previous request's estimate has come,
@@ -501,9 +486,9 @@ class OfflinePipeline:
                  alter_prediction: Callable[[int, np.ndarray], np.ndarray] | None = None) -> None:
         shared = dict(clock_jump_threshold=clock_jump_threshold, tool_pose_extrapolation=tool_pose_extrapolation)
         self.simulation = PredictionScheduler(mesh, model, grasped_vertices, **shared)
-        # The simulation alone learns nothing: it never sees an estimate.
-        self.open_loop = PredictionScheduler(
-            mesh, replace(model, estimate_body_load=False, estimate_poisson_ratio=False), grasped_vertices, **shared)
+        # The simulation alone learns no load: it never sees an estimate.
+        self.open_loop = PredictionScheduler(mesh, replace(model, estimate_body_load=False), grasped_vertices,
+                                             **shared)
         self.estimation = EstimationScheduler(mesh, config, **shared)
         self._alter_prediction = alter_prediction
         self._open_loop_states: dict[int, np.ndarray] = {}

@@ -35,7 +35,7 @@ vectorised batch. Runs are bit-reproducible (fixed order, no threads, no randomn
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
@@ -155,9 +155,6 @@ class SimulatorConfig:
         True, "Estimate a uniform body load the tissue model does not know (a change of gravity, a pull) "
               "from each estimate's correction of its prediction, and apply it in the next predictions "
               "(core/body_load.py).")
-    estimate_poisson_ratio: bool = setting(
-        True, "Raise the model's Poisson ratio online where the estimates' corrections show a less "
-              "compressible tissue (poisson_ratio is then the lower bound; core/poisson_ratio.py).")
 
     def __post_init__(self):
         check_settings(self, SimulatorConfigError)
@@ -739,27 +736,6 @@ class ElasticSimulator:
             raise SimulatorInputError(f"body_acceleration must be 3 finite numbers, got {acceleration!r}")
         self._body_acceleration = acceleration.copy()
         self.solver.set_gravity(self._body.gravity + acceleration)
-
-    @property
-    def poisson_ratio(self) -> float:
-        """The Poisson ratio the simulator uses (config.poisson_ratio, or what
-        core/poisson_ratio.py set)."""
-        return float(self.config.poisson_ratio)
-
-    @poisson_ratio.setter
-    def poisson_ratio(self, poisson_ratio: float) -> None:
-        """Use another Poisson ratio from the next prediction on: the solver is rebuilt (its rest
-        factor and element data depend on it); the load, the tool's poses and the stuck vertices
-        are kept."""
-        self.config = replace(self.config, poisson_ratio=float(poisson_ratio))
-        self._body = replace(self._body, config=self.config)
-        self.solver = SOLVER_STRATEGIES[self.config.solver](self._body)
-        self.solver.set_gravity(self._body.gravity + self._body_acceleration)
-
-    @property
-    def stuck_vertices(self) -> np.ndarray:
-        """Vertices stuck to the tool at the end of the last prediction (stick contact)."""
-        return self._stuck.copy()
 
     def rest_response(self, forces: np.ndarray) -> np.ndarray:
         """Displacements K0^-1 f of the movable dofs under forces (3 n,) or (3 n, k) on them, the
