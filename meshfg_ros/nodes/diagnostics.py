@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import asdict, dataclass
+from typing import NamedTuple
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -169,19 +170,27 @@ LAG_CLOUDS = 3            # queued clouds beyond which the estimator lags its in
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
 
 
+class _StepOutcome(NamedTuple):
+    degraded: bool
+    converged: bool
+    points_used: int
+    points_set_aside: int
+    noise_off_nominal: bool
+
+
 class EstimatorHealth:
     """The estimator node's level and reason from its recent steps and counters (module docstring)."""
 
     def __init__(self, stalled_after_s: float) -> None:
         self.stalled_after_s = stalled_after_s
-        self._recent: deque[tuple[bool, bool, int, int, bool]] = deque(maxlen=HEALTH_WINDOW)
+        self._recent: deque[_StepOutcome] = deque(maxlen=HEALTH_WINDOW)
         self._failed_seen = 0
         self._rejected_seen = 0
 
     def record(self, degraded: bool, converged: bool, points_used: int, points_set_aside: int,
                noise_off_nominal: bool = False) -> None:
         """One step's outcome."""
-        self._recent.append((degraded, converged, points_used, points_set_aside, noise_off_nominal))
+        self._recent.append(_StepOutcome(degraded, converged, points_used, points_set_aside, noise_off_nominal))
 
     def assess(self, counters: EstimatorCounters, waiting_for_mesh: bool, unanswered_s: float,
                last_rejection: str = "") -> tuple[bytes, str]:
@@ -208,18 +217,18 @@ class EstimatorHealth:
                           f"{counters.median_latency_ms:.0f} ms); lower the cloud rate or max_iterations")
         recent = list(self._recent)
         if recent:
-            degraded = sum(step[0] for step in recent)
+            degraded = sum(step.degraded for step in recent)
             if degraded > MOSTLY * len(recent):
                 return WARN, (f"{degraded} of the last {len(recent)} steps ran without a simulator prediction: "
                               "check tool_pose stamps and frames and the simulation node")
-            used, set_aside = sum(step[2] for step in recent), sum(step[3] for step in recent)
+            used, set_aside = sum(step.points_used for step in recent), sum(step.points_set_aside for step in recent)
             if set_aside > MOSTLY * (used + set_aside):
                 return WARN, (f"{set_aside} of {used + set_aside} points of the last {len(recent)} clouds were set "
                               "aside (tool, gate, far): check units, frames and the mesh registration")
-            unconverged = sum(not step[1] for step in recent)
+            unconverged = sum(not step.converged for step in recent)
             if unconverged > MOSTLY * len(recent):
                 return WARN, f"{unconverged} of the last {len(recent)} updates did not converge"
-            off_nominal = sum(step[4] for step in recent)
+            off_nominal = sum(step.noise_off_nominal for step in recent)
             if off_nominal > MOSTLY * len(recent):
                 return WARN, (f"in {off_nominal} of the last {len(recent)} updates the cloud spread more than "
                               f"{NOISE_BOUNDS:g}x above or below measurement_sigma about the estimate: check it and "
