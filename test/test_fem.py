@@ -116,6 +116,17 @@ def test_linear_stiffness_matches_scikit_fem_on_liver(liver_arrays):
     assert relative_difference(model.stiffness(kind="linear"), skfem_stiffness(vertices, tets)) < 1e-9
 
 
+@pytest.mark.parametrize("poisson_ratio", [0.0, 0.3, 0.49])
+def test_linear_stiffness_parts_give_the_stiffness_at_any_lame_parameters(cube_model, poisson_ratio):
+    shear, volumetric = cube_model.linear_stiffness_parts()
+    other = ElasticModel(cube_model.rest_vertices, cube_model.tetrahedra, 5e3, poisson_ratio)
+    expected = other.stiffness(kind="linear")
+    for part in (shear, volumetric):  # K's pattern: K's values combine entry by entry
+        assert np.array_equal(part.indptr, expected.indptr) and np.array_equal(part.indices, expected.indices)
+    combined = other.mu * shear.data + other.lam * volumetric.data
+    np.testing.assert_allclose(combined, expected.data, rtol=0, atol=1e-12 * np.abs(expected.data).max())
+
+
 def test_linear_stiffness_is_symmetric_with_rigid_null_space(cube_model):
     stiffness = cube_model.stiffness(kind="linear")
     assert abs(stiffness - stiffness.T).max() == 0.0  # assembled from upper triangles

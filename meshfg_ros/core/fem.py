@@ -595,6 +595,16 @@ class ElasticModel:
         upper_flat = (3 * a + i) * 12 + 3 * b + k
         return self._csr(self._scatter_upper(np.take(matrices.reshape(-1, 144), upper_flat, axis=1).T))
 
+    def linear_stiffness_parts(self) -> tuple[scipy.sparse.csr_matrix, scipy.sparse.csr_matrix]:
+        """(A, B) on K's pattern with the linear stiffness K = mu A + lambda B: its shear and
+        volumetric parts, for K at other Lame parameters without a new model (whose set-up is
+        the costly part: 2 s at 10,000 vertices, against 2 ms for K)."""
+        scaled = self._gradients_em * self.volumes
+        gram = self._grams_em[4]
+        shear = _upper_entries(self._element_pairs, self.volumes * gram, (), (scaled, self._gradients_em))
+        volumetric = _upper_entries(self._element_pairs, np.zeros_like(gram), [(scaled, self._gradients_em)])
+        return self._csr(self._scatter_upper(shear)), self._csr(self._scatter_upper(volumetric))
+
     def stiffness(self, current=None, kind: str = "corotational", spd_projection: bool = False):
         """Global stiffness K (3N, 3N) CSR of `kind` at `current` (None: rest state); see module doc."""
         _check_kind(kind)
