@@ -178,7 +178,7 @@ def test_the_parameters_are_the_setting_fields_of_the_configurations():
         "youngs_modulus": "youngs_modulus", "poisson_ratio": "poisson_ratio", "density": "density",
         "tool_radius": "tool_radius", "tool_mode": "tool_mode", "tool_contact": "tool_contact",
         "substeps": "simulator_substeps", "solver_iterations": "simulator_iterations", "solver": "simulator",
-        "estimate_body_load": "estimate_body_load"}
+        "estimate_body_load": "estimate_body_load", "estimate_poisson_ratio": "estimate_poisson_ratio"}
     # Internal fields are no parameters; every estimator setting is one (no knob the nodes cannot set).
     internal = {item.name for item in fields(SimulatorConfig)} - set(parameter_names(SimulatorConfig))
     assert internal == {"damping", "gravity", "deterministic"}

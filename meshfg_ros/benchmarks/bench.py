@@ -1,8 +1,9 @@
 """`meshfg bench`: speed figures measured in one run, with baselines measured in the same run.
 
 Sections (each can be skipped):
-- core: time to assemble K (linear, corotational) and one simulator step, on the liver, the
-  airway phantom and a ~10,000-vertex box;
+- core: time to assemble K (linear, corotational), one simulator step and the Poisson ratio's
+  update after an estimate (core/poisson_ratio.py), on the liver, the airway phantom and a
+  ~10,000-vertex box;
 - estimator: per-update latency (median, p95), LM iterations and one linear solve at paper
   scale (~500 vertices, 2,000 points, W=10) and organ scale (~10,000 vertices, 20,000
   points, W=5), against the targets (p95 <= 30 ms and <= 1 s);
@@ -15,6 +16,7 @@ several runs (`--runs`), in how many each target held (`tally`).
 """
 from __future__ import annotations
 
+import itertools
 import json
 import sys
 import time
@@ -54,6 +56,7 @@ def bench_core(repeats: int = 5, progress: bool = True) -> dict:
     from meshfg_ros.core.fem import ElasticModel
     from meshfg_ros.synthetic.meshing import airway_phantom, box_mesh
     from meshfg_ros.synthetic.scenarios import liver_mesh, pose
+    from meshfg_ros.core.poisson_ratio import PoissonRatioEstimate
     from meshfg_ros.core.simulator import ElasticSimulator, SimulatorConfig
 
     box = box_mesh(10_000, (0.1, 0.1, 0.1))
@@ -78,10 +81,20 @@ def bench_core(repeats: int = 5, progress: bool = True) -> dict:
             simulator.reset(pose(start))
             return simulator.predict(mesh.vertices, target, 1.0)
 
-        step_ms, _ = _median_time(one_step, max(1, repeats // 2) if name == "box_10k" else repeats)
+        step_repeats = max(1, repeats // 2) if name == "box_10k" else repeats
+        step_ms, predicted = _median_time(one_step, step_repeats)
+        poisson_ratio = PoissonRatioEstimate(simulator)
+        poisson_ratio.sensitivity(predicted)  # builds the stiffness parts, once per simulator
+        ratios = itertools.cycle((0.46, 0.47))
+
+        def learn_poisson_ratio():  # the sensitivity and a new ratio (moduli, K0 refactored), after each estimate
+            poisson_ratio.sensitivity(predicted)
+            simulator.poisson_ratio = next(ratios)
+
+        learn_ms, _ = _median_time(learn_poisson_ratio, step_repeats)
         out[name] = {"vertices": mesh.vertex_count, "tetrahedra": mesh.tetrahedron_count,
                      "assemble_linear_ms": linear_ms, "assemble_corotational_ms": corot_ms,
-                     "simulator_step_ms": step_ms}
+                     "simulator_step_ms": step_ms, "poisson_ratio_update_ms": learn_ms}
     return out
 
 
@@ -272,13 +285,14 @@ def format_report(result: dict) -> str:
         lines.append(f"CPU: {on['cpu']}; sparse Cholesky BLAS: {on['blas']}, {on['blas_threads']} thread(s) "
                      f"({on['blas_detail']})")
     if "core" in result:
-        lines.append("Core (ms): mesh, vertices, K linear, K corotational, one simulator step")
+        lines.append("Core (ms): mesh, vertices, K linear, K corotational, one simulator step, "
+                     "learning the Poisson ratio from an estimate")
         for name, row in result["core"].items():
             if name == "machine":
                 continue
             lines.append(f"  {name:<9}{row['vertices']:>7}{row['assemble_linear_ms']:>10.2f}"
                          f"{row['assemble_corotational_ms']:>10.2f}{row['simulator_step_ms']:>10.1f}"
-                         f"{_on(result['core'])}")
+                         f"{row['poisson_ratio_update_ms']:>10.1f}{_on(result['core'])}")
     for key in ("paper_scale", "organ_scale"):
         if key in result:
             row, target = result[key], TARGETS_MS[key]

@@ -37,19 +37,32 @@ class BodyLoadEstimate:
         self.simulator = simulator
         self._movable = simulator.movable_vertices
         self._mass = simulator.vertex_mass[self._movable]
-        unit_loads = np.kron(self._mass[:, None], np.eye(3))  # (3 n, 3): F, one column per axis
-        self._compliance = unit_loads.T @ simulator.rest_response(unit_loads)  # F^T K0^-1 F
+        self._unit_loads = np.kron(self._mass[:, None], np.eye(3))  # (3 n, 3): F, one column per axis
+        self._compliance_at: float | None = None  # the Poisson ratio F^T K0^-1 F was computed at
 
     @property
     def acceleration(self) -> np.ndarray:
         """The load applied now, as a uniform acceleration (3,) in m/s^2."""
         return self.simulator.body_acceleration
 
+    def _compliance(self) -> np.ndarray:
+        """F^T K0^-1 F at the simulator's Poisson ratio (core/poisson_ratio.py may change it)."""
+        if self._compliance_at != self.simulator.poisson_ratio:
+            self._compliance_matrix = self._unit_loads.T @ self.simulator.rest_response(self._unit_loads)
+            self._compliance_at = self.simulator.poisson_ratio
+        return self._compliance_matrix
+
+    def response(self, acceleration: np.ndarray) -> np.ndarray:
+        """The small-strain displacement (N, 3) of the uniform load `acceleration` (3,)."""
+        displacement = np.zeros((self.simulator.rest_mesh.vertex_count, 3))
+        displacement[self._movable] = self.simulator.rest_response(self._unit_loads @ acceleration).reshape(-1, 3)
+        return displacement
+
     def update(self, predicted: np.ndarray, estimate: np.ndarray) -> np.ndarray:
         """Add the load that explains the correction `estimate` - `predicted` (both (N, 3), the
         estimate of the prediction's stamp); returns the added acceleration (3,)."""
         correction = (estimate - predicted)[self._movable]
-        added = np.linalg.solve(self._compliance, self._mass @ correction)
+        added = np.linalg.solve(self._compliance(), self._mass @ correction)
         self.simulator.body_acceleration = self.simulator.body_acceleration + added
         return added
 

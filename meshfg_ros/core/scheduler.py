@@ -49,6 +49,7 @@ from meshfg_ros.core.input_checks import (
     stamp_order,
 )
 from meshfg_ros.core.body_load import BodyLoadEstimate
+from meshfg_ros.core.poisson_ratio import PoissonRatioEstimate
 from meshfg_ros.core.mesh import TetMesh
 from meshfg_ros.core.patient_mesh import PatientMeshError, check_against_clouds
 from meshfg_ros.core.pose_history import InvalidPoseError, as_pose
@@ -122,6 +123,8 @@ class PredictionScheduler:
         self.simulator = ElasticSimulator(mesh, model, grasped_vertices)
         self.body_load = (BodyLoadEstimate(self.simulator)
                           if model.estimate_body_load and self.simulator.movable_vertices.size else None)
+        self.poisson_ratio = (PoissonRatioEstimate(self.simulator)
+                              if model.estimate_poisson_ratio and self.simulator.movable_vertices.size else None)
         self.timeouts = timeouts
         self._jump_ns = _jump_ns(clock_jump_threshold)
         self._poses = ToolPoseBuffer(extrapolation_horizon_s=tool_pose_extrapolation)
@@ -143,6 +146,8 @@ class PredictionScheduler:
         self._predicted: Prediction | None = None  # the last prediction, for its estimate's correction
         if self.body_load is not None:
             self.body_load.reset()
+        if self.poisson_ratio is not None:
+            self.poisson_ratio.reset()
 
     @property
     def state_stamp_ns(self) -> int | None:
@@ -184,12 +189,14 @@ class PredictionScheduler:
         while len(self._requests) > MAX_QUEUED_CLOUDS:
             self._requests.popleft()
 
-    def add_estimate(self, stamp_ns: int, positions: np.ndarray | None, degraded: bool = False) -> Rejection | None:
+    def add_estimate(self, stamp_ns: int, positions: np.ndarray | None, degraded: bool = False,
+                     position_std: np.ndarray | None = None) -> Rejection | None:
         """The estimate at a requested stamp; None: the estimator gives none for it (its update
         failed), so the next request need not wait and starts from the newest state. `degraded`:
         the update ran without this stamp's prediction (it came late, or was rejected), so the
         estimate is the next start but its difference from the prediction teaches the body load
-        nothing."""
+        and the Poisson ratio nothing. `position_std` (N,): the estimate's posterior std, which
+        weighs the Poisson ratio's fit; without it the ratio is not learnt from this estimate."""
         if self._start_ns is None or not self._start_ns <= stamp_ns <= self._previous_ns:
             return None  # not a stamp this timeline predicted (a looped recording, or no pose yet)
         if positions is None:
@@ -202,10 +209,19 @@ class PredictionScheduler:
                              "non-finite positions or positions far outside the scene: ignored")
         if self._state_ns is None or stamp_ns > self._state_ns:
             self._state, self._state_ns = positions, stamp_ns
-            if (self.body_load is not None and not degraded and self._predicted is not None
-                    and self._predicted.stamp_ns == stamp_ns):
-                self.body_load.update(self._predicted.positions, positions)
+            if not degraded and self._predicted is not None and self._predicted.stamp_ns == stamp_ns:
+                self._learn(self._predicted.positions, positions, position_std)
         return None
+
+    def _learn(self, predicted: np.ndarray, estimate: np.ndarray, position_std: np.ndarray | None) -> None:
+        """What the model misses, from an estimate's correction of its prediction: the body
+        load, then the Poisson ratio from what the load's increment leaves."""
+        correction = estimate - predicted
+        if self.body_load is not None:
+            correction = correction - self.body_load.response(self.body_load.update(predicted, estimate))
+        if (self.poisson_ratio is not None and position_std is not None
+                and np.shape(position_std) == (len(estimate),)):
+            self.poisson_ratio.update(predicted, correction, position_std)
 
     def poll(self, now_s: float = 0.0, flush: bool = False) -> list[Prediction]:
         """Answer the requests that are ready, oldest first (module docstring)."""
@@ -256,6 +272,8 @@ class PredictionScheduler:
         self.simulator.reset(pose)
         if self.body_load is not None:
             self.body_load.reset()
+        if self.poisson_ratio is not None:
+            self.poisson_ratio.reset()
 
     def _previous_settled(self) -> bool:
         """Whether the state to predict from is known: the previous request's estimate has come,
@@ -486,9 +504,9 @@ class OfflinePipeline:
                  alter_prediction: Callable[[int, np.ndarray], np.ndarray] | None = None) -> None:
         shared = dict(clock_jump_threshold=clock_jump_threshold, tool_pose_extrapolation=tool_pose_extrapolation)
         self.simulation = PredictionScheduler(mesh, model, grasped_vertices, **shared)
-        # The simulation alone learns no load: it never sees an estimate.
-        self.open_loop = PredictionScheduler(mesh, replace(model, estimate_body_load=False), grasped_vertices,
-                                             **shared)
+        # The simulation alone learns nothing: it never sees an estimate.
+        self.open_loop = PredictionScheduler(
+            mesh, replace(model, estimate_body_load=False, estimate_poisson_ratio=False), grasped_vertices, **shared)
         self.estimation = EstimationScheduler(mesh, config, **shared)
         self._alter_prediction = alter_prediction
         self._open_loop_states: dict[int, np.ndarray] = {}
@@ -532,9 +550,10 @@ class OfflinePipeline:
                 return steps
             while step is not None:
                 outcome = self.estimation.run(step)
-                positions = outcome.result.positions if outcome.result is not None else None
-                self.simulation.add_estimate(step.stamp_ns, positions,
-                                             degraded=outcome.result is not None and outcome.result.degraded)
+                result = outcome.result
+                self.simulation.add_estimate(step.stamp_ns, None if result is None else result.positions,
+                                             degraded=result is not None and result.degraded,
+                                             position_std=None if result is None else _as_sent(result.position_std))
                 if outcome.result is not None:
                     load = self.simulation.body_load
                     steps.append(PipelineStep(step.stamp_ns, step.points, step.predicted,
@@ -543,6 +562,12 @@ class OfflinePipeline:
                 for old in [s for s in self._open_loop_states if s < step.stamp_ns]:
                     del self._open_loop_states[old]
                 step = self.estimation.next_step(flush=flush)
+
+
+def _as_sent(position_std: np.ndarray) -> np.ndarray:
+    """The std as the TetraMesh message carries it (float32) to the live simulation node, so
+    that a replay's simulator learns exactly what the live one learns."""
+    return position_std.astype(np.float32).astype(np.float64)
 
 
 def run_offline(pipeline: OfflinePipeline, events: Iterator[tuple]) -> Iterator[PipelineStep]:

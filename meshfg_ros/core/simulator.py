@@ -35,9 +35,10 @@ vectorised batch. Runs are bit-reproducible (fixed order, no threads, no randomn
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
+import scipy.sparse
 from scipy.spatial.transform import Rotation, Slerp
 
 from meshfg_ros.core.fem import ElasticModel
@@ -155,6 +156,9 @@ class SimulatorConfig:
         True, "Estimate a uniform body load the tissue model does not know (a change of gravity, a pull) "
               "from each estimate's correction of its prediction, and apply it in the next predictions "
               "(core/body_load.py).")
+    estimate_poisson_ratio: bool = setting(
+        True, "Raise the model's Poisson ratio online where the estimates' corrections of the surface "
+              "show a less compressible tissue (poisson_ratio is then the lower bound; core/poisson_ratio.py).")
 
     def __post_init__(self):
         check_settings(self, SimulatorConfigError)
@@ -355,6 +359,11 @@ class SimulatorSolver:
         """Uniform body acceleration (3,) in m/s^2 from the next sub-step on."""
         raise NotImplementedError
 
+    def set_material(self, config: SimulatorConfig) -> None:
+        """Use `config`'s elastic moduli from the next sub-step on (the rest of it unchanged;
+        the owner refactors `rest_stiffness`)."""
+        raise NotImplementedError
+
     def substep(self, state: np.ndarray, step: float, tool_centre: np.ndarray, held: np.ndarray) -> None:
         raise NotImplementedError
 
@@ -388,6 +397,18 @@ class VertexBlockDescent(SimulatorSolver):
         self._gravity_force = self._vertex_mass[:, None] * gravity
         for colour in self._colours:
             colour.gravity_force = np.ascontiguousarray(self._gravity_force[colour.vertices].T)
+
+    def set_material(self, config: SimulatorConfig) -> None:
+        """The element moduli rescaled in place: the colouring (a Python loop over the
+        vertices) is kept."""
+        volumetric_modulus = config.lame_lambda + config.shear_modulus
+        shear_scale = config.shear_modulus / self.config.shear_modulus
+        volumetric_scale = volumetric_modulus / self._volumetric_modulus
+        for colour in self._colours:
+            colour.shear_diagonal = colour.shear_diagonal * shear_scale
+            colour.volumetric_stiffness = colour.volumetric_stiffness * volumetric_scale
+        self.config, self._volumetric_modulus = config, volumetric_modulus
+        self._rest_volume_ratio = 1.0 + config.shear_modulus / volumetric_modulus
 
     def _vertex_colours(self, tets, volumes, rest_inverse, corner_gradient) -> list[_VertexColour]:
         """Colours of the movable vertices with their incident-element data."""
@@ -543,6 +564,10 @@ class VertexBlockDescent(SimulatorSolver):
         state[colour.vertices] = positions + scale[:, None] * moves
 
 
+def _bulk_modulus(config: SimulatorConfig) -> float:
+    return config.lame_lambda + 2.0 * config.shear_modulus / 3.0
+
+
 class ExtendedPositionBasedDynamics(SimulatorSolver):
     """solver "xpbd": damped XPBD dynamics over per-element Neo-Hookean constraints.
 
@@ -565,6 +590,14 @@ class ExtendedPositionBasedDynamics(SimulatorSolver):
     def set_gravity(self, gravity: np.ndarray) -> None:
         self._gravity = gravity
 
+    def set_material(self, config: SimulatorConfig) -> None:
+        """The elements' compliances rescaled in place (the colouring kept)."""
+        shear_scale = self.config.shear_modulus / config.shear_modulus
+        bulk_scale = _bulk_modulus(self.config) / _bulk_modulus(config)
+        for colour in self._colours:
+            colour.compliance = colour.compliance * np.array([[shear_scale], [bulk_scale]])
+        self.config = config
+
     def substep(self, state, step, tool_centre, held) -> None:
         self._velocity = self._xpbd_substep(state, self._velocity, step, tool_centre, held)
 
@@ -573,9 +606,8 @@ class ExtendedPositionBasedDynamics(SimulatorSolver):
         tets = rest_mesh.tetrahedra
         corner_step = inverse_mass[tets][:, :, None] * corner_gradient  # (M, 4, 3)
         weighted_metric = np.transpose(corner_gradient, (0, 2, 1)) @ corner_step
-        mu = self.config.shear_modulus
-        bulk_modulus = self.config.lame_lambda + 2.0 * mu / 3.0
-        compliance = np.stack([1.0 / (mu * volumes), 1.0 / (bulk_modulus * volumes)])
+        compliance = np.stack([1.0 / (self.config.shear_modulus * volumes),
+                               1.0 / (_bulk_modulus(self.config) * volumes)])
         return [
             _ElementColour(
                 corners=np.ascontiguousarray(tets[members].T),
@@ -699,6 +731,7 @@ class ElasticSimulator:
         self._first_pose: np.ndarray | None = None
         self._previous_pose: np.ndarray | None = None
         self._stuck: np.ndarray = np.zeros(0, dtype=np.int64)  # stuck at the end of the last prediction
+        self._linear_stiffness_parts: tuple | None = None
 
     @staticmethod
     def _checked_grasp(grasped_vertices, rest_mesh: TetMesh, config: SimulatorConfig) -> np.ndarray:
@@ -737,12 +770,63 @@ class ElasticSimulator:
         self._body_acceleration = acceleration.copy()
         self.solver.set_gravity(self._body.gravity + acceleration)
 
-    def rest_response(self, forces: np.ndarray) -> np.ndarray:
+    @property
+    def poisson_ratio(self) -> float:
+        """The Poisson ratio the simulator uses (config.poisson_ratio, or what
+        core/poisson_ratio.py set)."""
+        return float(self.config.poisson_ratio)
+
+    @poisson_ratio.setter
+    def poisson_ratio(self, poisson_ratio: float) -> None:
+        """Use another Poisson ratio from the next prediction on (the solver's moduli and rest
+        factor follow); the load, the tool's poses and the stuck vertices are kept."""
+        self.config = replace(self.config, poisson_ratio=float(poisson_ratio))
+        self._body = replace(self._body, config=self.config)
+        self.solver.set_material(self.config)
+        factor = self.solver.rest_stiffness
+        if factor is not None:  # numeric only, on the pattern already analysed
+            shear, volumetric = self.linear_stiffness_parts
+            dofs = (3 * self.movable_vertices[:, None] + _DIAGONAL).reshape(-1)
+            values = self.config.shear_modulus * shear.data + self.config.lame_lambda * volumetric.data
+            stiffness = scipy.sparse.csr_matrix((values, shear.indices, shear.indptr), shape=shear.shape)[dofs][:, dofs]
+            stiffness.sort_indices()
+            if factor.same_pattern(stiffness):
+                factor.refactor(stiffness.data)
+            else:
+                self.solver.rest_stiffness = SparseCholesky(stiffness, node_size=3)
+
+    @property
+    def linear_stiffness_parts(self) -> tuple:
+        """(A, B), the rest stiffness K0 = mu A + lambda B (3 N, 3 N) at any Lame parameters
+        (ElasticModel.linear_stiffness_parts; built on first use)."""
+        if self._linear_stiffness_parts is None:
+            mesh = self.rest_mesh
+            model = ElasticModel(mesh.vertices, mesh.tetrahedra, self.config.youngs_modulus, self.config.poisson_ratio)
+            self._linear_stiffness_parts = model.linear_stiffness_parts()
+        return self._linear_stiffness_parts
+
+    @property
+    def stuck_vertices(self) -> np.ndarray:
+        """Vertices stuck to the tool at the end of the last prediction (stick contact)."""
+        return self._stuck.copy()
+
+    def rest_response(self, forces: np.ndarray, held: np.ndarray | None = None) -> np.ndarray:
         """Displacements K0^-1 f of the movable dofs under forces (3 n,) or (3 n, k) on them, the
-        other vertices held: the model's small-strain response to a load."""
+        other vertices held, and the movable ones in `held` too (a Schur complement on the
+        factor, as the global step holds stuck vertices): the model's small-strain response."""
         if self.solver.rest_stiffness is None:
             self.solver.rest_stiffness = rest_stiffness_factor(self._body)
-        return self.solver.rest_stiffness.solve(forces)
+        response = self.solver.rest_stiffness.solve(forces)
+        rows = np.flatnonzero(np.isin(self.movable_vertices, held)) if held is not None else np.zeros(0, int)
+        if rows.size == 0:
+            return response
+        dofs = (3 * rows[:, None] + _DIAGONAL).reshape(-1)
+        constraints = np.zeros((response.shape[0], dofs.size))
+        constraints[dofs, np.arange(dofs.size)] = 1.0
+        responses = self.solver.rest_stiffness.solve(constraints)  # K0^-1 E
+        response = response - responses @ np.linalg.solve(responses[dofs], response[dofs])
+        response[dofs] = 0.0
+        return response
 
     @property
     def previous_tool_pose(self) -> np.ndarray | None:

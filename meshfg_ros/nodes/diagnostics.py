@@ -120,6 +120,8 @@ class SimulatorCounters(_Counters):
     body_acceleration_x: float = 0.0
     body_acceleration_y: float = 0.0
     body_acceleration_z: float = 0.0
+    # the Poisson ratio the predictions use (core/poisson_ratio.py; NaN until a mesh is set)
+    poisson_ratio: float = float("nan")
     # requests answered without a prediction for want of a tool pose, by reason (core/tool_poses.py)
     tool_pose_unavailable_empty: int = 0
     tool_pose_unavailable_before_first: int = 0

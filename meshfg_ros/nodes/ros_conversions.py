@@ -108,6 +108,12 @@ def positions_from_msg(msg: Any, vertex_count: int) -> np.ndarray | None:
     return positions.reshape(vertex_count, 3)
 
 
+def position_std_from_msg(msg: Any, vertex_count: int) -> np.ndarray | None:
+    """Posterior std (N,) of a TetraMesh, or None when it has none (empty) or a wrong count."""
+    std = np.asarray(msg.position_std, dtype=np.float64)
+    return std if std.shape == (vertex_count,) else None
+
+
 def same_mesh(a: MeshState, b: MeshState) -> bool:
     """Whether two mesh states have equal positions, tetrahedra and fixed vertices."""
     return (np.array_equal(a.positions, b.positions) and np.array_equal(a.tetrahedra, b.tetrahedra)

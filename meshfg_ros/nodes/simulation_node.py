@@ -9,7 +9,8 @@ previous request to the tool pose interpolated at the cloud's stamp), or `predic
 (meshfg_msgs/PredictionFailure, same stamp, with the reason) so that the estimator runs that step
 at once without one. After each estimate it takes it publishes `body_acceleration`
 (geometry_msgs/Vector3Stamped at the estimate's stamp, m/s^2): the unmodelled body load learnt so
-far (core/body_load.py; not published with estimate_body_load off). The waits and the stamp rule
+far (core/body_load.py; not published with estimate_body_load off). The Poisson ratio the
+predictions use (core/poisson_ratio.py) is in the diagnostics. The waits and the stamp rule
 are the scheduler's; counters go to /diagnostics.
 Tool poses, requests and estimates that arrive before the mesh are held until it comes
 (nodes/held_inputs.py).
@@ -44,6 +45,7 @@ from meshfg_ros.nodes.ros_conversions import (
     STREAM_QOS,
     InitialMeshSource,
     MeshMessages,
+    position_std_from_msg,
     positions_from_msg,
 )
 from meshfg_ros.nodes.ros_parameters import declare_parameters
@@ -109,7 +111,9 @@ class SimulationNode(Node):
         stamp_ns = stamp_ns_from_msg(msg.header.stamp)
         positions = positions_from_msg(msg, self._scheduler.mesh.vertex_count)
         # A malformed estimate is no estimate: the next request does not wait for it.
-        rejection = self._scheduler.add_estimate(stamp_ns, positions, degraded=bool(msg.degraded))
+        rejection = self._scheduler.add_estimate(
+            stamp_ns, positions, degraded=bool(msg.degraded),
+            position_std=position_std_from_msg(msg, self._scheduler.mesh.vertex_count))
         if positions is None:
             self._count("estimates_ignored", f"estimated_mesh at {stamp_ns} ns ignored: wrong vertex count or "
                         "non-finite positions")
@@ -188,6 +192,7 @@ class SimulationNode(Node):
             if self._scheduler.body_load is not None:
                 (counters.body_acceleration_x, counters.body_acceleration_y,
                  counters.body_acceleration_z) = self._scheduler.body_load.acceleration.tolist()
+            counters.poisson_ratio = self._scheduler.simulator.poisson_ratio
         new_rejections = counters.tool_poses_rejected - self._rejected_at_last_report
         new_ignored = counters.estimates_ignored - self._ignored_at_last_report
         self._rejected_at_last_report = counters.tool_poses_rejected

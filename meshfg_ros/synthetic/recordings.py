@@ -31,7 +31,7 @@ from meshfg_ros.topics import (
 FRAME_ID = "world"
 # SimulatorConfig fields that are settings of the closed loop, not of the scene's nominal model:
 # left out of the metadata, so a replay takes them from its parameters like any estimator setting.
-NOT_THE_MODEL = ("estimate_body_load",)
+NOT_THE_MODEL = ("estimate_body_load", "estimate_poisson_ratio")
 
 
 def scenario_metadata(scenario: Scenario, max_points: int | None = None) -> ScenarioMetadata:
