@@ -92,6 +92,17 @@ def test_simulation_node_counts_rejected_tool_poses_in_its_diagnostics(probe, pr
                     tool_poses_rejected_frame="1", tool_poses_rejected="3", requests="1", predictions="1")
     assert spin_until(probe, lambda: reports and all(reports[-1][1].get(k) == v for k, v in expected.items())), \
         reports[-1:]
+    # An estimate whose posterior std has a wrong count: its positions are taken (the next
+    # prediction starts from them), its std is not, and the diagnostics say so.
+    estimates = probe.create_publisher(TetraMesh, "/simhostile/estimated_mesh", LATCHED)
+    assert spin_until(probe, lambda: estimates.get_subscription_count() == 1)
+    estimate = mesh_msg(mesh, 4 * S)
+    estimate.position_std = [1e-3, 1e-3]
+    estimates.publish(estimate)
+    assert spin_until(probe, lambda: reports[-1][1].get("estimate_std_ignored") == "1"), reports[-1:]
+    assert spin_until(probe, lambda: any(message.startswith("1 estimates' position_std malformed")
+                                         for message, _ in reports)), [message for message, _ in reports]
+    assert reports[-1][1]["estimates_ignored"] == "0" and float(reports[-1][1]["poisson_ratio"]) == 0.45
     assert node.alive()
     assert_clean_exit(node, node.interrupt())
 

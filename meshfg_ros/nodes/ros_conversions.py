@@ -109,9 +109,10 @@ def positions_from_msg(msg: Any, vertex_count: int) -> np.ndarray | None:
 
 
 def position_std_from_msg(msg: Any, vertex_count: int) -> np.ndarray | None:
-    """Posterior std (N,) of a TetraMesh, or None when it has none (empty) or a wrong count."""
+    """Posterior std (N,) of a TetraMesh, or None when it has none (empty) or is malformed (a
+    wrong count, entries not finite or negative)."""
     std = np.asarray(msg.position_std, dtype=np.float64)
-    return std if std.shape == (vertex_count,) else None
+    return std if std.shape == (vertex_count,) and np.all(std >= 0.0) else None  # NaN fails >= too
 
 
 def same_mesh(a: MeshState, b: MeshState) -> bool:

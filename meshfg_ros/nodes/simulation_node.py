@@ -69,6 +69,7 @@ class SimulationNode(Node):
         self._last_failure: str | None = None
         self._rejected_at_last_report = 0
         self._ignored_at_last_report = 0
+        self._std_ignored_at_last_report = 0
         self._unavailable_earlier: Counter[str] = Counter()  # of the schedulers of earlier meshes
         self._held = HeldUntilMesh({"tool pose": DEFAULT_MAX_SAMPLES, "estimated_mesh": MAX_QUEUED_CLOUDS,
                                     "prediction request": MAX_QUEUED_CLOUDS})
@@ -111,9 +112,12 @@ class SimulationNode(Node):
         stamp_ns = stamp_ns_from_msg(msg.header.stamp)
         positions = positions_from_msg(msg, self._scheduler.mesh.vertex_count)
         # A malformed estimate is no estimate: the next request does not wait for it.
-        rejection = self._scheduler.add_estimate(
-            stamp_ns, positions, degraded=bool(msg.degraded),
-            position_std=position_std_from_msg(msg, self._scheduler.mesh.vertex_count))
+        position_std = position_std_from_msg(msg, self._scheduler.mesh.vertex_count)
+        if positions is not None and position_std is None and len(msg.position_std):
+            self._count("estimate_std_ignored", f"estimated_mesh at {stamp_ns} ns: position_std has a wrong count "
+                        "or entries not finite or negative; the Poisson ratio learns nothing from it")
+        rejection = self._scheduler.add_estimate(stamp_ns, positions, degraded=bool(msg.degraded),
+                                                 position_std=position_std)
         if positions is None:
             self._count("estimates_ignored", f"estimated_mesh at {stamp_ns} ns ignored: wrong vertex count or "
                         "non-finite positions")
@@ -182,8 +186,8 @@ class SimulationNode(Node):
         self.get_logger().warning(reason, throttle_duration_sec=1.0)
 
     def _publish_diagnostics(self) -> None:
-        """The counters, with OK / WARN: waiting for the mesh, rejected tool poses, ignored estimates, a
-        failed prediction."""
+        """The counters, with OK / WARN: waiting for the mesh, rejected tool poses, ignored estimates,
+        estimates with a malformed std, a failed prediction."""
         counters = self.counters
         if self._scheduler is not None:
             totals = self._unavailable_earlier + Counter(self._scheduler.tool_pose_unavailable)
@@ -195,8 +199,10 @@ class SimulationNode(Node):
             counters.poisson_ratio = self._scheduler.simulator.poisson_ratio
         new_rejections = counters.tool_poses_rejected - self._rejected_at_last_report
         new_ignored = counters.estimates_ignored - self._ignored_at_last_report
+        new_std_ignored = counters.estimate_std_ignored - self._std_ignored_at_last_report
         self._rejected_at_last_report = counters.tool_poses_rejected
         self._ignored_at_last_report = counters.estimates_ignored
+        self._std_ignored_at_last_report = counters.estimate_std_ignored
         level, message = DiagnosticStatus.OK, "predicting"
         if self._scheduler is None:
             level, message = DiagnosticStatus.WARN, waiting_for_mesh_message(counters)
@@ -205,6 +211,9 @@ class SimulationNode(Node):
         elif new_ignored:
             level, message = DiagnosticStatus.WARN, (f"{new_ignored} estimates ignored since the last report: "
                                                      "predicting from the newest usable state")
+        elif new_std_ignored:
+            level, message = DiagnosticStatus.WARN, (f"{new_std_ignored} estimates' position_std malformed since the "
+                                                     "last report: the Poisson ratio is not learnt from them")
         elif self._last_failure is not None:
             level, message = DiagnosticStatus.WARN, f"the last prediction failed: {self._last_failure}"
         self._diagnostics_publisher.publish(diagnostic_array(
