@@ -29,6 +29,8 @@ from meshfg_ros import blas
 from meshfg_ros.synthetic.meshing import cube_mesh
 from meshfg_ros.parameters import load_parameters, simulator_config
 from meshfg_ros.core.body_load import BodyLoadEstimate
+from meshfg_ros.core.model_fit import learn
+from meshfg_ros.core.poisson_ratio import PoissonRatioEstimate
 from meshfg_ros.core.simulator import ElasticSimulator
 from meshfg_ros.io.messages import (
     MeshState,
@@ -280,7 +282,11 @@ def test_simulation_node_predicts_from_the_latest_estimate(probe, processes, tmp
     request(2 * S)
     first = received(1)
     estimate = np.asarray(first.positions).reshape(-1, 3) + [1e-4, 0.0, 0.0]
-    estimate_publisher.publish(mesh_msg(mesh, 2 * S, estimate))
+    # The estimate's posterior std, which weighs what the simulator learns from it (float32, as sent).
+    std = np.where(np.isin(np.arange(mesh.vertex_count), mesh.fixed_vertices), 0.0, 1e-3).astype(np.float32)
+    with_std = mesh_msg(mesh, 2 * S, estimate)
+    with_std.position_std = std
+    estimate_publisher.publish(with_std)
     send_pose(2, 3 * S)
     request(3 * S)  # predicted from the estimate of 2 s
     received(2)
@@ -309,7 +315,7 @@ def test_simulation_node_predicts_from_the_latest_estimate(probe, processes, tmp
     received(5)
     # Tool poses need not share the clouds' stamps: a request between two poses is predicted
     # with the pose interpolated at its stamp.
-    estimate_publisher.publish(mesh_msg(mesh, 2 * S, estimate))
+    estimate_publisher.publish(with_std)
     send_pose(2, 3 * S)
     request(2 * S + S // 2)
     received(6)
@@ -318,19 +324,23 @@ def test_simulation_node_predicts_from_the_latest_estimate(probe, processes, tmp
     def pose(position):
         return np.concatenate([position, [0.0, 0.0, 0.0, 1.0]])
 
-    # The estimate's correction of its prediction is the body load of the later predictions;
-    # the restarted timeline forgets it and learns it again from the same estimate.
+    # The estimate's correction of its prediction teaches the body load and the Poisson ratio of
+    # the later predictions (core/model_fit.py); the restarted timeline forgets them and learns
+    # them again from the same estimate.
     simulator = ElasticSimulator(mesh, simulator_config(params))
-    body_load = BodyLoadEstimate(simulator)
+    body_load, poisson_ratio = BodyLoadEstimate(simulator), PoissonRatioEstimate(simulator)
     simulator.reset(pose(poses[0]))
     expected = [simulator.predict(mesh.vertices, pose(poses[1]), 1.0)]
-    learnt = body_load.update(expected[0], estimate)
+    learn(mesh, body_load, poisson_ratio, expected[0], estimate, std.astype(float))
+    learnt = body_load.acceleration
     for k in (2, 3, 4):
         expected.append(simulator.predict(estimate, pose(poses[k]), 1.0))
     expected.append(expected[0])
     body_load.reset()
+    poisson_ratio.reset()
     simulator.reset(pose(poses[0]))
-    body_load.update(simulator.predict(mesh.vertices, pose(poses[1]), 1.0), estimate)
+    learn(mesh, body_load, poisson_ratio, simulator.predict(mesh.vertices, pose(poses[1]), 1.0), estimate,
+          std.astype(float))
     expected.append(simulator.predict(estimate, pose(0.5 * (poses[1] + poses[2])), 0.5))
     assert [stamp_ns_from_msg(p.header.stamp) for p in predictions] == [2 * S, 3 * S, 4 * S, 5 * S, 2 * S,
                                                                            2 * S + S // 2]
@@ -370,7 +380,10 @@ def test_simulation_node_answers_the_requests_and_poses_that_came_before_its_mes
     pose_publisher.publish(tool_pose_msg(poses[1][:3], 2 * S))
     request_publisher.publish(header_msg(2 * S, "world", FACTORY))
     assert spin_until(probe, lambda: reports[-1][1].get("inputs_held_before_mesh") == "3"), reports[-1]
-    estimate_publisher.publish(mesh_msg(mesh, 2 * S, estimate))  # the estimator ran that step without one
+    std = np.where(np.isin(np.arange(mesh.vertex_count), mesh.fixed_vertices), 0.0, 1e-3).astype(np.float32)
+    with_std = mesh_msg(mesh, 2 * S, estimate)
+    with_std.position_std = std
+    estimate_publisher.publish(with_std)  # the estimator ran that step without one
     pose_publisher.publish(tool_pose_msg(poses[2][:3], 3 * S))
     request_publisher.publish(header_msg(3 * S, "world", FACTORY))
     assert spin_until(probe, lambda: reports[-1][1].get("inputs_held_before_mesh") == "6"), reports[-1]
@@ -381,7 +394,8 @@ def test_simulation_node_answers_the_requests_and_poses_that_came_before_its_mes
     simulator = ElasticSimulator(mesh, simulator_config(load_parameters({"tool_radius": 0.01})))
     simulator.reset(poses[0])
     expected = [simulator.predict(mesh.vertices, poses[1], 1.0)]
-    BodyLoadEstimate(simulator).update(expected[0], estimate)  # the estimate's correction, as a load
+    # the estimate's correction, as a load and a Poisson ratio
+    learn(mesh, BodyLoadEstimate(simulator), PoissonRatioEstimate(simulator), expected[0], estimate, std.astype(float))
     expected.append(simulator.predict(estimate, poses[2], 1.0))
     assert [stamp_ns_from_msg(p.header.stamp) for p in predictions] == [2 * S, 3 * S]
     for message, positions in zip(predictions, expected, strict=True):

@@ -9,6 +9,8 @@ from mcap_ros2.decoder import DecoderFactory
 from offline_helpers import NOISE_SIGMA, TOOL_RADIUS, tiny_scenario
 
 from meshfg_ros.core.body_load import BodyLoadEstimate
+from meshfg_ros.core.model_fit import learn
+from meshfg_ros.core.poisson_ratio import PoissonRatioEstimate
 from meshfg_ros.core.estimator import SlidingWindowEstimator
 from meshfg_ros.core.mesh import MeshFileError, save_mesh
 from meshfg_ros.parameters import ParameterError, estimator_config, simulator_config
@@ -97,12 +99,13 @@ def test_a_nominal_model_the_nodes_cannot_express_is_rejected(recording):
 def test_loop_matches_the_nodes_semantics(scenario, recording, replayed):
     """First pose resets; each later pose predicts from the latest estimate; the cloud at t
     pairs with the prediction and the tool pose stamped t; the estimate feeds the next prediction,
-    and its correction of the prediction the body load the next predictions apply."""
+    and its correction of the prediction the body load and the Poisson ratio the next predictions
+    apply."""
     inputs = load_inputs(recording)
     params = replayed.parameters
     mesh = scenario.initial_mesh
     simulator = ElasticSimulator(mesh, simulator_config(params))
-    body_load = BodyLoadEstimate(simulator)
+    body_load, poisson_ratio = BodyLoadEstimate(simulator), PoissonRatioEstimate(simulator)
     estimator = SlidingWindowEstimator(mesh, estimator_config(params))
     simulator.reset(scenario.initial_tool_pose)
     estimate = mesh.vertices
@@ -112,7 +115,8 @@ def test_loop_matches_the_nodes_semantics(scenario, recording, replayed):
         predicted = simulator.predict(estimate, step.tool_pose, STEP_PERIOD_NS / 1e9)
         result = estimator.update(step.stamp_ns, cloud.points, predicted, step.tool_pose, viewpoint)
         estimate = result.positions
-        body_load.update(predicted, estimate)
+        # The simulator learns from the std as the estimate message carries it (float32).
+        learn(mesh, body_load, poisson_ratio, predicted, estimate, result.position_std.astype(np.float32).astype(float))
         np.testing.assert_array_equal(replay_step.body_acceleration, body_load.acceleration)
         assert replay_step.stamp_ns == step.stamp_ns and not replay_step.result.degraded
         np.testing.assert_array_equal(replay_step.predicted, predicted)

@@ -49,6 +49,7 @@ from meshfg_ros.core.input_checks import (
     stamp_order,
 )
 from meshfg_ros.core.body_load import BodyLoadEstimate
+from meshfg_ros.core.model_fit import learn
 from meshfg_ros.core.poisson_ratio import PoissonRatioEstimate
 from meshfg_ros.core.mesh import TetMesh
 from meshfg_ros.core.patient_mesh import PatientMeshError, check_against_clouds
@@ -196,7 +197,7 @@ class PredictionScheduler:
         the update ran without this stamp's prediction (it came late, or was rejected), so the
         estimate is the next start but its difference from the prediction teaches the body load
         and the Poisson ratio nothing. `position_std` (N,): the estimate's posterior std, which
-        weighs the Poisson ratio's fit; without it the ratio is not learnt from this estimate."""
+        weighs their fit (core/model_fit.py); without it they learn nothing from this estimate."""
         if self._start_ns is None or not self._start_ns <= stamp_ns <= self._previous_ns:
             return None  # not a stamp this timeline predicted (a looped recording, or no pose yet)
         if positions is None:
@@ -215,13 +216,9 @@ class PredictionScheduler:
 
     def _learn(self, predicted: np.ndarray, estimate: np.ndarray, position_std: np.ndarray | None) -> None:
         """What the model misses, from an estimate's correction of its prediction: the body
-        load, then the Poisson ratio from what the load's increment leaves."""
-        correction = estimate - predicted
-        if self.body_load is not None:
-            correction = correction - self.body_load.response(self.body_load.update(predicted, estimate))
-        if (self.poisson_ratio is not None and position_std is not None
-                and np.shape(position_std) == (len(estimate),)):
-            self.poisson_ratio.update(predicted, correction, position_std)
+        load's and the Poisson ratio's increments, fitted jointly (core/model_fit.py)."""
+        if position_std is not None and np.shape(position_std) == (len(estimate),):
+            learn(self.mesh, self.body_load, self.poisson_ratio, predicted, estimate, position_std)
 
     def poll(self, now_s: float = 0.0, flush: bool = False) -> list[Prediction]:
         """Answer the requests that are ready, oldest first (module docstring)."""

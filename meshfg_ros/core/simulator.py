@@ -157,8 +157,8 @@ class SimulatorConfig:
               "from each estimate's correction of its prediction, and apply it in the next predictions "
               "(core/body_load.py).")
     estimate_poisson_ratio: bool = setting(
-        True, "Raise the model's Poisson ratio online where the estimates' corrections of the surface "
-              "show a less compressible tissue (poisson_ratio is then the lower bound; core/poisson_ratio.py).")
+        True, "Learn the model's Poisson ratio online from the estimates' corrections of the surface, jointly "
+              "with the body load (poisson_ratio is where it starts; core/poisson_ratio.py, core/model_fit.py).")
 
     def __post_init__(self):
         check_settings(self, SimulatorConfigError)

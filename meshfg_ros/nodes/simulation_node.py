@@ -115,7 +115,7 @@ class SimulationNode(Node):
         position_std = position_std_from_msg(msg, self._scheduler.mesh.vertex_count)
         if positions is not None and position_std is None and len(msg.position_std):
             self._count("estimate_std_ignored", f"estimated_mesh at {stamp_ns} ns: position_std has a wrong count "
-                        "or entries not finite or negative; the Poisson ratio learns nothing from it")
+                        "or entries not finite or negative; the body load and the Poisson ratio learn nothing from it")
         rejection = self._scheduler.add_estimate(stamp_ns, positions, degraded=bool(msg.degraded),
                                                  position_std=position_std)
         if positions is None:
@@ -213,7 +213,7 @@ class SimulationNode(Node):
                                                      "predicting from the newest usable state")
         elif new_std_ignored:
             level, message = DiagnosticStatus.WARN, (f"{new_std_ignored} estimates' position_std malformed since the "
-                                                     "last report: the Poisson ratio is not learnt from them")
+                                                     "last report: the model is not learnt from them")
         elif self._last_failure is not None:
             level, message = DiagnosticStatus.WARN, f"the last prediction failed: {self._last_failure}"
         self._diagnostics_publisher.publish(diagnostic_array(
