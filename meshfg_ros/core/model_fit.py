@@ -16,8 +16,8 @@ squares, to the normal components of c at the surface vertices:
   estimate message carries): a vertex the camera sees counts more than one the prior alone
   places.
 - Jointly: a load and a compressibility both bend the visible surface; fitted one after the
-  other, what the first leaves of the second's error is read as the first's (a learnt load
-  left liver-push's surface asking for a more compressible body, and its ratio ran to 0.30).
+  other, the second takes what the first left of the first's error for its own (fitted after
+  the load, liver-push's ratio ran to 0.30, its truth's being 0.48).
 
 Both are integrators: the next correction measures what they still miss.
 docs/design-notes.md ("The airway over its steps") has the accuracy suite's figures.
