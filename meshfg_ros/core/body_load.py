@@ -31,8 +31,8 @@ class BodyLoadEstimate:
     def __init__(self, simulator: ElasticSimulator):
         self.simulator = simulator
         self._movable = simulator.movable_vertices
-        self._mass = simulator.vertex_mass[self._movable]
-        self._unit_loads = np.kron(self._mass[:, None], np.eye(3))  # (3 n, 3): F, one column per axis
+        mass = simulator.vertex_mass[self._movable]
+        self._unit_loads = np.kron(mass[:, None], np.eye(3))  # (3 n, 3): F, one column per axis
         self._responses_at: float | None = None  # the Poisson ratio the responses were computed at
 
     @property

@@ -57,8 +57,8 @@ def surface_fit(mesh: TetMesh, predicted: np.ndarray, correction: np.ndarray, po
     """Coefficients (k,) of `responses` (k, N, 3) that best explain `correction` (N, 3) along the
     normals of the surface at `predicted` (N, 3), each surface vertex weighted by
     1 / `position_std`^2 (N,; a zero, negative or non-finite std leaves its vertex out). Zero
-    where the weighted surface does not see a response (a singular system is solved in the
-    least-norm sense)."""
+    where the weighted surface does not see a response: the system is solved in the least-norm
+    sense (all zero without a weighted vertex)."""
     normals = mesh.vertex_normals(predicted)  # zero rows off the surface
     position_std = np.asarray(position_std, dtype=np.float64)
     weights = np.zeros(len(position_std))
@@ -67,6 +67,4 @@ def surface_fit(mesh: TetMesh, predicted: np.ndarray, correction: np.ndarray, po
     along_responses = np.einsum("vi,kvi->vk", normals, responses)  # (N, k)
     along_correction = np.einsum("vi,vi->v", normals, correction)
     system = along_responses.T @ (weights[:, None] * along_responses)
-    if not np.any(system):
-        return np.zeros(len(responses))
     return np.linalg.lstsq(system, along_responses.T @ (weights * along_correction), rcond=None)[0]

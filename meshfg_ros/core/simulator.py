@@ -314,6 +314,9 @@ class _Body:
     corner_gradient: np.ndarray  # (M, 4, 3) shape-function gradients of the corners
     vertex_mass: np.ndarray  # (N,) lumped mass
     gravity: np.ndarray  # (3,) m / s^2
+    # (A, B) with the rest stiffness K0 = mu A + lambda B (3 N, 3 N, on one pattern): K0 at any
+    # Poisson ratio without a new ElasticModel (ElasticModel.linear_stiffness_parts)
+    stiffness_parts: tuple
 
 
 def _outside_tool(points: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
@@ -330,12 +333,29 @@ def _outside_tool(points: np.ndarray, centre: np.ndarray, radius: float) -> np.n
     return pushed
 
 
+def rest_stiffness(body: _Body) -> scipy.sparse.csr_matrix:
+    """K0 (small-strain stiffness: the Hessian at rest) on the movable dofs, at the body's moduli;
+    the same pattern at any of them."""
+    shear, volumetric = body.stiffness_parts
+    values = body.config.shear_modulus * shear.data + body.config.lame_lambda * volumetric.data
+    dofs = (3 * body.movable_vertices[:, None] + _DIAGONAL).reshape(-1)
+    stiffness = scipy.sparse.csr_matrix((values, shear.indices, shear.indptr), shape=shear.shape)[dofs][:, dofs]
+    stiffness.sort_indices()
+    return stiffness
+
+
 def rest_stiffness_factor(body: _Body) -> SparseCholesky:
-    """Sparse Cholesky factor of K0 (small-strain stiffness: the Hessian at rest) on the movable dofs."""
-    mesh, config = body.rest_mesh, body.config
-    model = ElasticModel(mesh.vertices, mesh.tetrahedra, config.youngs_modulus, config.poisson_ratio)
-    dofs = (3 * body.movable_vertices[:, None] + np.arange(3)).reshape(-1)
-    return SparseCholesky(model.stiffness(kind="linear")[dofs][:, dofs], node_size=3)
+    """Sparse Cholesky factor of K0 on the movable dofs."""
+    return SparseCholesky(rest_stiffness(body), node_size=3)
+
+
+def _unit_columns(movable_count: int, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The dofs (3 k,) of the movable vertices at `rows` (k,) of the movable set, and the columns
+    E (3 n, 3 k) that pick them: constraints that hold those vertices in a K0 solve."""
+    dofs = (3 * rows[:, None] + _DIAGONAL).reshape(-1)
+    columns = np.zeros((3 * movable_count, dofs.size))
+    columns[dofs, np.arange(dofs.size)] = 1.0
+    return dofs, columns
 
 
 # ---------------------------------------------------------------------- solver strategies
@@ -456,9 +476,7 @@ class VertexBlockDescent(SimulatorSolver):
         held_mask = np.zeros(self.rest_mesh.vertex_count, dtype=bool)
         held_mask[held] = True
         held_rows = np.flatnonzero(held_mask[self.movable_vertices])
-        held_constraints = np.zeros((3 * self.movable_vertices.size, 3 * held_rows.size))
-        held_dofs = (3 * held_rows[:, None] + _DIAGONAL).reshape(-1)
-        held_constraints[held_dofs, np.arange(held_dofs.size)] = 1.0
+        _, held_constraints = _unit_columns(self.movable_vertices.size, held_rows)
         held_responses = self._rest_solve(held_constraints)  # K0^-1 E for the sub-step's held dofs
         for _ in range(int(self.config.solver_iterations)):
             for colour in self._colours:
@@ -724,14 +742,15 @@ class ElasticSimulator:
         corner_gradient = _CORNER_FROM_EDGES @ rest_inverse  # (M, 4, 3) shape-function gradients
         corner_volumes = np.repeat(volumes / 4.0, 4)
         vertex_mass = config.density * np.bincount(tets.reshape(-1), corner_volumes, vertex_count)
+        model = ElasticModel(rest_mesh.vertices, tets, config.youngs_modulus, config.poisson_ratio)
         self._body = _Body(rest_mesh, config, kinematic, self.movable_vertices, volumes, rest_inverse,
-                           corner_gradient, vertex_mass, np.asarray(config.gravity, dtype=np.float64))
+                           corner_gradient, vertex_mass, np.asarray(config.gravity, dtype=np.float64),
+                           model.linear_stiffness_parts())
         self.solver: SimulatorSolver = SOLVER_STRATEGIES[config.solver](self._body)
         self._body_acceleration = np.zeros(3)
         self._first_pose: np.ndarray | None = None
         self._previous_pose: np.ndarray | None = None
         self._stuck: np.ndarray = np.zeros(0, dtype=np.int64)  # stuck at the end of the last prediction
-        self._linear_stiffness_parts: tuple | None = None
 
     @staticmethod
     def _checked_grasp(grasped_vertices, rest_mesh: TetMesh, config: SimulatorConfig) -> np.ndarray:
@@ -783,27 +802,13 @@ class ElasticSimulator:
         self.config = replace(self.config, poisson_ratio=float(poisson_ratio))
         self._body = replace(self._body, config=self.config)
         self.solver.set_material(self.config)
-        factor = self.solver.rest_stiffness
-        if factor is not None:  # numeric only, on the pattern already analysed
-            shear, volumetric = self.linear_stiffness_parts
-            dofs = (3 * self.movable_vertices[:, None] + _DIAGONAL).reshape(-1)
-            values = self.config.shear_modulus * shear.data + self.config.lame_lambda * volumetric.data
-            stiffness = scipy.sparse.csr_matrix((values, shear.indices, shear.indptr), shape=shear.shape)[dofs][:, dofs]
-            stiffness.sort_indices()
-            if factor.same_pattern(stiffness):
-                factor.refactor(stiffness.data)
-            else:
-                self.solver.rest_stiffness = SparseCholesky(stiffness, node_size=3)
+        if self.solver.rest_stiffness is not None:  # numeric only: K0's pattern does not change
+            self.solver.rest_stiffness.refactor(rest_stiffness(self._body).data)
 
     @property
     def linear_stiffness_parts(self) -> tuple:
-        """(A, B), the rest stiffness K0 = mu A + lambda B (3 N, 3 N) at any Lame parameters
-        (ElasticModel.linear_stiffness_parts; built on first use)."""
-        if self._linear_stiffness_parts is None:
-            mesh = self.rest_mesh
-            model = ElasticModel(mesh.vertices, mesh.tetrahedra, self.config.youngs_modulus, self.config.poisson_ratio)
-            self._linear_stiffness_parts = model.linear_stiffness_parts()
-        return self._linear_stiffness_parts
+        """(A, B), the rest stiffness K0 = mu A + lambda B (3 N, 3 N) at any Lame parameters."""
+        return self._body.stiffness_parts
 
     @property
     def stuck_vertices(self) -> np.ndarray:
@@ -820,9 +825,7 @@ class ElasticSimulator:
         rows = np.flatnonzero(np.isin(self.movable_vertices, held)) if held is not None else np.zeros(0, int)
         if rows.size == 0:
             return response
-        dofs = (3 * rows[:, None] + _DIAGONAL).reshape(-1)
-        constraints = np.zeros((response.shape[0], dofs.size))
-        constraints[dofs, np.arange(dofs.size)] = 1.0
+        dofs, constraints = _unit_columns(self.movable_vertices.size, rows)
         responses = self.solver.rest_stiffness.solve(constraints)  # K0^-1 E
         response = response - responses @ np.linalg.solve(responses[dofs], response[dofs])
         response[dofs] = 0.0
