@@ -1,12 +1,15 @@
 """Closest point on triangles: Voronoi regions, exact Jacobian (autograd + finite differences),
-and the AABB-tree association against brute force (a perturbed cube, the liver)."""
+and the association (surface grid, libigl's tree beyond its reach) against brute force (a
+perturbed cube, the liver, degenerate and far-flung surfaces)."""
 
 import numpy as np
 import pytest
 import torch
 from torch.func import jacrev, vmap
 
+from meshfg_ros.core import closest_point
 from meshfg_ros.core.closest_point import (
+    GRID_MAX_REACH_EDGES,
     REGION_EDGE_AB,
     REGION_EDGE_AC,
     REGION_EDGE_BC,
@@ -231,3 +234,90 @@ def test_index_of_one_triangle_and_empty_queries():
     np.testing.assert_allclose(association.distance, [1.0, np.sqrt(2.0)])
     empty = index.associate(np.zeros((0, 3)))
     assert empty.triangle.shape == (0,) and empty.closest.shape == (0, 3)
+
+
+def _grid_answers(index: ClosestPointIndex, points) -> np.ndarray:
+    """The surface grid's own answers (-1 where it defers to libigl's tree)."""
+    return closest_point._grid_closest(np.ascontiguousarray(points, dtype=np.float64), index.vertices,
+                                       index.triangles, *index._grid)
+
+
+def _median_edge(vertices, triangles) -> float:
+    corners = vertices[triangles]
+    return float(np.median(np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2)))
+
+
+@pytest.mark.parametrize("reach_edges", [None, 0.2, 0.8])
+def test_the_grid_answers_the_points_within_its_reach_as_the_all_pairs_search_does(reach_edges):
+    """Points on both sides of the liver's surface (curved, uneven triangles) at distances up to
+    twice the grid's reach: every point the grid answers gets the all-pairs search's triangle
+    (its first minimiser: the lowest index among ties), and every point within the reach is
+    answered by the grid, not passed on to libigl."""
+    from meshfg_ros.synthetic.scenarios import liver_mesh
+
+    mesh = liver_mesh()
+    vertices, triangles = mesh.vertices, mesh.surface_triangles
+    edge = _median_edge(vertices, triangles)
+    reach = None if reach_edges is None else reach_edges * edge
+    index = ClosestPointIndex(vertices, triangles, reach)
+    effective = (closest_point.GRID_REACH_EDGES if reach_edges is None else reach_edges) * edge
+    rng = np.random.default_rng(21)
+    anchors = vertices[rng.choice(np.unique(triangles), 1500)]
+    directions = rng.normal(size=anchors.shape)
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    points = anchors + directions * rng.uniform(0.0, 2.0 * effective, size=(len(anchors), 1))
+    answered = _grid_answers(index, points)
+    reference = brute_force_closest(points, vertices, triangles)
+    mine = answered >= 0
+    np.testing.assert_array_equal(answered[mine], reference.triangle[mine])
+    within = reference.distance < 0.999 * effective
+    assert within.sum() > 300 and np.all(mine[within])
+    assert np.count_nonzero(~mine) > 100  # the far half goes to libigl's tree
+    full = index.associate(points)
+    np.testing.assert_allclose(full.distance, reference.distance, rtol=0, atol=1e-15)
+
+
+def test_the_grid_breaks_ties_as_the_all_pairs_search_does():
+    """Points on the plane that bisects two triangles sharing an edge (and on their shared
+    vertices' normals) are as close to both: the grid, like the all-pairs search, takes the
+    lower index, whatever order the triangles are listed in."""
+    vertices = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 0.0]])
+    for triangles in (np.array([[0, 1, 2], [1, 3, 2]]), np.array([[1, 3, 2], [0, 1, 2]])):
+        t = np.linspace(0.1, 0.9, 9)
+        points = np.column_stack([t, 1.0 - t, np.full_like(t, 0.05)])  # above the shared edge
+        index = ClosestPointIndex(vertices, triangles, reach=0.2)
+        answered = _grid_answers(index, points)
+        reference = brute_force_closest(points, vertices, triangles)
+        assert np.all(answered == 0)
+        np.testing.assert_array_equal(answered, reference.triangle)
+
+
+def test_a_reach_beyond_the_largest_is_held_to_it_and_no_reach_means_the_default():
+    vertices, triangles = cube_mesh(side=1.0, divisions=6).vertices, cube_mesh(side=1.0, divisions=6).surface_triangles
+    edge = _median_edge(vertices, triangles)
+    largest = ClosestPointIndex(vertices, triangles, reach=1e3)._grid[3]
+    assert largest == pytest.approx((GRID_MAX_REACH_EDGES * edge) ** 2, rel=1e-6)
+    default = ClosestPointIndex(vertices, triangles)._grid[3]
+    for reach in (0.0, -1.0, np.inf, np.nan):
+        assert ClosestPointIndex(vertices, triangles, reach=reach)._grid[3] == default
+    assert default == pytest.approx((closest_point.GRID_REACH_EDGES * edge) ** 2, rel=1e-6)
+
+
+def test_degenerate_and_far_flung_surfaces_are_searched_exactly():
+    """Triangles that are all one point (no edge length to size the grid by), and a surface with
+    one triangle 1e70 m away (the grid's cells would be countless at the edge length): the
+    association still equals the all-pairs search."""
+    rng = np.random.default_rng(3)
+    points = rng.uniform(-1.0, 1.0, size=(200, 3))
+    collapsed = np.zeros((4, 3))
+    index = ClosestPointIndex(collapsed, np.array([[0, 1, 2], [1, 2, 3]]))
+    np.testing.assert_allclose(index.associate(points).distance, np.linalg.norm(points, axis=1), rtol=0, atol=1e-15)
+    mesh = cube_mesh(side=1.0, divisions=4)
+    far = np.concatenate([mesh.vertices, [[1e70, 0.0, 0.0], [1e70, 1.0, 0.0], [1e70, 0.0, 1.0]]])
+    n = len(mesh.vertices)
+    triangles = np.concatenate([mesh.surface_triangles, [[n, n + 1, n + 2]]])
+    index = ClosestPointIndex(far, triangles)
+    assert np.prod(index._grid[1]) <= 64 * len(triangles)
+    association = index.associate(points)
+    reference = brute_force_closest(points, far, triangles)
+    np.testing.assert_allclose(association.distance, reference.distance, rtol=0, atol=1e-15)

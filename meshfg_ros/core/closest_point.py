@@ -19,13 +19,22 @@ the vertices too):
 On a region boundary both one-sided derivatives exist; the formula of the region the point
 was classified into is used (the same choice as autograd through the closed form).
 
-`ClosestPointIndex` finds, for each measured point, the exact closest surface triangle with
-libigl's AABB tree (a bounding-volume hierarchy over the triangles, built per surface state),
-then re-projects the point on that triangle with `project_onto_triangles`, so association,
-residual and Jacobian all come from the one closed form above. Measured on the paper-scale
-surface (588 triangles, 2,000 points): tree and query 1.6 ms, against 9 ms for a k-d tree
-over centroids with an exact candidate screen; organ scale (5,292 triangles,
-20,000 points) 14 ms against about 100 ms.
+`ClosestPointIndex` finds, for each measured point, the exact closest surface triangle, then
+re-projects the point on that triangle with `project_onto_triangles`, so association, residual
+and Jacobian all come from the one closed form above. The measured points lie within a few
+noise sigmas of the surface, a fraction of its edge length, and the search is made for every
+state LM tries (three per paper-scale update), so it is answered first from a uniform grid of
+the surface, made per state: each triangle is listed in the cells that its bounding box,
+grown by a reach, overlaps, and a point whose closest listed triangle lies within the reach is
+answered from its own cell's list, exactly (any triangle at least as close lies within the
+reach, so its grown box holds the point and its cell lists it); ties go to the lowest triangle
+index, as in the all-pairs search. libigl's AABB tree (a bounding-volume hierarchy over the
+triangles) answers the points the grid cannot: outside it, or farther than the reach.
+libigl has no search bounded to a distance from the surface and builds its tree anew for each
+state: on 2,089 points near the paper-scale surface (588 triangles) the grid took 0.17 ms to
+make and 0.4 ms to query, libigl 0.22 ms and 1.1-1.5 ms; on the organ-scale surface (5,292
+triangles, 20,000 points within 4 mm, the edges 4.8 mm long) the two are alike (about 15 ms).
+A k-d tree over centroids with an exact candidate screen took 9 ms at paper scale.
 """
 
 from __future__ import annotations
@@ -97,12 +106,54 @@ def _safe(x):
     return x if abs(x) > _TINY else _TINY
 
 
+@numba.njit(inline="always")
+def _closest_on_triangle(p, a, b, c):
+    """(region code, beta, gamma) of the closest point of triangle (a, b, c) to p: Ericson's
+    tests in his order (the first region whose test passes wins). The closest point is
+    (1 - beta - gamma) a + beta b + gamma c."""
+    ab0, ab1, ab2 = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+    ac0, ac1, ac2 = c[0] - a[0], c[1] - a[1], c[2] - a[2]
+    ap0, ap1, ap2 = p[0] - a[0], p[1] - a[1], p[2] - a[2]
+    bp0, bp1, bp2 = p[0] - b[0], p[1] - b[1], p[2] - b[2]
+    cp0, cp1, cp2 = p[0] - c[0], p[1] - c[1], p[2] - c[2]
+    d1, d2 = ab0 * ap0 + ab1 * ap1 + ab2 * ap2, ac0 * ap0 + ac1 * ap1 + ac2 * ap2
+    d3, d4 = ab0 * bp0 + ab1 * bp1 + ab2 * bp2, ac0 * bp0 + ac1 * bp1 + ac2 * bp2
+    d5, d6 = ab0 * cp0 + ab1 * cp1 + ab2 * cp2, ac0 * cp0 + ac1 * cp1 + ac2 * cp2
+    vc = d1 * d4 - d3 * d2
+    vb = d5 * d2 - d1 * d6
+    va = d3 * d6 - d5 * d4
+    if d1 <= 0.0 and d2 <= 0.0:
+        return REGION_VERTEX_A, 0.0, 0.0
+    if d3 >= 0.0 and d4 <= d3:
+        return REGION_VERTEX_B, 1.0, 0.0
+    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+        return REGION_EDGE_AB, d1 / _safe(d1 - d3), 0.0
+    if d6 >= 0.0 and d5 <= d6:
+        return REGION_VERTEX_C, 0.0, 1.0
+    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+        return REGION_EDGE_AC, 0.0, d2 / _safe(d2 - d6)
+    if va <= 0.0 and d4 - d3 >= 0.0 and d5 - d6 >= 0.0:
+        t = (d4 - d3) / _safe((d4 - d3) + (d5 - d6))
+        return REGION_EDGE_BC, 1.0 - t, t
+    inverse = 1.0 / _safe(va + vb + vc)
+    return REGION_FACE, vb * inverse, vc * inverse
+
+
+@numba.njit(inline="always")
+def _squared_distance(p, a, b, c, beta, gamma):
+    """|q - p|^2 for q = (1 - beta - gamma) a + beta b + gamma c, summed as `_project` sums it."""
+    alpha = 1.0 - beta - gamma
+    distance = 0.0
+    for k in range(3):
+        distance += (alpha * a[k] + beta * b[k] + gamma * c[k] - p[k]) ** 2
+    return distance
+
+
 @numba.njit((read_only(float64, 2), read_only(float64, 2), read_only(int64, 2), read_only(int64, 1)), cache=True,
             boundscheck=True, error_model="numpy")
 def _project(points, vertices, triangles, index):
     """Closest point on triangle triangles[index[i]] of `vertices` to points[i]: (closest,
-    barycentric, region, squared distance). Ericson's tests point by point, in his order (the
-    first region whose test passes wins).
+    barycentric, region, squared distance).
 
     Compiled (numba) rather than numpy passes over all points, whose fixed cost was most of
     their time on a window's clouds: 146 us against 8 us for 600 points, 293 against 23 us for
@@ -115,41 +166,13 @@ def _project(points, vertices, triangles, index):
     for i in range(count):
         a, b, c = vertices[triangles[index[i], 0]], vertices[triangles[index[i], 1]], vertices[triangles[index[i], 2]]
         p = points[i]
-        ab0, ab1, ab2 = b[0] - a[0], b[1] - a[1], b[2] - a[2]
-        ac0, ac1, ac2 = c[0] - a[0], c[1] - a[1], c[2] - a[2]
-        ap0, ap1, ap2 = p[0] - a[0], p[1] - a[1], p[2] - a[2]
-        bp0, bp1, bp2 = p[0] - b[0], p[1] - b[1], p[2] - b[2]
-        cp0, cp1, cp2 = p[0] - c[0], p[1] - c[1], p[2] - c[2]
-        d1, d2 = ab0 * ap0 + ab1 * ap1 + ab2 * ap2, ac0 * ap0 + ac1 * ap1 + ac2 * ap2
-        d3, d4 = ab0 * bp0 + ab1 * bp1 + ab2 * bp2, ac0 * bp0 + ac1 * bp1 + ac2 * bp2
-        d5, d6 = ab0 * cp0 + ab1 * cp1 + ab2 * cp2, ac0 * cp0 + ac1 * cp1 + ac2 * cp2
-        vc = d1 * d4 - d3 * d2
-        vb = d5 * d2 - d1 * d6
-        va = d3 * d6 - d5 * d4
-        if d1 <= 0.0 and d2 <= 0.0:
-            code, beta, gamma = REGION_VERTEX_A, 0.0, 0.0
-        elif d3 >= 0.0 and d4 <= d3:
-            code, beta, gamma = REGION_VERTEX_B, 1.0, 0.0
-        elif vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
-            code, beta, gamma = REGION_EDGE_AB, d1 / _safe(d1 - d3), 0.0
-        elif d6 >= 0.0 and d5 <= d6:
-            code, beta, gamma = REGION_VERTEX_C, 0.0, 1.0
-        elif vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
-            code, beta, gamma = REGION_EDGE_AC, 0.0, d2 / _safe(d2 - d6)
-        elif va <= 0.0 and d4 - d3 >= 0.0 and d5 - d6 >= 0.0:
-            t = (d4 - d3) / _safe((d4 - d3) + (d5 - d6))
-            code, beta, gamma = REGION_EDGE_BC, 1.0 - t, t
-        else:
-            inverse = 1.0 / _safe(va + vb + vc)
-            code, beta, gamma = REGION_FACE, vb * inverse, vc * inverse
+        code, beta, gamma = _closest_on_triangle(p, a, b, c)
         alpha = 1.0 - beta - gamma
         region[i] = code
         barycentric[i, 0], barycentric[i, 1], barycentric[i, 2] = alpha, beta, gamma
-        distance = 0.0
         for k in range(3):
             closest[i, k] = alpha * a[k] + beta * b[k] + gamma * c[k]
-            distance += (closest[i, k] - p[k]) ** 2
-        squared[i] = distance
+        squared[i] = _squared_distance(p, a, b, c, beta, gamma)
     return closest, barycentric, region, squared
 
 
@@ -260,6 +283,105 @@ def _check_points(points) -> np.ndarray:
     return points
 
 
+# The surface grid (see the module doc), in the surface's median edge lengths: its cells (or its
+# reach, where larger), its default reach, and the largest reach a caller may ask for (beyond it
+# nearly every triangle is listed in every cell). The cells grow where a few far-flung or
+# degenerate triangles would make more than _GRID_MAX_CELLS_PER_TRIANGLE per triangle. A point
+# is answered from its cell's list within the reach less _GRID_ROUNDING of it and of the
+# coordinates' magnitude, a margin that the listing's and the distances' rounding cannot cross.
+GRID_CELL_EDGES = 0.5
+GRID_REACH_EDGES = 0.33
+GRID_MAX_REACH_EDGES = 1.0
+_GRID_MAX_CELLS_PER_TRIANGLE = 64
+_GRID_ROUNDING = 1e-9
+
+
+@numba.njit((read_only(float64, 2), read_only(int64, 2)), cache=True, boundscheck=True, error_model="numpy")
+def _surface_extent(vertices, triangles):
+    """(low (3,), high (3,)) corners of the triangles' bounding box and their median edge length."""
+    low, high = np.full(3, np.inf), np.full(3, -np.inf)
+    edges = np.empty(3 * triangles.shape[0])
+    for f in range(triangles.shape[0]):
+        for j in range(3):
+            u, v = vertices[triangles[f, j]], vertices[triangles[f, (j + 1) % 3]]
+            edges[3 * f + j] = np.sqrt((u[0] - v[0]) ** 2 + (u[1] - v[1]) ** 2 + (u[2] - v[2]) ** 2)
+            for k in range(3):
+                low[k], high[k] = min(low[k], u[k]), max(high[k], u[k])
+    return low, high, np.median(edges)
+
+
+@numba.njit((read_only(float64, 2), read_only(int64, 2), read_only(float64, 1), read_only(int64, 1), float64, float64),
+            cache=True, boundscheck=True, error_model="numpy")
+def _grid_listing(vertices, triangles, origin, dims, cell, reach):
+    """(starts (cells + 1,), items): cell k = (x dims[1] + y) dims[2] + z lists the triangles
+    items[starts[k]:starts[k + 1]], those whose bounding box grown by `reach` overlaps it."""
+    count = triangles.shape[0]
+    low = np.empty((count, 3), dtype=np.int64)
+    high = np.empty((count, 3), dtype=np.int64)
+    for f in range(count):
+        for k in range(3):
+            least, most = np.inf, -np.inf
+            for j in range(3):
+                value = vertices[triangles[f, j], k]
+                least, most = min(least, value), max(most, value)
+            low[f, k] = max(int(np.floor((least - reach - origin[k]) / cell)), 0)
+            high[f, k] = min(int(np.floor((most + reach - origin[k]) / cell)), dims[k] - 1)
+    starts = np.zeros(dims[0] * dims[1] * dims[2] + 1, dtype=np.int64)
+    for f in range(count):
+        for x in range(low[f, 0], high[f, 0] + 1):
+            for y in range(low[f, 1], high[f, 1] + 1):
+                for z in range(low[f, 2], high[f, 2] + 1):
+                    starts[(x * dims[1] + y) * dims[2] + z + 1] += 1
+    for k in range(starts.size - 1):
+        starts[k + 1] += starts[k]
+    filled = starts[:-1].copy()
+    items = np.empty(starts[-1], dtype=np.int64)
+    for f in range(count):
+        for x in range(low[f, 0], high[f, 0] + 1):
+            for y in range(low[f, 1], high[f, 1] + 1):
+                for z in range(low[f, 2], high[f, 2] + 1):
+                    k = (x * dims[1] + y) * dims[2] + z
+                    items[filled[k]] = f
+                    filled[k] += 1
+    return starts, items
+
+
+@numba.njit((read_only(float64, 2), read_only(float64, 2), read_only(int64, 2), read_only(float64, 1),
+             read_only(int64, 1), float64, float64, read_only(int64, 1), read_only(int64, 1)),
+            cache=True, boundscheck=False, error_model="numpy")
+def _grid_closest(points, vertices, triangles, origin, dims, cell, certified, starts, items):
+    """Closest triangle per point from its cell's list (the lowest index among equal distances),
+    or -1 where the list cannot answer: the point is outside the grid, or its closest listed
+    triangle's squared distance is above `certified`.
+
+    Not bounds-checked, which halves its time (0.4 against 0.75 ms for 2,000 points near the
+    paper-scale surface): it reads through cell indices it has checked against `dims` and
+    through the listing that `_grid_listing` (bounds-checked) made of validated triangles."""
+    found = np.full(points.shape[0], -1, dtype=np.int64)
+    for i in range(points.shape[0]):
+        p = points[i]
+        k = 0
+        for axis in range(3):
+            position = (p[axis] - origin[axis]) / cell  # compared as a float: far points must not overflow an int
+            if not 0.0 <= position < dims[axis]:
+                k = -1
+                break
+            k = k * dims[axis] + int(position)
+        if k < 0:
+            continue
+        best, best_triangle = np.inf, -1
+        for j in range(starts[k], starts[k + 1]):
+            f = items[j]
+            a, b, c = vertices[triangles[f, 0]], vertices[triangles[f, 1]], vertices[triangles[f, 2]]
+            _, beta, gamma = _closest_on_triangle(p, a, b, c)
+            distance = _squared_distance(p, a, b, c, beta, gamma)
+            if distance < best or (distance == best and f < best_triangle):
+                best, best_triangle = distance, f
+        if best <= certified:
+            found[i] = best_triangle
+    return found
+
+
 @dataclass(frozen=True)
 class Association:
     """Closest surface triangle per point: triangle (K,) index into the triangle list (-1: none
@@ -274,12 +396,15 @@ class Association:
 
 
 class ClosestPointIndex:
-    """Exact closest-triangle queries on one surface state (libigl AABB tree, see module doc).
+    """Exact closest-triangle queries on one surface state: the surface grid, with libigl's AABB
+    tree for the points the grid cannot answer (see the module doc).
 
-    vertices (N, 3), triangles (F, 3) int indices into vertices.
+    vertices (N, 3), triangles (F, 3) int indices into vertices. `reach` (m, optional): the
+    distance from the surface within which most queried points lie (default GRID_REACH_EDGES
+    median edges); the grid answers the points within it, libigl the others.
     """
 
-    def __init__(self, vertices, triangles):
+    def __init__(self, vertices, triangles, reach: float | None = None):
         vertices = np.asarray(vertices, dtype=np.float64)
         triangles = np.asarray(triangles)
         if vertices.ndim != 2 or vertices.shape[1] != 3 or not np.all(np.isfinite(vertices)):
@@ -293,15 +418,39 @@ class ClosestPointIndex:
             raise InvalidGeometryError(f"triangles must index vertices [0, {len(vertices)})")
         self.vertices = np.ascontiguousarray(vertices)
         self.triangles = np.ascontiguousarray(triangles, dtype=np.int64)
-        self._tree = igl.AABB()
-        self._tree.init(self.vertices, self.triangles)
+        self._tree = None  # libigl's, made when a point first needs it
+        self._grid = self._make_grid(reach)
+
+    def _make_grid(self, reach: float | None):
+        """(origin, dims, cell, certified squared reach, starts, items) of the surface grid."""
+        low, high, edge = _surface_extent(self.vertices, self.triangles)
+        if not edge > 0.0:  # every triangle a point: one cell holds them all
+            edge = max(float(np.max(high - low)), 1.0)
+        given = reach is not None and np.isfinite(reach) and reach > 0.0
+        reach = min(float(reach), GRID_MAX_REACH_EDGES * edge) if given else GRID_REACH_EDGES * edge
+        cell = max(GRID_CELL_EDGES * edge, reach)
+        most_cells = _GRID_MAX_CELLS_PER_TRIANGLE * len(self.triangles)
+        while np.prod((high - low + 2.0 * reach) / cell + 1.0) > most_cells:
+            cell *= 2.0
+        origin = low - reach
+        dims = (np.floor((high + reach - origin) / cell) + 1.0).astype(np.int64)
+        magnitude = float(np.max(np.abs(np.concatenate([low, high]))))
+        certified = max(reach - _GRID_ROUNDING * (reach + magnitude), 0.0) ** 2
+        return (origin, dims, cell, certified, *_grid_listing(self.vertices, self.triangles, origin, dims, cell, reach))
 
     def associate(self, points, max_distance: float = np.inf) -> Association:
         """Closest triangle (exact) per point; points farther than max_distance get triangle -1."""
-        points = _check_points(points)
+        points = np.ascontiguousarray(_check_points(points))
         if not len(points):
             return _association(points, self.vertices, self.triangles, np.zeros(0, dtype=np.int64))
-        _, triangle, _ = self._tree.squared_distance(self.vertices, self.triangles, np.ascontiguousarray(points))
+        triangle = _grid_closest(points, self.vertices, self.triangles, *self._grid)
+        unanswered = np.flatnonzero(triangle < 0)
+        if unanswered.size:
+            if self._tree is None:
+                self._tree = igl.AABB()
+                self._tree.init(self.vertices, self.triangles)
+            _, triangle[unanswered], _ = self._tree.squared_distance(self.vertices, self.triangles,
+                                                                     np.ascontiguousarray(points[unanswered]))
         return _association(points, self.vertices, self.triangles, triangle, max_distance)
 
 

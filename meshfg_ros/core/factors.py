@@ -61,6 +61,10 @@ BARRIER_VOLUME_RATIO = 0.5
 # camera scenes at the predicted surface: 0-1 % of the points on the tissue and 49-100 % of the
 # leaks onto the surroundings lie against back faces; the leaks are 10-20 % of a cloud.
 MAX_BACK_FACING_SHARE = 0.5
+# The trials' closest-triangle searches answer from the surface grid the points within this many
+# times the farthest accepted point's distance at the prediction (LM's steps move the surface
+# by a fraction of that); libigl's tree answers the few beyond (closest_point.py).
+TRIAL_REACH = 1.25
 # A point's Gauss-Newton term (_distance_hessians) is weighted by the second
 # derivative of its robust cost along its distance, w (rho' + 2 s rho'') (RobustKernel.curvature),
 # but by at least this share of its IRLS weight w rho'. The IRLS weight overstates the curvature
@@ -620,14 +624,19 @@ class PointToSurfaceFactor(Factor):
         self.num_points_rejected = int(np.count_nonzero(~accepted))
         kept = np.flatnonzero(accepted)
         if initial_association is not None:
-            # The points in the order of their closest triangles: libigl's tree then answers
-            # consecutive queries along the same paths, and every later association (LM's trial
-            # costs) is faster: on the organ-scale surface 9.5 ms against 12.6 ms per query of a
-            # cloud in camera order (median of 20), paper scale 1.34 against 1.61 ms.
+            # The points in the order of their closest triangles: every later association (LM's
+            # trial costs) then reads the same grid cells' lists, or libigl's tree paths, for
+            # consecutive points. With libigl alone that made a query 9.5 against 12.6 ms on the
+            # organ-scale surface (median of 20), 1.34 against 1.61 ms at paper scale; the grid's
+            # searches near the paper-scale surface take the same time in either order.
             kept = kept[np.argsort(initial_association.triangle[kept], kind="stable")]
             initial_association = Association(*(getattr(initial_association, name)[kept] for name in (
                 "triangle", "closest", "barycentric", "region", "distance")))
         self.points = points[kept]
+        # The distance from the surface within which the points lie, with room for LM's steps:
+        # the trials' searches answer those points from the surface grid (closest_point.py).
+        self._reach = (TRIAL_REACH * float(initial_association.distance.max(initial=0.0))
+                       if initial_association is not None else None)
         self.noise = noise.subset(kept)
         # A viewpoint the back-face test found implausible (most points facing away) is not the
         # sensor's: its rays say nothing of the points' noise either.
@@ -669,7 +678,7 @@ class PointToSurfaceFactor(Factor):
             if np.array_equal(kept_vertices, vertices):
                 return kept
         if self._frozen_triangle is None:
-            return self._remember(vertices, ClosestPointIndex(vertices, self.triangles).associate(self.points))
+            return self._remember(vertices, ClosestPointIndex(vertices, self.triangles, self._reach).associate(self.points))
         projection = project_onto_mesh_triangles(self.points, vertices, self.triangles, self._frozen_triangle)
         return self._remember(vertices, Association(self._frozen_triangle, projection.closest, projection.barycentric,
                                                     projection.region, np.sqrt(projection.squared_distance)))
