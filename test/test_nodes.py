@@ -46,7 +46,7 @@ from meshfg_ros.io.messages import (
 from meshfg_ros.io.pointcloud import decode_pointcloud2, encode_xyz
 from meshfg_ros.io.recording import RecordingWriter
 from meshfg_ros.nodes.estimator_node import PREDICTION_QOS
-from meshfg_ros.nodes.ros_conversions import rclpy_message
+from meshfg_ros.nodes.ros_conversions import position_std_from_msg, rclpy_message
 
 REPOSITORY = Path(__file__).resolve().parents[1]
 CONFIG = REPOSITORY / "config" / "meshfg.yaml"
@@ -138,6 +138,15 @@ def mesh_msg(mesh, stamp_ns=0, positions=None):
     positions = mesh.vertices if positions is None else positions
     return mesh_state_to_msg(MeshState(stamp_ns, "world", 0, positions, mesh.tetrahedra, mesh.surface_triangles,
                                        mesh.fixed_vertices), FACTORY)
+
+
+def estimate_msg(mesh, stamp_ns, positions):
+    """An estimate with its posterior std (float32, as sent: 0 on the fixed vertices, 1 mm
+    elsewhere), which weighs what the simulator learns from it; returns (message, std)."""
+    std = np.where(np.isin(np.arange(mesh.vertex_count), mesh.fixed_vertices), 0.0, 1e-3).astype(np.float32)
+    msg = mesh_msg(mesh, stamp_ns, positions)
+    msg.position_std = std
+    return msg, std
 
 
 def top_points(count=40, seed=0):
@@ -282,10 +291,7 @@ def test_simulation_node_predicts_from_the_latest_estimate(probe, processes, tmp
     request(2 * S)
     first = received(1)
     estimate = np.asarray(first.positions).reshape(-1, 3) + [1e-4, 0.0, 0.0]
-    # The estimate's posterior std, which weighs what the simulator learns from it (float32, as sent).
-    std = np.where(np.isin(np.arange(mesh.vertex_count), mesh.fixed_vertices), 0.0, 1e-3).astype(np.float32)
-    with_std = mesh_msg(mesh, 2 * S, estimate)
-    with_std.position_std = std
+    with_std, std = estimate_msg(mesh, 2 * S, estimate)
     estimate_publisher.publish(with_std)
     send_pose(2, 3 * S)
     request(3 * S)  # predicted from the estimate of 2 s
@@ -380,9 +386,7 @@ def test_simulation_node_answers_the_requests_and_poses_that_came_before_its_mes
     pose_publisher.publish(tool_pose_msg(poses[1][:3], 2 * S))
     request_publisher.publish(header_msg(2 * S, "world", FACTORY))
     assert spin_until(probe, lambda: reports[-1][1].get("inputs_held_before_mesh") == "3"), reports[-1]
-    std = np.where(np.isin(np.arange(mesh.vertex_count), mesh.fixed_vertices), 0.0, 1e-3).astype(np.float32)
-    with_std = mesh_msg(mesh, 2 * S, estimate)
-    with_std.position_std = std
+    with_std, std = estimate_msg(mesh, 2 * S, estimate)
     estimate_publisher.publish(with_std)  # the estimator ran that step without one
     pose_publisher.publish(tool_pose_msg(poses[2][:3], 3 * S))
     request_publisher.publish(header_msg(3 * S, "world", FACTORY))
@@ -706,6 +710,21 @@ def test_launch_file_is_valid_python():
     namespace = {}
     exec(compile(launch_file.read_text(), str(launch_file), "exec"), namespace)
     assert isinstance(namespace["generate_launch_description"](), launch.LaunchDescription)
+
+
+def test_position_std_of_an_estimate_is_taken_unless_malformed():
+    """A TetraMesh's std is the simulator's weight for each vertex: taken with the right count
+    and no NaN or negative entry (an infinite entry is a vertex the estimate knows nothing of);
+    None when the message has none or a malformed one."""
+    mesh = cube_mesh(side=SIDE, divisions=2)
+    msg, std = estimate_msg(mesh, S, mesh.vertices)
+    np.testing.assert_array_equal(position_std_from_msg(msg, mesh.vertex_count), std)
+    msg.position_std = np.where(std > 0, np.float32(np.inf), std)
+    assert np.isinf(position_std_from_msg(msg, mesh.vertex_count)).sum() == np.count_nonzero(std)
+    for malformed in (std[:-1], np.where(std > 0, np.float32(np.nan), std), np.where(std > 0, -std, std),
+                      np.zeros(0, dtype=np.float32)):
+        msg.position_std = malformed
+        assert position_std_from_msg(msg, mesh.vertex_count) is None, malformed
 
 
 def test_recorded_messages_of_any_type_convert_to_rclpy():

@@ -33,7 +33,8 @@ class BodyLoadEstimate:
         self._movable = simulator.movable_vertices
         mass = simulator.vertex_mass[self._movable]
         self._unit_loads = np.kron(mass[:, None], np.eye(3))  # (3 n, 3): F, one column per axis
-        self._responses_at: float | None = None  # the Poisson ratio the responses were computed at
+        self._responses: np.ndarray | None = None  # (3, N, 3), at the Poisson ratio _responses_at
+        self._responses_at: float | None = None
 
     @property
     def acceleration(self) -> np.ndarray:

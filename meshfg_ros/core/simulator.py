@@ -349,6 +349,13 @@ def rest_stiffness_factor(body: _Body) -> SparseCholesky:
     return SparseCholesky(rest_stiffness(body), node_size=3)
 
 
+def _constrained(solution: np.ndarray, constraints: np.ndarray, responses: np.ndarray) -> np.ndarray:
+    """K0^-1 f held to E^T x = 0, from the free solution x = K0^-1 f, the constraint columns E
+    and their responses K0^-1 E: x - K0^-1 E (E^T K0^-1 E)^-1 E^T x (a Schur complement on the
+    factor)."""
+    return solution - responses @ np.linalg.solve(constraints.T @ responses, constraints.T @ solution)
+
+
 def _unit_columns(movable_count: int, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The dofs (3 k,) of the movable vertices at `rows` (k,) of the movable set, and the columns
     E (3 n, 3 k) that pick them: constraints that hold those vertices in a K0 solve."""
@@ -523,8 +530,7 @@ class VertexBlockDescent(SimulatorSolver):
         constraints = np.concatenate([held_constraints, sliding], axis=1)
         if constraints.shape[1]:
             responses = np.concatenate([held_responses, self._rest_solve(sliding)], axis=1)  # K0^-1 E
-            reactions = np.linalg.solve(constraints.T @ responses, constraints.T @ step)
-            step = step - responses @ reactions
+            step = _constrained(step, constraints, responses)
         step = step.reshape(-1, 3)
         trial = state.copy()
         for _ in range(_MAX_STEP_HALVINGS):
@@ -826,9 +832,8 @@ class ElasticSimulator:
         if rows.size == 0:
             return response
         dofs, constraints = _unit_columns(self.movable_vertices.size, rows)
-        responses = self.solver.rest_stiffness.solve(constraints)  # K0^-1 E
-        response = response - responses @ np.linalg.solve(responses[dofs], response[dofs])
-        response[dofs] = 0.0
+        response = _constrained(response, constraints, self.solver.rest_stiffness.solve(constraints))
+        response[dofs] = 0.0  # zero but for rounding
         return response
 
     @property

@@ -113,7 +113,7 @@ class SimulatorCounters(_Counters):
     predictions: int = 0
     predictions_failed: int = 0
     estimates_ignored: int = 0          # wrong vertex count, not finite, or far outside the scene
-    estimate_std_ignored: int = 0       # an estimate's position_std malformed (count, not finite, < 0): not learnt from
+    estimate_std_ignored: int = 0       # an estimate's position_std malformed (count, NaN, < 0): not learnt from
     inputs_held_before_mesh: int = 0    # tool poses, requests and estimates kept until the mesh came
     inputs_dropped_before_mesh: int = 0  # the oldest of those, beyond what is kept (nodes/held_inputs.py)
     last_prediction_ms: float = float("nan")

@@ -115,7 +115,7 @@ class SimulationNode(Node):
         position_std = position_std_from_msg(msg, self._scheduler.mesh.vertex_count)
         if positions is not None and position_std is None and len(msg.position_std):
             self._count("estimate_std_ignored", f"estimated_mesh at {stamp_ns} ns: position_std has a wrong count "
-                        "or entries not finite or negative; the body load and the Poisson ratio learn nothing from it")
+                        "or entries NaN or negative; the body load and the Poisson ratio learn nothing from it")
         rejection = self._scheduler.add_estimate(stamp_ns, positions, degraded=bool(msg.degraded),
                                                  position_std=position_std)
         if positions is None:
