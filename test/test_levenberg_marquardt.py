@@ -303,22 +303,31 @@ def test_block_factors_are_refreshed_by_revision_and_drift(cube, model):  # noqa
 
 
 @pytest.mark.parametrize("reserved", [0, 3])
-def test_reserved_factors_are_made_with_the_first_and_serve_later_blocks(cube, model, monkeypatch, reserved):  # noqa: F811
-    """With reserved_factors W, the first factor of a pattern comes with W - 1 spares, so the
-    blocks of a later, fuller window need no new factor (no symbolic analysis, no fresh
-    memory); without, each new block makes its own."""
+def test_reserved_factors_serve_the_first_solves_without_analysis(cube, model, monkeypatch, reserved):  # noqa: F811
+    """`reserve(pattern, W)` makes W factors before any solve, so the blocks of a window need
+    no symbolic analysis (nor fresh memory); without, each block's factor is analysed."""
     system, rhs = window_system(cube, model)
-    pcg = PCGSolver(tolerance=1e-12, preconditioner="block", reserved_factors=reserved)
-    first = WindowSystem([system.blocks[0]], [], ["first"], system.diagonal_index)
-    pcg.solve(first, rhs[:system.block_size])
+    pcg = PCGSolver(tolerance=1e-12, preconditioner="block")
+    pcg.reserve(system.pattern, reserved)
     analyses = []
     original = sparse_cholesky.SparseCholesky._analyse
     monkeypatch.setattr(sparse_cholesky.SparseCholesky, "_analyse",
                         lambda factor, data: analyses.append(1) or original(factor, data))
     x, stats = pcg.solve(system, rhs)
     assert stats.factorizations == len(system.keys)
-    assert len(analyses) == (0 if reserved else len(system.keys) - 1)  # one factor is "first"'s, reused
+    assert len(analyses) == (0 if reserved else len(system.keys))
     np.testing.assert_allclose(system.matvec(x), rhs, rtol=1e-8, atol=1e-9 * np.abs(rhs).max())
+
+
+def test_no_factor_is_reserved_for_blocks_the_vertex_preconditioner_serves(cube, model, monkeypatch):  # noqa: F811
+    system, _ = window_system(cube, model)
+    analyses = []
+    monkeypatch.setattr(sparse_cholesky.SparseCholesky, "_analyse", lambda factor, data: analyses.append(1))
+    PCGSolver(preconditioner="block").reserve(system.pattern, 2)
+    assert len(analyses) == 2
+    for pcg in (PCGSolver(preconditioner="vertex"), PCGSolver(cholesky_max_block=system.block_size - 1)):
+        pcg.reserve(system.pattern, 3)
+    assert len(analyses) == 2
 
 
 def test_stale_factors_are_refreshed_and_pcg_resumes_from_its_iterate(cube, model):  # noqa: F811

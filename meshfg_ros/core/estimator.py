@@ -378,10 +378,10 @@ class SlidingWindowEstimator:
             self.bulk_energy_scale = (self.model.lam + 2.0 * self.model.mu / 3.0) * self.model.volumes
         self.noise = MeasurementNoise(self.config.measurement_sigma)
         self.persistence = CorrectionPersistence()
-        # A sliding window's W block factors are made (their memory first touched) at the first
-        # solve, not by the window-filling update.
-        self.solver = make_linear_solver(self.config.linear_solver, tolerance=LINEAR_TOLERANCE,
-                                         reserved_factors=self.config.window_size)
+        # The window's W block factors are made (ordering, symbolic analysis, memory first
+        # touched) here, not by the first updates.
+        self.solver = make_linear_solver(self.config.linear_solver, tolerance=LINEAR_TOLERANCE)
+        self.solver.reserve(self.graph.block_pattern, self.config.window_size)
         self.anchor = initial_mesh.vertices.copy()
         self.step = 0
         self.last_estimate = initial_mesh.vertices.copy()

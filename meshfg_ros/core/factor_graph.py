@@ -97,6 +97,12 @@ class FactorGraph:
         self.relinearizations = 0
 
     # ------------------------------------------------------------------------ pattern
+    @property
+    def block_pattern(self) -> scipy.sparse.csr_matrix:
+        """The sparsity pattern of every state's block of the linearised system (csr over the
+        free dofs, sorted indices; its values are zeros and not to be written)."""
+        return self._pattern
+
     def _build_pattern(self) -> None:
         """Block pattern over free dofs: every pair of dofs of vertices sharing a tetrahedron."""
         tets = self.tetrahedra

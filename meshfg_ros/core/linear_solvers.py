@@ -23,7 +23,7 @@ import numpy as np
 import scipy.sparse
 import scipy.sparse.linalg
 
-from meshfg_ros.core.linear_system import WindowSystem
+from meshfg_ros.core.linear_system import WindowSystem, diagonal_positions
 from meshfg_ros.core.noise import NotPositiveDefiniteError
 from meshfg_ros.core.sparse_cholesky import SparseCholesky
 
@@ -82,6 +82,10 @@ class LinearSolver:
         test). This base version solves; PCG estimates it with its preconditioner alone."""
         step, _ = self.solve(system, -gradient)
         return -0.5 * float(gradient @ step)
+
+    def reserve(self, pattern: scipy.sparse.csr_matrix, count: int) -> None:
+        """Make, before any solve, what solves of windows of `count` states with state blocks of
+        `pattern` would otherwise make at their first use. Nothing to make for this solver."""
 
 
 class CholeskySolver(LinearSolver):
@@ -201,12 +205,11 @@ class PCGSolver(LinearSolver):
     solve and the decrement work on two to four states' factors instead of all W (iSAM2's
     "wildfire" threshold does the like for variables whose updates are negligible).
     tolerance: relative residual |b - A x| / |b|; max_iterations: cap (LinearSolveError).
-    reserved_factors: when the first factor of a sparsity pattern is made, this many in all are
-    made at once (the extra ones spares), so that later updates never factor into fresh memory:
-    the first touch of fresh pages is slow (an organ-scale factor holds about 130 MB, and
-    factoring into fresh memory takes two to three times as long as a refactor), and without
-    spares every update that fills the window would pay it. The estimator reserves its
-    window's W.
+    `reserve` makes a window's factors of a block pattern before any solve (their ordering,
+    symbolic analysis and memory), so that solves factor into them numerically only: the first
+    touch of fresh pages is slow (an organ-scale factor holds about 130 MB, and factoring into
+    fresh memory takes two to three times as long as a refactor), and without them the updates
+    that fill the window would pay it. The estimator reserves its window's W at construction.
     The loop is hand-written because scipy's cg cannot report negative curvature, which is
     how an indefinite system is detected (NotPositiveDefiniteError).
     """
@@ -214,8 +217,7 @@ class PCGSolver(LinearSolver):
     name = "pcg"
 
     def __init__(self, tolerance: float = 1e-8, max_iterations: int = 1000, preconditioner: str = "auto",
-                 refresh_iterations: int = 100, refresh_change: float = 0.05, cholesky_max_block: int = 100_000,
-                 reserved_factors: int = 0):
+                 refresh_iterations: int = 100, refresh_change: float = 0.05, cholesky_max_block: int = 100_000):
         if preconditioner not in PRECONDITIONERS:
             raise ValueError(f"preconditioner must be one of {PRECONDITIONERS}, got {preconditioner!r}")
         self.tolerance = float(tolerance)
@@ -224,7 +226,6 @@ class PCGSolver(LinearSolver):
         self.refresh_iterations = int(refresh_iterations)
         self.refresh_change = float(refresh_change)
         self.cholesky_max_block = int(cholesky_max_block)
-        self.reserved_factors = int(reserved_factors)
         self.reset()
 
     def reset(self) -> None:
@@ -239,10 +240,22 @@ class PCGSolver(LinearSolver):
         self._prepared = None            # (system, revision) the preconditioner was last made to fit
         self._kept = None                # (system, kept block indices, their restricted system)
 
-    def _mode(self, system: WindowSystem) -> str:
+    def _mode(self, block_size: int) -> str:
         if self.preconditioner != "auto":
             return self.preconditioner
-        return "vertex" if system.block_size > self.cholesky_max_block else "block"
+        return "vertex" if block_size > self.cholesky_max_block else "block"
+
+    def reserve(self, pattern: scipy.sparse.csr_matrix, count: int) -> None:
+        """Make `count` spare factors of block pattern `pattern` (csr, sorted indices, the whole
+        diagonal held) by factoring the identity on it; nothing when the "vertex" preconditioner
+        serves blocks of its size."""
+        if count < 1 or self._mode(pattern.shape[0]) != "block":
+            return
+        identity = np.zeros(pattern.nnz)
+        identity[diagonal_positions(pattern)] = 1.0
+        first = SparseCholesky(scipy.sparse.csr_matrix((identity, pattern.indices, pattern.indptr), shape=pattern.shape),
+                               node_size=3)
+        self._spare.extend([first] + [first.sibling(identity) for _ in range(count - 1)])
 
     @staticmethod
     def _change(data: np.ndarray, reference: np.ndarray) -> float:
@@ -252,8 +265,9 @@ class PCGSolver(LinearSolver):
 
     def _factor(self, data: np.ndarray, like: scipy.sparse.csr_matrix) -> SparseCholesky:
         """Factor of the matrix with values `data` on `like`'s pattern; reuses the symbolic
-        analysis of a spare factor (a state that left the window) when the pattern matches,
-        else the pattern work and ordering of a factor in use (`SparseCholesky.sibling`)."""
+        analysis of a spare factor (reserved, or a state's that left the window) when the
+        pattern matches, else the pattern work and ordering of a factor in use
+        (`SparseCholesky.sibling`)."""
         self.factorizations += 1
         while self._spare:
             factor = self._spare.pop()
@@ -267,10 +281,7 @@ class PCGSolver(LinearSolver):
         for cached in self._block_factors.values():
             if cached.factor.same_pattern(like):
                 return cached.factor.sibling(data)
-        factor = SparseCholesky(scipy.sparse.csr_matrix((data, like.indices, like.indptr), shape=like.shape),
-                                node_size=3)
-        self._spare.extend(factor.sibling(data) for _ in range(self.reserved_factors - 1))
-        return factor
+        return SparseCholesky(scipy.sparse.csr_matrix((data, like.indices, like.indptr), shape=like.shape), node_size=3)
 
     # ------------------------------------------------------------------ preparation
     def _mean_block_data(self, system: WindowSystem) -> np.ndarray:
@@ -391,7 +402,7 @@ class PCGSolver(LinearSolver):
     def solve(self, system, rhs):
         start = time.perf_counter()
         before = self.factorizations
-        mode = self._mode(system)
+        mode = self._mode(system.block_size)
         self._evict(system)
         b = np.asarray(rhs, dtype=np.float64)
         target = self.tolerance * float(np.linalg.norm(b))
@@ -448,7 +459,7 @@ class PCGSolver(LinearSolver):
         and PCG's first iteration applies M to that very -g: M^-1 (-g) = -(M^-1 g) exactly in
         floating point (every operation of the triangular solves is odd in its input), so it is
         kept for `solve` (`_known_preconditioned`) while the system and M stay the same."""
-        mode = self._mode(system)
+        mode = self._mode(system.block_size)
         self._evict(system)
         system, gradient, _ = self._solved_part(system, np.asarray(gradient, dtype=np.float64))
         self._prepare(system, mode, force=False)
@@ -527,6 +538,10 @@ class FallbackSolver(LinearSolver):
         if isinstance(self.solvers[0], PCGSolver):
             return self.solvers[0].decrement(system, gradient)
         return super().decrement(system, gradient)
+
+    def reserve(self, pattern, count):
+        """The first solver's reservation (the others serve only when it fails)."""
+        self.solvers[0].reserve(pattern, count)
 
     def reset(self) -> None:
         for solver in self.solvers:
