@@ -144,8 +144,9 @@ def _compare(graph, solvers, repeats: int, progress: bool, label: str) -> dict:
     """Median solve time and final cost of each solver on `graph`. A solver's time is its own
     (BaselineResult.time_ms): from the prepared problem to its result, without the set-up every
     solver gets before its clock starts (freezing the association; scipy's and GTSAM's whitened
-    residuals, 25 ms on the small window), just as meshfg's information matrices are made before
-    its clock starts; GTSAM's includes building its factor graph. The solvers' runs alternate
+    residuals, 25 ms on the small window), just as meshfg's information matrices are made and
+    its block factors reserved (solve_meshfg) before its clock starts; GTSAM's includes building
+    its factor graph. The solvers' runs alternate
     (meshfg, scipy, meshfg, scipy, ...), so that a slow spell of a shared machine falls on both
     sides of a speed-up instead of on one solver's block of runs; GTSAM (seconds per run) runs
     once, last."""
@@ -180,8 +181,8 @@ def bench_baselines(repeats: int = 3, progress: bool = True) -> dict:
     GTSAM's Python CustomFactors (one per element and per point) make a paper-scale window
     (W=10, ~40k factors) take longer than 25 minutes here, so the three-way comparison runs on
     a smaller window (BASELINE_SCALE); meshfg against scipy is also measured at paper scale.
-    Medians of `repeats` runs (GTSAM: one); the small window, where one run of meshfg takes
-    15-25 ms and its median over 3 moved by 15% between runs, gets 7 (scipy too). meshfg's and
+    Medians of `repeats` runs (GTSAM: one); the small window, whose runs are so short that
+    their median over 3 moved by 15% between runs, gets 7 (scipy too). meshfg's and
     scipy's runs alternate (`_compare`): each starts from the caches the other left, as one
     update in a running node does. Measured on the 2-core VM: run in blocks instead, each
     solver's repeats warm the caches for its next (small window: scipy 165-172 ms in blocks,
