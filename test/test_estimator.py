@@ -274,3 +274,22 @@ def test_the_gate_reuses_the_innovation_tests_association(scene, monkeypatch):
     with pytest.raises(FactorError, match="initial_association"):
         PointToSurfaceFactor(pending.key, pending.points[1:], mesh.surface_triangles, pending.prediction,
                              initial_association=known[1])
+
+
+def test_the_updates_factor_into_the_window_factors_reserved_when_the_estimator_was_built(scene, monkeypatch):
+    """Building the estimator analyses its window's W block factors; the updates that fill the
+    window and slide it on factor into them (and into the factors of states that left), so no
+    update orders or analyses a pattern."""
+    from meshfg_ros.core import sparse_cholesky
+
+    mesh, sequence = scene
+    analyses = []
+    original = sparse_cholesky.SparseCholesky._analyse
+    monkeypatch.setattr(sparse_cholesky.SparseCholesky, "_analyse",
+                        lambda factor, data: analyses.append(1) or original(factor, data))
+    estimator = SlidingWindowEstimator(mesh, EstimatorConfig(window_size=3))
+    assert len(analyses) == 3
+    results = [estimator.update(step.stamp_ns, step.points, step.predicted) for step in sequence[:6]]
+    assert len(analyses) == 3
+    assert estimator.solver.solvers[0].factorizations >= 1  # the updates did factor, into those three
+    assert all(result.converged and result.accepted_steps >= 1 for result in results)
