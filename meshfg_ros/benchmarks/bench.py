@@ -146,10 +146,9 @@ def _compare(graph, solvers, repeats: int, progress: bool, label: str) -> dict:
     solver gets before its clock starts (freezing the association; scipy's and GTSAM's whitened
     residuals, 25 ms on the small window), just as meshfg's information matrices are made and
     its block factors reserved (solve_meshfg) before its clock starts; GTSAM's includes building
-    its factor graph. The solvers' runs alternate
-    (meshfg, scipy, meshfg, scipy, ...), so that a slow spell of a shared machine falls on both
-    sides of a speed-up instead of on one solver's block of runs; GTSAM (seconds per run) runs
-    once, last."""
+    its factor graph. The solvers' runs alternate (meshfg, scipy, meshfg, scipy, ...), so that a
+    slow spell of a shared machine falls on both sides of a speed-up instead of on one solver's
+    block of runs; GTSAM (seconds per run) runs once, last."""
     from meshfg_ros.benchmarks.baselines import compare_single_update
     from meshfg_ros.core.estimator import LINEAR_TOLERANCE
 

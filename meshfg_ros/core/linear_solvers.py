@@ -226,12 +226,8 @@ class PCGSolver(LinearSolver):
         self.refresh_iterations = int(refresh_iterations)
         self.refresh_change = float(refresh_change)
         self.cholesky_max_block = int(cholesky_max_block)
-        self.reset()
-
-    def reset(self) -> None:
-        """Drop every cached factor."""
         self._block_factors: dict = {}   # key -> _BlockFactor
-        self._spare: list = []           # factors no longer in use, their symbolic analysis reusable
+        self._spare: list = []           # factors not in use (reserved, or left), their symbolic analysis reusable
         self._latest: _BlockFactor | None = None  # the factor last made or borrowed: the one to lend
         self._vertex: dict | None = None  # "vertex": laplacian, eigenvectors, inverse blocks, mean data
         self.factorizations = 0
@@ -542,11 +538,6 @@ class FallbackSolver(LinearSolver):
     def reserve(self, pattern, count):
         """The first solver's reservation (the others serve only when it fails)."""
         self.solvers[0].reserve(pattern, count)
-
-    def reset(self) -> None:
-        for solver in self.solvers:
-            if hasattr(solver, "reset"):
-                solver.reset()
 
 
 def make_linear_solver(name: str, fallback: bool = True, **pcg_options) -> LinearSolver:
