@@ -169,8 +169,11 @@ def test_a_mesh_that_cannot_be_simulated_stops_the_node(tmp_path):
 def test_a_millimetre_mesh_is_caught_at_the_first_cloud_and_mesh_scale_fixes_it(probe, processes, tmp_path):
     cube = pushed_cube()
     save_mesh(cube.with_vertices(1e3 * cube.vertices), tmp_path / "cube_mm.vtu")
-    overrides = ("prediction_timeout:=0.0", "update_time_budget:=0.01", "factors:=temporal+measurement")
-    wrong = Process(tmp_path, "estimator_node", *ros_args("/mm", f"mesh_file:={tmp_path / 'cube_mm.vtu'}", *overrides))
+    overrides = ("prediction_timeout:=0.0", "factors:=temporal+measurement")
+    # The short time budget makes the unscaled node's ERROR come soon; the scaled node's update
+    # runs to LM's own end, so its estimate does not depend on the machine's speed.
+    wrong = Process(tmp_path, "estimator_node", *ros_args("/mm", f"mesh_file:={tmp_path / 'cube_mm.vtu'}",
+                                                          "update_time_budget:=0.01", *overrides))
     right = Process(tmp_path, "estimator_node", *ros_args("/m", f"mesh_file:={tmp_path / 'cube_mm.vtu'}",
                                                           "mesh_scale:=0.001", *overrides))
     processes += [wrong, right]
@@ -189,4 +192,12 @@ def test_a_millimetre_mesh_is_caught_at_the_first_cloud_and_mesh_scale_fixes_it(
                       timeout_s=30.0), unscaled.diagnostics[-1:]
     assert unscaled.diagnostics[-1][0].startswith("no estimate for the clouds of the last")
     scaled.send(cloud_msg(top_points(), 1 * S), steps=1, clouds_rejected_registration=0)
-    assert np.abs(np.asarray(scaled.estimates[-1].positions).reshape(-1, 3) - cube.vertices).max() < 5e-3
+    estimate = np.asarray(scaled.estimates[-1].positions).reshape(-1, 3)
+    # In metres: the fixed vertices where the scaled file puts them (but for rounding), and the
+    # top face at the clouds' height within twice their noise (1 mm; the estimate's LM runs to its
+    # end on 40 points and no physics prior: 0.95 mm off on this cloud). Left in millimetres,
+    # the mesh would be 50 m off.
+    fixed = cube.fixed_vertices
+    np.testing.assert_allclose(estimate[fixed], cube.vertices[fixed], rtol=0.0, atol=1e-12)
+    top = np.isclose(cube.vertices[:, 2], cube.vertices[:, 2].max())
+    assert abs(estimate[top, 2].mean() - cube.vertices[top, 2].mean()) < 2e-3
