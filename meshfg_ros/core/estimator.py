@@ -217,7 +217,8 @@ def _real_array(name: str, value) -> np.ndarray:
 
 
 def _finite_result(result: StepResult) -> bool:
-    values = (result.positions, result.position_std, result.initial_cost, result.final_cost)
+    values = (result.positions, result.position_std, result.position_covariance, result.initial_cost,
+              result.final_cost)
     return all(np.isfinite(np.asarray(value, dtype=np.float64)).all() for value in values)
 
 
@@ -298,6 +299,7 @@ class StepResult:
     stamp_ns: int
     positions: np.ndarray          # (N, 3) newest state
     position_std: np.ndarray       # (N,) sqrt(trace(Sigma_ii) / 3), 0 on fixed vertices
+    position_covariance: np.ndarray  # (N, 3, 3) Sigma_ii in m^2, zero on fixed vertices
     iterations: int
     initial_cost: float            # of the last LM run (after any re-weighting: costs at the final weights)
     final_cost: float              # of the last LM run
@@ -693,9 +695,11 @@ class SlidingWindowEstimator:
         self._keep_persistent_correction(pending)
         positions = graph.states[pending.key].copy()
         self.last_estimate = positions
-        std = self._position_std(messages)
+        covariance = self._position_covariance(messages)
+        std = np.sqrt(np.clip(np.einsum("vii->v", covariance) / 3.0, 0.0, None))
         return StepResult(
             step=pending.key, stamp_ns=pending.stamp_ns, positions=positions, position_std=std,
+            position_covariance=covariance,
             iterations=iterations, initial_cost=result["initial_cost"], final_cost=result["final_cost"],
             converged=result["converged"], degraded=pending.degraded,
             solve_time_ms=1e3 * (time.perf_counter() - pending.start), num_points=pending.num_points,
@@ -765,7 +769,8 @@ class SlidingWindowEstimator:
                     solve_times_ms=list(lm.solve_times_ms))
 
     # ------------------------------------------------------------------------- covariance
-    def _position_std(self, messages) -> np.ndarray:
+    def _position_covariance(self, messages) -> np.ndarray:
+        """(N, 3, 3) posterior covariance blocks of the newest state's vertices (zero on fixed ones)."""
         graph = self.graph
         size = len(graph.keys) * graph.block_size
         method = "exact" if size <= EXACT_COVARIANCE_MAX_DOFS else "vertex-conditional"
@@ -777,18 +782,19 @@ class SlidingWindowEstimator:
                 newest_columns = np.zeros((system.size, n))
                 newest_columns[system.size - n:] = np.eye(n)
                 covariance = scipy.linalg.cho_solve(factor, newest_columns)[system.size - n:]
-                variances = np.einsum("vivi->v", covariance.reshape(n // 3, 3, n // 3, 3)) / 3.0
+                blocks = np.einsum("viwj->vwij", covariance.reshape(n // 3, 3, n // 3, 3))
+                blocks = blocks[np.arange(n // 3), np.arange(n // 3)]
             except np.linalg.LinAlgError:
                 messages.append("posterior information not positive definite: vertex-conditional std")
                 method = "vertex-conditional"
         if method == "vertex-conditional":
             # The newest state's last linearisation (LM's final steps are small) plus its
             # temporal terms: no extra linearisation.
-            eigenvalues = np.linalg.eigvalsh(graph.newest_vertex_information())
+            eigenvalues, eigenvectors = np.linalg.eigh(graph.newest_vertex_information())
             floor = 1e-12 * max(float(np.abs(eigenvalues).max()), 1e-300)
-            variances = (1.0 / np.maximum(eigenvalues, floor)).sum(axis=1) / 3.0
+            blocks = np.einsum("vij,vj,vkj->vik", eigenvectors, 1.0 / np.maximum(eigenvalues, floor), eigenvectors)
             if np.any(eigenvalues <= floor):
                 messages.append("some vertex information blocks not positive definite: their std is clamped")
-        std = np.zeros(self.mesh.vertex_count)
-        std[graph.free_vertices] = np.sqrt(np.clip(variances, 0.0, None))
-        return np.where(np.isfinite(std), std, 0.0)
+        covariance = np.zeros((self.mesh.vertex_count, 3, 3))
+        covariance[graph.free_vertices] = 0.5 * (blocks + blocks.transpose(0, 2, 1))
+        return np.where(np.isfinite(covariance), covariance, 0.0)
