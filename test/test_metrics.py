@@ -1,8 +1,10 @@
-"""Evaluation metrics: known answers for vertex RMSE, surface distances, observable split."""
+"""Evaluation metrics: known answers for vertex RMSE, surface distances, observable split, and the
+calibration of a published per-vertex standard deviation."""
 
 import numpy as np
 import pytest
 import trimesh
+from scipy.stats import chi2
 
 from meshfg_ros.evaluation import metrics
 from meshfg_ros.evaluation.metrics import correction_alignment
@@ -208,3 +210,91 @@ def test_summarise():
     assert metrics.summarise([1.0, 2.0, 3.0, 4.0]) == pytest.approx((2.5, np.sqrt(1.25)), rel=1e-15)
     with pytest.raises(ValueError, match="at least one"):
         metrics.summarise([])
+
+
+def gaussian_errors(count, seed, std_scale=1.0):
+    """(estimate, truth, published std) of `count` vertices whose errors are drawn from
+    N(0, s_i^2 I3), s_i log-uniform over two decades; the published std is std_scale * s_i."""
+    rng = np.random.default_rng(seed)
+    truth = rng.uniform(-0.05, 0.05, size=(count, 3))
+    true_std = 10.0 ** rng.uniform(-5.0, -3.0, size=count)
+    estimate = truth + rng.normal(size=(count, 3)) * true_std[:, None]
+    return estimate, truth, std_scale * true_std
+
+
+def test_calibration_of_a_calibrated_estimator():
+    """Errors drawn with the published std: mean NEES 3 and every nominal level met, within
+    five sampling standard deviations (NEES is chi2(3): variance 6; coverage binomial)."""
+    count = 20000
+    result = metrics.calibration(*gaussian_errors(count, seed=3))
+    assert result.vertices == count and result.left_out == 0 and result.zero_std_vertices == 0
+    assert result.mean_nees == pytest.approx(3.0, abs=5 * np.sqrt(6 / count))
+    assert result.coverage_95 == pytest.approx(0.95, abs=5 * np.sqrt(0.95 * 0.05 / count))
+    levels = np.asarray(metrics.CALIBRATION_LEVELS)
+    np.testing.assert_allclose(result.coverage(), levels, atol=5 * np.sqrt(0.25 / count))
+
+
+def test_calibration_of_an_overconfident_and_an_underconfident_estimator():
+    """A std half the true one quadruples NEES (mean 12) and covers only chi2.cdf(7.815 / 4, 3)
+    = 42 % inside the 95 % ellipsoid; a std twice the true one gives mean 0.75, all inside."""
+    count = 20000
+    tolerance = 5 * np.sqrt(0.25 / count)
+    overconfident = metrics.calibration(*gaussian_errors(count, seed=4, std_scale=0.5))
+    assert overconfident.mean_nees == pytest.approx(12.0, abs=5 * 4 * np.sqrt(6 / count))
+    assert overconfident.coverage_95 == pytest.approx(chi2.cdf(chi2.ppf(0.95, 3) / 4, 3), abs=tolerance)
+    assert overconfident.coverage_95 < 0.5
+    underconfident = metrics.calibration(*gaussian_errors(count, seed=5, std_scale=2.0))
+    assert underconfident.mean_nees == pytest.approx(0.75, abs=5 * np.sqrt(6 / count) / 4)
+    assert underconfident.coverage_95 > 0.999
+    assert (underconfident.coverage() > np.asarray(metrics.CALIBRATION_LEVELS)).all()
+
+
+def test_calibration_hand_computed_with_vertices_left_out():
+    """Errors 5 (std 5) and 2 (std 1): NEES 1 and 4. Left out: a zero std with no error (a fixed
+    vertex), a zero std with an error (infinitely overconfident, counted apart), NaN and inf."""
+    truth = np.zeros((6, 3))
+    estimate = np.array([[3.0, 4.0, 0.0], [0.0, 0.0, 2.0], [0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 0.0, 0.0],
+                         [0.0, 0.0, 3.0]])
+    std = np.array([5.0, 1.0, 0.0, 0.0, np.nan, np.inf])
+    result = metrics.calibration(estimate, truth, std)
+    np.testing.assert_allclose(result.nees, [1.0, 4.0], rtol=1e-15)
+    assert (result.vertices, result.left_out, result.zero_std_vertices) == (2, 4, 1)
+    assert result.mean_nees == pytest.approx(2.5, rel=1e-15)
+    assert result.median_std == pytest.approx(3.0, rel=1e-15)
+    assert result.coverage_95 == 1.0
+    np.testing.assert_array_equal(result.coverage([0.5, 0.95]), [0.5, 1.0])  # chi2(3) median 2.37
+    only_second = metrics.calibration(estimate, truth, std, vertices=[1, 3])
+    assert (only_second.vertices, only_second.left_out, only_second.zero_std_vertices) == (1, 1, 1)
+    assert only_second.mean_nees == pytest.approx(4.0, rel=1e-15)
+    summary = result.summary()
+    assert summary["vertices"] == 2 and summary["zero_std_vertices"] == 1 and summary["left_out"] == 4
+    assert summary["mean_nees"] == pytest.approx(2.5) and summary["median_std_m"] == pytest.approx(3.0)
+    assert summary["reliability"]["nominal"] == list(metrics.CALIBRATION_LEVELS)
+    assert len(summary["reliability"]["empirical"]) == len(metrics.CALIBRATION_LEVELS)
+
+
+def test_the_95_percent_ellipsoid_is_chi_squared_with_three_degrees_of_freedom():
+    """NEES just inside and just outside chi2.ppf(0.95, 3) = 7.815 (not 1.96^2, the 1-D bound)."""
+    bound = chi2.ppf(0.95, 3)
+    estimate = np.array([[np.sqrt(bound * 0.999), 0.0, 0.0], [np.sqrt(bound * 1.001), 0.0, 0.0]])
+    assert metrics.calibration(estimate, np.zeros((2, 3)), np.ones(2)).coverage_95 == 0.5
+
+
+def test_calibration_pools_vertices_and_says_when_it_is_undefined():
+    estimate, truth, std = gaussian_errors(100, seed=6)
+    first, second = metrics.calibration(estimate[:40], truth[:40], std[:40]), \
+        metrics.calibration(estimate[40:], truth[40:], std[40:])
+    pooled = metrics.Calibration.pooled([first, second])
+    whole = metrics.calibration(estimate, truth, std)
+    assert pooled.mean_nees == pytest.approx(whole.mean_nees, rel=1e-12)
+    np.testing.assert_array_equal(pooled.coverage(), whole.coverage())
+    empty = metrics.calibration(estimate, truth, np.zeros(100))
+    assert empty.vertices == 0 and empty.zero_std_vertices == 100 and np.isnan(empty.mean_nees)
+    assert empty.summary()["mean_nees"] is None and empty.summary()["coverage_95"] is None
+    assert metrics.Calibration.pooled([]).vertices == 0
+    with pytest.raises(ValueError, match="negative"):
+        metrics.calibration(estimate, truth, -std)
+    with pytest.raises(ValueError, match="std must have shape"):
+        metrics.calibration(estimate, truth, std[:-1])
+    with pytest.raises(ValueError, match="levels"):
+        whole.coverage([0.5, 1.0])

@@ -1,4 +1,5 @@
-"""Evaluation metrics of the paper: vertex RMSE, surface distances, observable split.
+"""Evaluation metrics of the paper: vertex RMSE, surface distances, observable split; and the
+calibration of a published per-vertex uncertainty against the truth.
 
 Surface metrics compare point clouds sampled from meshes: d_RMSE is one-sided (estimate to
 reference), d_CD the mean of the two one-sided mean nearest-neighbour distances, d_H95 the
@@ -15,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
+from scipy.stats import chi2
 
 from meshfg_ros.synthetic.camera import as_point_array, as_triangle_array, first_ray_hits
 
@@ -76,6 +78,124 @@ def correction_alignment(prediction, estimate, truth, indices=None, directions=N
     if made_norm == 0.0 or needed_norm == 0.0:
         return {"alignment": float("nan"), "gain": float("nan")}
     return {"alignment": both / (made_norm * needed_norm), "gain": both / needed_norm**2}
+
+
+# Nominal levels of a reliability curve: the share of vertices inside their ellipsoid of each
+# level is compared with the level (a calibrated estimator's curve is the diagonal).
+CALIBRATION_LEVELS = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.95, 0.99)
+# Degrees of freedom of a vertex's position error: its NEES is chi-squared with 3 of them.
+_POSITION_DOF = 3
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """How well a published per-vertex standard deviation describes the actual errors.
+
+    With std_i = sqrt(trace(Sigma_ii) / 3), the normalised estimation error squared (NEES) of
+    vertex i is |estimate_i - truth_i|^2 / std_i^2. For an error drawn from N(0, std_i^2 I3) it
+    is chi-squared with 3 degrees of freedom: mean 3, and a vertex lies inside its level-p
+    ellipsoid (NEES <= chi2.ppf(p, 3)) with probability p. For an anisotropic Sigma_ii the mean
+    is still 3 and the coverage approximate. Mean NEES above 3 and coverage below the level:
+    the uncertainty is too small (overconfident); below 3 and above it: too large.
+
+    nees and std hold the judged vertices only (finite positive std). Vertices with a zero or
+    non-finite std are left out and counted in `left_out`; of them, those published with a zero
+    std and a nonzero error (infinitely overconfident) also in `zero_std_vertices`, so that they
+    stay visible instead of vanishing from the mean. Calibrations of several steps or sets are
+    pooled per vertex by `pooled`.
+    """
+
+    nees: np.ndarray  # (K,) per judged vertex
+    std: np.ndarray  # (K,) their published standard deviation (metres)
+    left_out: int
+    zero_std_vertices: int
+
+    @property
+    def vertices(self) -> int:
+        """The number of judged vertices."""
+        return len(self.nees)
+
+    @property
+    def mean_nees(self) -> float:
+        """Mean NEES over the judged vertices (3 when calibrated); NaN without any."""
+        return float(self.nees.mean()) if self.vertices else float("nan")
+
+    def coverage(self, levels=CALIBRATION_LEVELS) -> np.ndarray:
+        """(L,) share of judged vertices inside their ellipsoid of each nominal level (the
+        level itself when calibrated); NaN without any vertex."""
+        levels = np.asarray(levels, dtype=np.float64)
+        if levels.ndim != 1 or not ((levels > 0) & (levels < 1)).all():
+            raise ValueError(f"levels must be a 1-D array of values in (0, 1), got {levels}")
+        if not self.vertices:
+            return np.full(len(levels), np.nan)
+        bounds = chi2.ppf(levels, _POSITION_DOF)
+        return np.count_nonzero(self.nees[:, None] <= bounds[None, :], axis=0) / self.vertices
+
+    @property
+    def coverage_95(self) -> float:
+        """Share of judged vertices inside their 95 % ellipsoid (0.95 when calibrated)."""
+        return float(self.coverage((0.95,))[0])
+
+    @property
+    def median_std(self) -> float:
+        """Median published std of the judged vertices (metres); NaN without any."""
+        return float(np.median(self.std)) if self.vertices else float("nan")
+
+    @classmethod
+    def pooled(cls, calibrations) -> Calibration:
+        """One calibration over every vertex of `calibrations` (for instance of several steps)."""
+        calibrations = list(calibrations)
+        return cls(
+            nees=np.concatenate([np.zeros(0)] + [c.nees for c in calibrations]),
+            std=np.concatenate([np.zeros(0)] + [c.std for c in calibrations]),
+            left_out=sum(c.left_out for c in calibrations),
+            zero_std_vertices=sum(c.zero_std_vertices for c in calibrations),
+        )
+
+    def summary(self, levels=CALIBRATION_LEVELS) -> dict:
+        """JSON-ready figures (None for an undefined value): counts, mean NEES, 95 % coverage, the
+        median std (metres) and the reliability curve (empirical coverage at the nominal levels)."""
+        def number(value):
+            return float(value) if np.isfinite(value) else None
+
+        return {
+            "vertices": self.vertices,
+            "left_out": self.left_out,
+            "zero_std_vertices": self.zero_std_vertices,
+            "mean_nees": number(self.mean_nees),
+            "coverage_95": number(self.coverage_95),
+            "median_std_m": number(self.median_std),
+            "reliability": {"nominal": [float(level) for level in levels],
+                            "empirical": [number(value) for value in self.coverage(levels)]},
+        }
+
+
+def calibration(estimate, truth, std, vertices=None) -> Calibration:
+    """The calibration of per-vertex standard deviations `std` (N,) (metres, as published with
+    the estimate: sqrt(trace(Sigma_ii) / 3)) against the errors of `estimate` (N, 3) to `truth`
+    (N, 3), over all vertices or the ids `vertices`. A zero or non-finite std leaves its vertex
+    out (counted, see Calibration); a negative one is an error."""
+    estimate = as_point_array("estimate", estimate)
+    truth = as_point_array("truth", truth)
+    std = np.asarray(std, dtype=np.float64)
+    if estimate.shape != truth.shape:
+        raise ValueError(f"estimate {estimate.shape} and truth {truth.shape} differ in shape")
+    if std.shape != (len(estimate),):
+        raise ValueError(f"std must have shape ({len(estimate)},), got {std.shape}")
+    if (std < 0).any():
+        raise ValueError("std holds negative values")
+    errors = estimate - truth
+    if vertices is not None:
+        selected = _as_indices("vertices", vertices, len(errors))
+        errors, std = errors[selected], std[selected]
+    squared_errors = np.einsum("ij,ij->i", errors, errors)
+    judged = np.isfinite(std) & (std > 0)
+    return Calibration(
+        nees=squared_errors[judged] / std[judged] ** 2,
+        std=std[judged],
+        left_out=int(np.count_nonzero(~judged)),
+        zero_std_vertices=int(np.count_nonzero((std == 0) & (squared_errors > 0))),
+    )
 
 
 def sample_surface(vertices, triangles, count: int, seed=0, return_faces: bool = False):
