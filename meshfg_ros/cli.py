@@ -152,18 +152,34 @@ def _eval_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", type=Path, help="new JSON file for the metrics (metres)")
     parser.add_argument("--samples", type=_positive_integer, default=None,
                         help="surface samples per mesh (default 10000)")
+    parser.add_argument("--calibration-plot", type=Path, metavar="PNG",
+                        help="new PNG of the reliability diagrams of the factor graph's position_std "
+                             "(needs a replay that publishes it, on the truth's mesh)")
 
 
 def run_eval(args: argparse.Namespace) -> int:
-    from meshfg_ros.evaluation.evaluate import DEFAULT_SAMPLES, evaluate_recordings, format_tables, write_json
+    from meshfg_ros.evaluation.evaluate import (
+        DEFAULT_SAMPLES,
+        EvaluationError,
+        evaluate_recordings,
+        format_tables,
+        write_json,
+    )
 
     _refuse_existing(args.json)
+    _refuse_existing(args.calibration_plot)
     samples = DEFAULT_SAMPLES if args.samples is None else args.samples
     evaluation = evaluate_recordings(args.outbag, args.truth, samples)
+    if args.calibration_plot is not None and "calibration" not in evaluation:
+        raise EvaluationError(f"no calibration plot: {args.outbag} has no position_std on the truth's mesh")
     print(format_tables(evaluation))
     if args.json is not None:
         write_json(evaluation, args.json)
         print(f"\nwrote {args.json}")
+    if args.calibration_plot is not None:
+        from meshfg_ros.evaluation.render import write_calibration_plot
+
+        print(f"wrote {write_calibration_plot(evaluation, args.calibration_plot)}")
     return 0
 
 

@@ -1,13 +1,17 @@
-"""Evaluation (the paper's metrics, observable split, tables, JSON) and pictures of a replay."""
+"""Evaluation (the paper's metrics, observable split, calibration of the published std, tables,
+JSON) and pictures of a replay."""
 import json
 
 import numpy as np
 import pytest
 from matplotlib.image import imread
 from offline_helpers import tiny_scenario, write_fake_replay
+from scipy.stats import chi2
 
+from meshfg_ros import cli
 from meshfg_ros.evaluation.metrics import vertex_rmse
 from meshfg_ros.evaluation.evaluate import (
+    CALIBRATION_SETS,
     CORRECTION_QUANTITIES,
     CORRECTION_SETS,
     EvaluationError,
@@ -19,11 +23,12 @@ from meshfg_ros.evaluation.evaluate import (
     write_json,
 )
 from meshfg_ros.io.messages import MeshState
-from meshfg_ros.evaluation.render import OutputDirectoryError, render
+from meshfg_ros.evaluation.render import OutputDirectoryError, render, write_calibration_plot
 from meshfg_ros.synthetic.recordings import write_scenario
 
 SAMPLES = 4000
 OFFSET = 1e-3  # the fake estimate is the truth shifted 1 mm up
+PUBLISHED_STD = float(np.float32(1e-4))  # write_fake_replay's position_std, as the message's float32 holds it
 
 
 @pytest.fixture(scope="module")
@@ -191,3 +196,92 @@ def test_render_refuses_a_non_empty_directory(camera_scene, tmp_path):
         render(camera_scene[2], tmp_path)
     assert [p.name for p in tmp_path.iterdir()] == ["keep.txt"]
     assert (tmp_path / "keep.txt").read_text() == "mine"
+
+
+def vertex_sets(mesh):
+    """The camera scene's free vertices, free external ones on the top face (the camera's view)
+    and below it (unobserved)."""
+    free = mesh.free_vertices
+    external = np.intersect1d(mesh.surface_vertices, free)
+    top = mesh.vertices[external, 2] > 0.02 - 1e-9
+    return free, external[top], external[~top]
+
+
+def test_calibration_of_the_shifted_estimate(camera_scene, evaluation):
+    """Every error 1 mm, every published std 0.1 mm: NEES 100 on every vertex of every set, none
+    inside even its 99 % ellipsoid; the same std observed and unobserved (ratio 1)."""
+    free, observed, unobserved = vertex_sets(camera_scene[0].initial_mesh)
+    section = evaluation["calibration"]
+    assert section["pooled_from_step"] == 3 and set(section["sets"]) == set(CALIBRATION_SETS)
+    counts = {"all": len(free), "observed_external": len(observed), "unobserved_external": len(unobserved)}
+    for name, sets in section["sets"].items():
+        assert len(sets["per_step"]) == 3
+        for summary in (sets["final"], sets["pooled"], *sets["per_step"]):
+            assert summary["vertices"] == counts[name] and summary["left_out"] == 0
+            assert summary["mean_nees"] == pytest.approx((OFFSET / PUBLISHED_STD) ** 2, rel=1e-9)
+            assert summary["coverage_95"] == 0.0 and summary["reliability"]["empirical"][-1] == 0.0
+            assert summary["median_std_m"] == pytest.approx(PUBLISHED_STD, rel=1e-12)
+    assert section["std_ratio_unobserved_observed"] == {"final": 1.0, "pooled": 1.0}
+    text = format_tables(evaluation)
+    assert "Calibration of the factor graph's position_std" in text and "(steps 3-3 pooled)" in text
+    row = next(line for line in text.splitlines() if line.startswith("unobserved external "))
+    assert row.split()[2:5] == [f"{len(unobserved)}", f"({len(unobserved)})", "100.00"]
+    assert "100.00 (100.00)" in row and "0.000 (0.000)" in row and "0.1000 (0.1000)" in row
+
+
+def test_calibration_is_per_set_at_the_final_step_and_pooled_from_the_third(tmp_path):
+    """Four steps; at step k the error of every vertex is sqrt(k) published stds on the top face
+    and inside, sqrt(4 k) below the top (NEES k and 4 k). Final (step 4): NEES 4 and 16; pooled
+    over steps 3 and 4 (not 1 and 2): 3.5 and 14, and over all free vertices the vertex-weighted
+    mean. Coverage of the 95 % ellipsoid (NEES <= 7.815): the top at every step, below the top at
+    none of steps 3 and 4."""
+    scenario = tiny_scenario(steps=4, camera=True)
+    mesh = scenario.initial_mesh
+    free, observed, unobserved = vertex_sets(mesh)
+    below = np.zeros(mesh.vertex_count, bool)
+    below[unobserved] = True
+    estimates = []
+    for k, step in enumerate(scenario.steps, start=1):
+        nees = np.where(below, 4.0 * k, float(k))
+        direction = np.random.default_rng(k).normal(size=(mesh.vertex_count, 3))
+        direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+        estimates.append(step.truth + direction * (PUBLISHED_STD * np.sqrt(nees))[:, None])
+    write_scenario(scenario, tmp_path / "truth")
+    write_fake_replay(scenario, tmp_path / "replay", estimates=estimates)
+    section = evaluate_recordings(tmp_path / "replay", tmp_path / "truth", samples=SAMPLES)["calibration"]["sets"]
+    others = len(free) - len(unobserved)
+    expected = {"observed_external": (4.0, 3.5), "unobserved_external": (16.0, 14.0),
+                "all": ((others * 4 + len(unobserved) * 16) / len(free), (others * 3.5 + len(unobserved) * 14) / len(free))}
+    for name, (final, pooled) in expected.items():
+        assert section[name]["final"]["mean_nees"] == pytest.approx(final, rel=1e-6), name
+        assert section[name]["pooled"]["mean_nees"] == pytest.approx(pooled, rel=1e-6), name
+        assert section[name]["pooled"]["vertices"] == 2 * section[name]["final"]["vertices"]
+        per_step = [summary["mean_nees"] for summary in section[name]["per_step"]]
+        assert per_step == pytest.approx([final * k / 4 for k in range(1, 5)], rel=1e-6)
+    assert section["observed_external"]["pooled"]["coverage_95"] == 1.0
+    assert section["unobserved_external"]["pooled"]["coverage_95"] == 0.0
+    assert section["all"]["pooled"]["coverage_95"] == pytest.approx(others / len(free))
+    # Step 1 below the top: NEES 4, inside the 95 % ellipsoid, outside the 50 % one (chi2(3) median 2.37).
+    reliability = section["unobserved_external"]["per_step"][0]["reliability"]
+    assert chi2.ppf(0.5, 3) < 4.0 < chi2.ppf(0.95, 3)
+    assert reliability["empirical"][reliability["nominal"].index(0.5)] == 0.0
+    assert reliability["empirical"][reliability["nominal"].index(0.95)] == 1.0
+
+
+def test_calibration_json_is_strict_and_the_plot_is_drawn(evaluation, tmp_path):
+    json.dumps(evaluation["calibration"], allow_nan=False)
+    path = write_calibration_plot(evaluation, tmp_path / "calibration.png")
+    image = imread(path)
+    assert image.ndim == 3 and image.shape[1] > 3 * image.shape[0] / 2 and image[..., :3].std() > 0.01
+    with pytest.raises(FileExistsError):
+        write_calibration_plot(evaluation, path)
+
+
+def test_eval_command_writes_the_calibration_plot(camera_scene, tmp_path, capsys):
+    _, truth, replay = camera_scene
+    plot = tmp_path / "calibration.png"
+    assert cli.main(["eval", str(replay), "--truth", str(truth), "--samples", "500", "--calibration-plot", str(plot)]) == 0
+    assert "Calibration of the factor graph's position_std" in capsys.readouterr().out
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and plot.stat().st_size > 10_000
+    assert cli.main(["eval", str(replay), "--truth", str(truth), "--calibration-plot", str(plot)]) == 1
+    assert "exists" in capsys.readouterr().err

@@ -22,13 +22,17 @@ Scenes without a camera (the cubes) use the faces the measurements were drawn fr
 Vertex RMSE (the paper's Table I) needs vertex correspondence, so it is computed only when the
 replay used the recording's mesh; fixed vertices are left out of every set for the same reason
 as fixed faces. "Unobserved external" vertices are free surface vertices on no observed face.
+With vertex correspondence and a published position_std, the calibration of the factor graph's
+uncertainty (metrics.calibration: NEES, coverage of its ellipsoids, median std) over all free
+vertices and the observed and unobserved external ones, per step, at the final step and pooled
+over the steps from CALIBRATION_POOLED_FROM_STEP on.
 """
 
 from __future__ import annotations
 
 import functools
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -37,6 +41,8 @@ from scipy.spatial import cKDTree
 from meshfg_ros.core.closest_point import ClosestPointIndex
 from meshfg_ros.core.mesh import TetMesh
 from meshfg_ros.evaluation.metrics import (
+    Calibration,
+    calibration,
     correction_alignment,
     observable_triangles,
     sample_surface,
@@ -64,6 +70,13 @@ VERTEX_SETS = ("all", "external", "unobserved_external")
 # measurements see) and across it, and the unobserved external ones (the prior's extrapolation).
 CORRECTION_SETS = ("observed_normal", "observed_tangential", "unobserved_external")
 CORRECTION_QUANTITIES = ("alignment", "gain")  # the keys of metrics.correction_alignment
+# Where the factor graph's published position_std is compared with its actual errors
+# (metrics.calibration): all free vertices, the external ones the measurements constrain, and
+# the unobserved external ones (the uncertainty should be larger there than where it is seen).
+CALIBRATION_SETS = ("all", "observed_external", "unobserved_external")
+# The pooled calibration starts at this step (the first evaluated step is 1): it leaves out the
+# start-up, where the window fills from the initial mesh.
+CALIBRATION_POOLED_FROM_STEP = 3
 DEFAULT_SAMPLES = 10_000
 _UNDEFINED = {metric: float("nan") for metric in SURFACE_METRICS}  # a region empty at some step
 
@@ -81,6 +94,8 @@ class EvaluationInputs:
     predictions: stamp -> (N', 3) the prediction each estimate started from (the replay's
     /meshfg/predicted_mesh; empty when the replay has none).
     observed_faces: (F,) bool on the truth's surface for camera-less scenes, else None.
+    position_std: stamp -> (N',) the factor graph's published per-vertex std (metres), for the
+    stamps whose estimate carries one.
     """
 
     scenario: str
@@ -93,6 +108,7 @@ class EvaluationInputs:
     clouds: dict[int, np.ndarray]
     camera_center: np.ndarray | None
     observed_faces: np.ndarray | None
+    position_std: dict[int, np.ndarray] = field(default_factory=dict)
 
     @functools.cached_property
     def truth_tet_mesh(self) -> TetMesh:
@@ -106,11 +122,17 @@ class EvaluationInputs:
         return a.tetrahedra.shape == b.tetrahedra.shape and bool(np.array_equal(a.tetrahedra, b.tetrahedra))
 
 
-def mesh_series(reader: RecordingReader, topic: str) -> tuple[MeshState, dict[int, np.ndarray]]:
-    """The first mesh of a topic and stamp -> positions of every mesh on it."""
+def mesh_states(reader: RecordingReader, topic: str) -> list[MeshState]:
+    """Every mesh of a topic, in log order (EvaluationError when it holds none)."""
     states = list(reader.records(topic, MeshState))
     if not states:
         raise EvaluationError(f"{reader.path}: topic {topic} holds no meshes")
+    return states
+
+
+def mesh_series(reader: RecordingReader, topic: str) -> tuple[MeshState, dict[int, np.ndarray]]:
+    """The first mesh of a topic and stamp -> positions of every mesh on it."""
+    states = mesh_states(reader, topic)
     return states[0], {state.stamp_ns: state.positions for state in states}
 
 
@@ -123,7 +145,9 @@ def load_inputs(replay_path: str | Path, truth_path: str | Path) -> EvaluationIn
         if CAMERA_POSE_TOPIC in truth_reader.topics:
             camera_center = next(iter(truth_reader.records(CAMERA_POSE_TOPIC, PoseRecord))).pose[:3].copy()
     with RecordingReader(replay_path) as replay_reader:
-        estimate_mesh, estimated = mesh_series(replay_reader, ESTIMATED_MESH_TOPIC)
+        estimated_states = mesh_states(replay_reader, ESTIMATED_MESH_TOPIC)
+        estimate_mesh, estimated = estimated_states[0], {state.stamp_ns: state.positions for state in estimated_states}
+        position_std = {state.stamp_ns: state.position_std for state in estimated_states if state.position_std.size}
         estimates = {"factor_graph": estimated}
         if SIMULATION_ONLY_MESH_TOPIC in replay_reader.topics:
             estimates["simulation"] = mesh_series(replay_reader, SIMULATION_ONLY_MESH_TOPIC)[1]
@@ -154,6 +178,7 @@ def load_inputs(replay_path: str | Path, truth_path: str | Path) -> EvaluationIn
         clouds=clouds,
         camera_center=camera_center,
         observed_faces=observed_faces,
+        position_std=position_std,
     )
 
 
@@ -255,7 +280,10 @@ def evaluate_step(inputs: EvaluationInputs, stamp: int, samples: int = DEFAULT_S
     """Metrics of one step: {'surface': {method: {region: {metric: m}}}, 'vertex_rmse': {method: {set: m}}},
     and, where vertices and the observed region are defined and the replay has predictions,
     'correction': {set: {quantity: value}} (CORRECTION_SETS; NaN for a step without a prediction,
-    so that every step keeps its place in the per-step lists)."""
+    so that every step keeps its place in the per-step lists); where vertices are defined and the
+    replay publishes a position_std, 'calibration': {set: metrics.Calibration} of the factor
+    graph (CALIBRATION_SETS, the external ones where the observed region is known; None for a
+    step whose estimate has no std)."""
     cloud = inputs.clouds[stamp]
     reference = _Surface(inputs.truth_mesh, inputs.truth[stamp], samples, seed, inputs.camera_center, cloud,
                          inputs.observed_faces)
@@ -283,6 +311,8 @@ def evaluate_step(inputs: EvaluationInputs, stamp: int, samples: int = DEFAULT_S
                 for name, ids in sets.items()
             }
     step = {"surface": surface, "vertex_rmse": vertex}
+    if inputs.same_topology and inputs.position_std:
+        step["calibration"] = _calibration(inputs, stamp, sets)
     if inputs.same_topology and reference.observed is not None and inputs.predictions:
         step["correction"] = (_correction(inputs, stamp, external, sets["unobserved_external"])
                               if stamp in inputs.predictions else
@@ -300,6 +330,37 @@ def _correction(inputs: EvaluationInputs, stamp: int, external: np.ndarray, unob
         "observed_tangential": correction_alignment(prediction, estimate, truth, observed, normals, across=True),
         "unobserved_external": correction_alignment(prediction, estimate, truth, unobserved),
     }
+
+
+def _calibration(inputs: EvaluationInputs, stamp: int, sets: dict[str, np.ndarray]) -> dict:
+    """The factor graph's calibration on CALIBRATION_SETS at one step (None each without a std)."""
+    named = {"all": sets["all"]}
+    if "unobserved_external" in sets:
+        named["observed_external"] = np.setdiff1d(sets["external"], sets["unobserved_external"])
+        named["unobserved_external"] = sets["unobserved_external"]
+    std = inputs.position_std.get(stamp)
+    return {name: None if std is None else calibration(inputs.estimates["factor_graph"][stamp], inputs.truth[stamp],
+                                                        std, ids)
+            for name, ids in named.items()}
+
+
+def _calibration_summary(per_step: list[Calibration | None]) -> dict:
+    """final / pooled (the per-vertex NEES of steps CALIBRATION_POOLED_FROM_STEP..last together;
+    None with fewer steps) / per_step, each a Calibration.summary() or None."""
+    pooled = [c for c in per_step[CALIBRATION_POOLED_FROM_STEP - 1:] if c is not None]
+    return {
+        "final": None if per_step[-1] is None else per_step[-1].summary(),
+        "pooled": Calibration.pooled(pooled).summary() if pooled else None,
+        "per_step": [None if c is None else c.summary() for c in per_step],
+    }
+
+
+def _std_ratio(sets: dict, when: str) -> float | None:
+    """Median std of the unobserved external vertices over that of the observed ones."""
+    unobserved, observed = (sets[name][when] for name in ("unobserved_external", "observed_external"))
+    if unobserved is None or observed is None or unobserved["median_std_m"] is None or not observed["median_std_m"]:
+        return None
+    return unobserved["median_std_m"] / observed["median_std_m"]
 
 
 def _summary(values: list[float]) -> dict:
@@ -339,6 +400,14 @@ def evaluate(inputs: EvaluationInputs, samples: int = DEFAULT_SAMPLES, seed: int
         "surface": surface,
         "vertex_rmse": vertex,
     }
+    if "calibration" in steps[0]:
+        sets = {name: _calibration_summary([s["calibration"][name] for s in steps])
+                for name in CALIBRATION_SETS if name in steps[0]["calibration"]}
+        result["calibration"] = {"method": "factor_graph", "pooled_from_step": CALIBRATION_POOLED_FROM_STEP,
+                                 "sets": sets}
+        if "unobserved_external" in sets:
+            result["calibration"]["std_ratio_unobserved_observed"] = {
+                when: _std_ratio(sets, when) for when in ("final", "pooled")}
     corrected = [s["correction"] for s in steps if "correction" in s]
     if corrected:
         result["correction"] = {
@@ -374,9 +443,11 @@ def _table(title: str, columns: list[tuple[str, str]], rows: list[tuple[str, lis
 
 
 def format_tables(evaluation: dict) -> str:
-    """The paper's Tables II and III (and Table I's vertex RMSE) as text, in millimetres.
+    """The paper's Tables II and III (and Table I's vertex RMSE) as text, in millimetres, and
+    the calibration of the factor graph's published std.
 
-    Each cell is the final-step value, then mean ± std over the evaluated steps.
+    Each cell is the final-step value, then mean ± std over the evaluated steps (calibration:
+    then the value pooled over the steps from CALIBRATION_POOLED_FROM_STEP on).
     """
     surface, vertex = evaluation["surface"], evaluation["vertex_rmse"]
     names = {"chamfer": "d_CD", "rmse": "d_RMSE", "h95": "d_H95"}
@@ -412,7 +483,43 @@ def format_tables(evaluation: dict) -> str:
             lines.append(f"  {name.replace('_', ' ')}: " + ", ".join(
                 f"{quantity} {_ratio_cell(summary)}" for quantity, summary in quantities.items()))
         blocks.append("\n".join(lines))
+    if "calibration" in evaluation:
+        blocks.append(format_calibration(evaluation["calibration"], steps))
     return "\n\n".join(blocks)
+
+
+def format_calibration(calibration_: dict, steps: int) -> str:
+    """The calibration block of format_tables: per vertex set, final step (pooled over the steps
+    from the section's pooled_from_step to `steps`), and the unobserved / observed std ratio."""
+    first = calibration_["pooled_from_step"]
+    pooled = f"steps {first}-{steps}" if steps >= first else f"needs {first} steps"
+    columns = (("vertices", lambda c: f"{c['vertices']}"), ("mean NEES", lambda c: _number(c["mean_nees"], 2)),
+               ("95 % coverage", lambda c: _number(c["coverage_95"], 3)),
+               ("median std (mm)", lambda c: _number(c["median_std_m"], 4, 1e3)),
+               ("zero std", lambda c: f"{c['zero_std_vertices']}"), ("left out", lambda c: f"{c['left_out']}"))
+    rows = [(name.replace("_", " "), [f"{_figure(sets['final'], cell)} ({_figure(sets['pooled'], cell)})"
+                                      for _, cell in columns])
+            for name, sets in calibration_["sets"].items()]
+    width = max([len(c) for _, cells in rows for c in cells] + [len(title) for title, _ in columns])
+    label_width = max(len(label) for label, _ in rows)
+    lines = [f"Calibration of the factor graph's position_std (NEES = |error|^2 / std^2; calibrated: mean NEES 3, "
+             f"95 % coverage 0.95): final step ({pooled} pooled)",
+             " " * label_width + "  " + "  ".join(title.rjust(width) for title, _ in columns)]
+    lines += [label.ljust(label_width) + "  " + "  ".join(c.rjust(width) for c in cells) for label, cells in rows]
+    if "std_ratio_unobserved_observed" in calibration_:
+        ratio = calibration_["std_ratio_unobserved_observed"]
+        lines.append(f"median std, unobserved external over observed external: {_number(ratio['final'], 2)} "
+                     f"({_number(ratio['pooled'], 2)}) (above 1: less certain where unobserved)")
+    return "\n".join(lines)
+
+
+def _figure(summary: dict | None, cell) -> str:
+    """One calibration figure of a Calibration.summary(), or n/a."""
+    return "n/a" if summary is None else cell(summary)
+
+
+def _number(value: float | None, digits: int, scale: float = 1.0) -> str:
+    return "n/a" if value is None else f"{value * scale:.{digits}f}"
 
 
 def _ratio_cell(summary: dict) -> str:

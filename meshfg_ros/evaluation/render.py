@@ -11,6 +11,9 @@ matplotlib Figure objects drawn by Agg (no pyplot state, no display needed).
 - convergence.png: Levenberg-Marquardt cost per iteration of every step (from the replay's
   cost history; initial and final cost from the status otherwise) and iterations per step.
 Files are created exclusively: nothing existing is overwritten.
+reliability_figure and calibration_figure draw reliability diagrams of the published std's
+calibration (evaluation.metrics.Calibration), for `meshfg eval --calibration-plot` and the
+accuracy suite.
 """
 
 from __future__ import annotations
@@ -151,6 +154,51 @@ def _values(evaluation: dict, panel: tuple, method: str) -> np.ndarray | None:
     if metric not in entry:
         return None
     return np.asarray([np.nan if v is None else v * _MM for v in entry[metric]["per_step"]])
+
+
+def reliability_figure(panels: dict[str, dict[str, dict | None]]) -> Figure:
+    """Reliability diagrams, one panel per title -> {label: reliability}: the share of vertices
+    inside their ellipsoid of each nominal level against the level, one line per label, over the
+    diagonal a calibrated uncertainty follows (below it: too small, above it: too large). A
+    reliability is Calibration.summary()["reliability"]; a label without one (None) is left out."""
+    figure = Figure(figsize=(4.6 * len(panels), 4.4), layout="tight")
+    for axes, (title, curves) in zip(figure.subplots(1, len(panels), squeeze=False)[0], panels.items()):
+        axes.plot([0.0, 1.0], [0.0, 1.0], color="k", lw=1, label="calibrated")
+        for label, reliability in curves.items():
+            if reliability is not None:
+                empirical = [np.nan if value is None else value for value in reliability["empirical"]]
+                axes.plot(reliability["nominal"], empirical, "-o", markersize=3, label=label)
+        axes.set_xlim(0.0, 1.0)
+        axes.set_ylim(0.0, 1.02)
+        axes.set_aspect("equal")
+        axes.set_xlabel("nominal level of the ellipsoid")
+        axes.set_ylabel("share of vertices inside it")
+        axes.set_title(title)
+        axes.grid(alpha=0.3)
+        axes.legend(fontsize=7)
+    return figure
+
+
+def calibration_figure(evaluation: dict) -> Figure:
+    """Reliability diagrams of an evaluation's calibration section: one panel per vertex set,
+    its final step and its pooled steps."""
+    section = evaluation["calibration"]
+    first, steps = section["pooled_from_step"], len(evaluation["stamps_ns"])
+    panels = {
+        f"{name.replace('_', ' ')} vertices": {
+            "final step": None if sets["final"] is None else sets["final"]["reliability"],
+            f"steps {first}-{steps} pooled": None if sets["pooled"] is None else sets["pooled"]["reliability"],
+        }
+        for name, sets in section["sets"].items()
+    }
+    figure = reliability_figure(panels)
+    figure.suptitle(f"{evaluation['scenario']}: calibration of the factor graph's position_std")
+    return figure
+
+
+def write_calibration_plot(evaluation: dict, path: str | Path) -> Path:
+    """calibration_figure as a new PNG file (never overwritten)."""
+    return _save(calibration_figure(evaluation), Path(path))
 
 
 def _convergence_figure(statuses: list[StatusRecord], histories: list[np.ndarray]) -> Figure:
