@@ -271,7 +271,7 @@ ACCURACY_SCENES = ("cube-shear-spd", "cao-push", "liver-push", "slab-inclusion",
 def _accuracy_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("out") / "accuracy",
                         help="output directory (default out/accuracy): replays, synthesised scenes (reused), "
-                             "accuracy.json and accuracy.png")
+                             "accuracy.json, accuracy.png and calibration.png")
     parser.add_argument("--scenes", nargs="+", choices=ACCURACY_SCENES, default=list(ACCURACY_SCENES),
                         help="scenes (default: all)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0],
@@ -279,6 +279,8 @@ def _accuracy_arguments(parser: argparse.ArgumentParser) -> None:
                              "to OUT/seed<N>/ and OUT/accuracy.json and .png pool them")
     parser.add_argument("--json", type=Path, help="also write the result here (never overwritten)")
     parser.add_argument("--plot", type=Path, help="also write the PNG summary here (never overwritten)")
+    parser.add_argument("--calibration-plot", type=Path, metavar="PNG",
+                        help="also write the reliability diagrams of the published std here (never overwritten)")
 
 
 def run_accuracy(args: argparse.Namespace) -> int:
@@ -286,6 +288,7 @@ def run_accuracy(args: argparse.Namespace) -> int:
 
     _refuse_existing(args.json)
     _refuse_existing(args.plot)
+    _refuse_existing(args.calibration_plot)
     seeds = list(dict.fromkeys(args.seeds))
 
     def progress(name):
@@ -298,15 +301,19 @@ def run_accuracy(args: argparse.Namespace) -> int:
         result = accuracy.run_accuracy_seeds(args.out, tuple(args.scenes), seeds, bundled_recording, progress)
         table, write_plot = accuracy.format_seeds_table(result), accuracy.write_seeds_plot
     print(table)
-    outputs = [args.out / "accuracy.json", args.out / "accuracy.png"]
+    outputs = [args.out / "accuracy.json", args.out / "accuracy.png", args.out / "calibration.png"]
     accuracy.save(result, outputs[0])
     write_plot(result, outputs[1])
+    accuracy.write_calibration_plot(result, outputs[2])
     if args.json is not None:
         accuracy.save(result, args.json)
         outputs.append(args.json)
     if args.plot is not None:
         write_plot(result, args.plot)
         outputs.append(args.plot)
+    if args.calibration_plot is not None:
+        accuracy.write_calibration_plot(result, args.calibration_plot)
+        outputs.append(args.calibration_plot)
     print("\nwrote " + ", ".join(str(path) for path in outputs))
     return 0
 

@@ -193,3 +193,102 @@ def test_the_summary_judges_ratios_just_above_one_visibly():
     line = accuracy.format_table({"scenes": [], "summary": summary}).splitlines()[-1]
     assert "worst ratio 1.004 (b, all) (target <= 1, NOT met)" in line
     assert "median FG/sim ratio: all 0.752" in line
+
+
+def calibration_row(scene, coverage=0.95, nees=3.0, std_ratio=1.5, seed=0):
+    """A scene's row: fixed accuracy figures and the given calibration (pooled and final alike,
+    both vertex sets)."""
+    row = {"scene": scene, "seed": seed, "steps": 10, "converged_share": 1.0, "iterations_mean": 2.0,
+           "solve_ms_p50": 5.0, "solve_ms_p95": 9.0, "ratio_all_final": 0.5, "ratio_unobserved_external_final": 0.5,
+           "ratio_all_mean": 0.5, "ratio_unobserved_external_mean": 0.5,
+           **{f"{method}_{metric}_final_m": 1e-3 for method in ("factor_graph", "simulation")
+              for metric in ("all", "unobserved_external", "chamfer")},
+           "std_ratio_unobserved_observed_pooled": std_ratio, "median_std_observed_external_pooled_m": 1e-4,
+           "median_std_unobserved_external_pooled_m": None if std_ratio is None else std_ratio * 1e-4}
+    for name in ("all", "unobserved_external"):
+        for when in ("final", "pooled"):
+            row[f"coverage_95_{name}_{when}"] = coverage
+            row[f"mean_nees_{name}_{when}"] = nees
+        row[f"zero_std_vertices_{name}_pooled"] = 0
+    return row
+
+
+def test_calibration_targets_are_judged_on_every_scene():
+    """Coverage in [0.85, 0.995] and mean NEES in [1, 6] on every scene, all and unobserved
+    external; the unobserved std above the observed one on every scene. One scene out of a
+    range, or without a value, fails it; the summary names the extremes and says NOT met."""
+    calibrated = [calibration_row("a"), calibration_row("b", coverage=0.9, nees=4.0, std_ratio=1.1)]
+    result = accuracy.summary(calibrated)
+    assert all(result["met"][target] for target in accuracy.ALL_TARGETS)
+    assert result["coverage_all"] == {"lowest": 0.9, "lowest_at": {"scene": "b", "seed": 0}, "highest": 0.95,
+                                      "highest_at": {"scene": "a", "seed": 0}, "scenes_without": 0}
+    assert result["std_ratio_unobserved_observed"] == 1.1 and result["std_ratio_lowest_at"]["scene"] == "b"
+
+    overconfident = accuracy.summary([calibration_row("a"), calibration_row("c", coverage=0.4, nees=40.0)])
+    for target in ("coverage_all", "coverage_unobserved", "mean_nees_all", "mean_nees_unobserved"):
+        assert not overconfident["met"][target], target
+    assert overconfident["mean_nees_all"]["highest"] == 40.0
+    assert overconfident["met"]["std_ratio_unobserved_observed"] and overconfident["met"]["median_ratio_all"]
+    assert not accuracy.summary([calibration_row("a"), calibration_row("d", coverage=0.999, nees=0.5)])["met"][
+        "coverage_all"]
+    less_certain_where_seen = accuracy.summary([calibration_row("a"), calibration_row("e", std_ratio=0.9)])
+    assert not less_certain_where_seen["met"]["std_ratio_unobserved_observed"]
+    without = accuracy.summary([calibration_row("a"), calibration_row("f", coverage=None, std_ratio=None)])
+    assert not without["met"]["coverage_all"] and without["coverage_all"]["scenes_without"] == 1
+    assert not without["met"]["std_ratio_unobserved_observed"]
+
+    table = accuracy.format_table({"scenes": [calibration_row("c", coverage=0.4, nees=40.0)], "summary": overconfident})
+    assert "| c | 40.00 / 40.00 | 40.00 / 40.00 | 0.400 / 0.400 | 0.400 / 0.400 | 0.100 / 0.150 | 0 / 0 |" in table
+    line = table.splitlines()[-1]
+    assert line.startswith("median FG/sim ratio")
+    assert "95 % coverage all 0.400 (c) to 0.950 (a) (target 0.85-0.995, NOT met)" in line
+    assert "mean NEES all 3.00 (a) to 40.00 (c) (target 1.0-6.0, NOT met)" in line
+    assert "lowest 1.50 (a) (target > 1 on every scene, met)" in line
+
+
+def test_a_scenes_row_carries_the_calibration_of_its_replay(tmp_path):
+    """The fake replay: every error 1 mm, every std 0.1 mm: NEES 100, no vertex covered, the
+    same std observed and unobserved."""
+    from offline_helpers import tiny_scenario, write_fake_replay
+
+    from meshfg_ros.synthetic.recordings import write_scenario
+
+    scenario = tiny_scenario(steps=3, camera=True)
+    write_scenario(scenario, tmp_path / "truth")
+    write_fake_replay(scenario, tmp_path / "replay", estimate_offset=1e-3)
+    row = accuracy.scene_result("tiny", tmp_path / "truth", tmp_path / "replay", 1.0)
+    std = float(np.float32(1e-4))
+    for name in ("all", "unobserved_external"):
+        for when in ("final", "pooled"):
+            assert row[f"mean_nees_{name}_{when}"] == pytest.approx((1e-3 / std) ** 2, rel=1e-9)
+            assert row[f"coverage_95_{name}_{when}"] == 0.0
+        assert row[f"zero_std_vertices_{name}_pooled"] == 0
+        assert row[f"reliability_{name}_pooled"]["empirical"] == [0.0] * 11
+    assert row["nees_vertices_all_pooled"] == len(scenario.initial_mesh.free_vertices)  # step 3 alone
+    assert row["median_std_unobserved_external_pooled_m"] == pytest.approx(std, rel=1e-12)
+    assert row["std_ratio_unobserved_observed_pooled"] == 1.0
+    result = {"seed": 0, "scenes": [row], "summary": accuracy.summary([row])}
+    assert not result["summary"]["met"]["coverage_all"]
+    accuracy.write_calibration_plot(result, tmp_path / "calibration.png")
+    assert (tmp_path / "calibration.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_the_calibration_plot_pools_each_scene_over_the_seeds(tmp_path):
+    """Over seeds each scene's curve is the coverage of all its seeds' vertices together: the
+    seeds' curves weighted by their judged vertices. A scene without a curve is left out."""
+    nominal = [0.5, 0.95]
+    pooled = accuracy._pooled_reliability([({"nominal": nominal, "empirical": [0.2, 0.6]}, 100),
+                                           ({"nominal": nominal, "empirical": [0.6, 1.0]}, 300)])
+    assert pooled == {"nominal": nominal, "empirical": [pytest.approx(0.5), pytest.approx(0.9)]}
+    assert accuracy._pooled_reliability([]) is None
+
+    def row(scene, seed, empirical):
+        return {**calibration_row(scene, seed=seed), "nees_vertices_all_pooled": 50,
+                "nees_vertices_unobserved_external_pooled": 20,
+                "reliability_all_pooled": {"nominal": nominal, "empirical": empirical},
+                "reliability_unobserved_external_pooled": None}
+
+    result = {"seeds": [0, 1], "results": [{"seed": 0, "scenes": [row("a", 0, [0.4, 0.9])]},
+                                           {"seed": 1, "scenes": [row("a", 1, [0.6, 0.95])]}]}
+    accuracy.write_calibration_plot(result, tmp_path / "calibration.png")
+    assert (tmp_path / "calibration.png").stat().st_size > 10_000

@@ -251,7 +251,8 @@ def test_calibration_is_per_set_at_the_final_step_and_pooled_from_the_third(tmp_
     section = evaluate_recordings(tmp_path / "replay", tmp_path / "truth", samples=SAMPLES)["calibration"]["sets"]
     others = len(free) - len(unobserved)
     expected = {"observed_external": (4.0, 3.5), "unobserved_external": (16.0, 14.0),
-                "all": ((others * 4 + len(unobserved) * 16) / len(free), (others * 3.5 + len(unobserved) * 14) / len(free))}
+                "all": ((others * 4 + len(unobserved) * 16) / len(free),
+                        (others * 3.5 + len(unobserved) * 14) / len(free))}
     for name, (final, pooled) in expected.items():
         assert section[name]["final"]["mean_nees"] == pytest.approx(final, rel=1e-6), name
         assert section[name]["pooled"]["mean_nees"] == pytest.approx(pooled, rel=1e-6), name
@@ -280,7 +281,8 @@ def test_calibration_json_is_strict_and_the_plot_is_drawn(evaluation, tmp_path):
 def test_eval_command_writes_the_calibration_plot(camera_scene, tmp_path, capsys):
     _, truth, replay = camera_scene
     plot = tmp_path / "calibration.png"
-    assert cli.main(["eval", str(replay), "--truth", str(truth), "--samples", "500", "--calibration-plot", str(plot)]) == 0
+    assert cli.main(["eval", str(replay), "--truth", str(truth), "--samples", "500",
+                     "--calibration-plot", str(plot)]) == 0
     assert "Calibration of the factor graph's position_std" in capsys.readouterr().out
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and plot.stat().st_size > 10_000
     assert cli.main(["eval", str(replay), "--truth", str(truth), "--calibration-plot", str(plot)]) == 1

@@ -16,10 +16,16 @@ the p50 / p95 solve time; and, to say why a ratio is what it is, how each step's
 its prediction compares with the one the truth needed (evaluation.metrics.correction_alignment,
 mean over steps) on the observed surface along its normal and across it, and on the unobserved
 surface; in the JSON also the body load the simulator had learnt by the last step
-(core/body_load.py). The targets it reports against are the accuracy issue's: the factor
+(core/body_load.py). The calibration of the factor graph's published position_std
+(evaluation.metrics.calibration: mean NEES and 95 % coverage, all free vertices and unobserved
+external ones, final step and pooled over the steps from evaluate.CALIBRATION_POOLED_FROM_STEP
+on; the median std of the observed and unobserved external vertices) says whether a planner can
+trust the uncertainty it is given. The targets it reports against are the accuracy issue's: the factor
 graph no worse than the simulation on every scene (at the final step and over the steps),
 median ratios <= 0.7 (all) and <= 0.8 (unobserved external), LM converged in >= 95 % of
-updates. Over several seeds
+updates; and the calibration issue's, on every scene (pooled over the steps): 95 % coverage in
+[0.85, 0.995] and mean NEES in [1, 6] (all and unobserved external), and the unobserved external
+vertices' median std above the observed ones'. Over several seeds
 (`run_accuracy_seeds`, `meshfg accuracy --seeds`) each scene is re-synthesised per seed (every
 random draw of it) and the targets are judged pooled over all scenes of all seeds and per seed,
 so that a change is judged on scenes it was not tuned on.
@@ -35,15 +41,21 @@ from pathlib import Path
 
 import numpy as np
 
-from meshfg_ros.evaluation.evaluate import CORRECTION_QUANTITIES, CORRECTION_SETS, evaluate_recordings
+from meshfg_ros.evaluation.evaluate import (
+    CALIBRATION_POOLED_FROM_STEP,
+    CORRECTION_QUANTITIES,
+    CORRECTION_SETS,
+    evaluate_recordings,
+)
 from meshfg_ros.io.messages import StatusRecord
 from meshfg_ros.io.recording import RecordingReader
 from meshfg_ros.replay import write_replay
 from meshfg_ros.synthetic.recordings import synthesize
 from meshfg_ros.topics import BODY_ACCELERATION_TOPIC, STATUS_TOPIC
 
-__all__ = ["BUNDLED_SCENES", "SCENES", "SYNTHESISED_SCENES", "TARGETS", "format_seeds_table", "format_table",
-           "run_accuracy", "run_accuracy_seeds", "write_plot", "write_seeds_plot"]
+__all__ = ["ALL_TARGETS", "BUNDLED_SCENES", "CALIBRATION_TARGETS", "SCENES", "STD_RATIO_TARGET", "SYNTHESISED_SCENES",
+           "TARGETS", "format_seeds_table", "format_table", "run_accuracy", "run_accuracy_seeds", "write_calibration_plot",
+           "write_plot", "write_seeds_plot"]
 
 BUNDLED_SCENES = ("cube-shear-spd", "cao-push", "liver-push")
 SYNTHESISED_SCENES = ("slab-inclusion", "dome-tilted", "liver-gravity", "kidney-drag", "flap-bend")
@@ -53,6 +65,23 @@ SCENES = BUNDLED_SCENES + SYNTHESISED_SCENES
 # happens to jump away from the truth must not hide a run the factor graph lost step after step.
 TARGETS = {"median_ratio_all": 0.7, "median_ratio_unobserved": 0.8, "worst_ratio": 1.0, "worst_ratio_over_steps": 1.0,
            "converged_share": 0.95}
+# The published position_std's calibration, pooled over each scene's steps from
+# CALIBRATION_POOLED_FROM_STEP on: target -> ([low, high] that every scene's value must lie in,
+# the row's column). Calibrated: coverage 0.95 and mean NEES 3; the ranges allow for the
+# sampling spread of one scene and for a moderately conservative uncertainty.
+CALIBRATION_TARGETS = {
+    "coverage_all": ((0.85, 0.995), "coverage_95_all_pooled"),
+    "coverage_unobserved": ((0.85, 0.995), "coverage_95_unobserved_external_pooled"),
+    "mean_nees_all": ((1.0, 6.0), "mean_nees_all_pooled"),
+    "mean_nees_unobserved": ((1.0, 6.0), "mean_nees_unobserved_external_pooled"),
+}
+# Less certain where nothing is seen: on every scene the unobserved external vertices' median
+# std over the observed external ones' (pooled) must exceed this.
+STD_RATIO_TARGET = 1.0
+# Every target summary() judges (its "met" keys).
+ALL_TARGETS = (*TARGETS, *CALIBRATION_TARGETS, "std_ratio_unobserved_observed")
+# The vertex sets whose calibration each scene's row reports (evaluate.CALIBRATION_SETS).
+_CALIBRATION_ROW_SETS = ("all", "unobserved_external")
 
 
 def _statuses(replay: Path) -> list[StatusRecord]:
@@ -97,12 +126,65 @@ def scene_result(name: str, recording: Path, replay: Path, seconds: float) -> di
         for quantity in CORRECTION_QUANTITIES:
             summary = evaluation.get("correction", {}).get(name, {}).get(quantity)
             row[f"correction_{name}_{quantity}_mean"] = None if summary is None else summary["mean"]
+    row.update(_calibration_columns(evaluation.get("calibration")))
     row["converged_share"] = float(np.mean([status.converged for status in statuses])) if statuses else None
     row["iterations_mean"] = float(np.mean([status.iterations for status in statuses])) if statuses else None
     row["solve_ms_p50"] = float(np.percentile(times, 50)) if times.size else None
     row["solve_ms_p95"] = float(np.percentile(times, 95)) if times.size else None
     row["body_acceleration_final"] = _final_body_acceleration(replay)
     return row
+
+
+def _calibration_columns(section: dict | None) -> dict:
+    """A row's calibration columns from an evaluation's calibration section (None without one):
+    mean NEES and 95 % coverage of _CALIBRATION_ROW_SETS at the final step and pooled, and
+    pooled: the vertices judged (vertex-steps), the zero-std ones with an error, the reliability
+    curve, the median std of the observed and unobserved external vertices and their ratio."""
+    def pick(name, when, key):
+        summary_ = None if section is None else (section["sets"].get(name) or {}).get(when)
+        return None if summary_ is None else summary_[key]
+
+    columns = {}
+    for name in _CALIBRATION_ROW_SETS:
+        for when in ("final", "pooled"):
+            columns[f"mean_nees_{name}_{when}"] = pick(name, when, "mean_nees")
+            columns[f"coverage_95_{name}_{when}"] = pick(name, when, "coverage_95")
+        columns[f"nees_vertices_{name}_pooled"] = pick(name, "pooled", "vertices")
+        columns[f"zero_std_vertices_{name}_pooled"] = pick(name, "pooled", "zero_std_vertices")
+        columns[f"reliability_{name}_pooled"] = pick(name, "pooled", "reliability")
+    for name in ("observed_external", "unobserved_external"):
+        columns[f"median_std_{name}_pooled_m"] = pick(name, "pooled", "median_std_m")
+    columns["std_ratio_unobserved_observed_pooled"] = (
+        None if section is None else section.get("std_ratio_unobserved_observed", {}).get("pooled"))
+    return columns
+
+
+def _calibration_summary(rows: list[dict]) -> dict:
+    """Per CALIBRATION_TARGETS the lowest and highest scene value (with where), the scenes
+    without one, and whether every scene lies in the range; the lowest std ratio likewise. A
+    scene without a value fails the target: it is judged on every scene."""
+    def at(row):
+        return {"scene": row["scene"], "seed": row.get("seed")}
+
+    result, met = {}, {}
+    for target, ((low, high), column) in CALIBRATION_TARGETS.items():
+        known = [row for row in rows if row.get(column) is not None]
+        lowest = min(known, default=None, key=lambda row: row[column])
+        highest = max(known, default=None, key=lambda row: row[column])
+        result[target] = {"lowest": None if lowest is None else lowest[column],
+                          "lowest_at": None if lowest is None else at(lowest),
+                          "highest": None if highest is None else highest[column],
+                          "highest_at": None if highest is None else at(highest),
+                          "scenes_without": len(rows) - len(known)}
+        met[target] = bool(known) and len(known) == len(rows) and low <= lowest[column] and highest[column] <= high
+    column = "std_ratio_unobserved_observed_pooled"
+    known = [row for row in rows if row.get(column) is not None]
+    lowest = min(known, default=None, key=lambda row: row[column])
+    result["std_ratio_unobserved_observed"] = None if lowest is None else lowest[column]
+    result["std_ratio_lowest_at"] = None if lowest is None else at(lowest)
+    result["std_ratio_scenes_without"] = len(rows) - len(known)
+    met["std_ratio_unobserved_observed"] = bool(known) and len(known) == len(rows) and lowest[column] > STD_RATIO_TARGET
+    return {**result, "met": met}
 
 
 def summary(rows: list[dict]) -> dict:
@@ -136,6 +218,14 @@ def summary(rows: list[dict]) -> dict:
         target: result[target] is not None and (result[target] >= bound if target == "converged_share"
                                                 else result[target] <= bound)
         for target, bound in TARGETS.items()
+    }
+    calibration = _calibration_summary(rows)
+    result["met"].update(calibration.pop("met"))
+    result.update(calibration)
+    result["calibration_targets"] = {
+        **{target: list(bounds) for target, (bounds, _) in CALIBRATION_TARGETS.items()},
+        "std_ratio_unobserved_observed": {"above": STD_RATIO_TARGET},
+        "pooled_from_step": CALIBRATION_POOLED_FROM_STEP,
     }
     return result
 
@@ -173,7 +263,8 @@ def run_accuracy(out: Path, scenes=SCENES, seed: int = 0, bundled: Callable[[str
 
 def run_accuracy_seeds(out: Path, scenes=SCENES, seeds=(0,), bundled: Callable[[str], Path | None] = lambda name: None,
                        progress=None) -> dict:
-    """`run_accuracy` for each seed into out/seed<N>/ (each with its accuracy.json and .png), and
+    """`run_accuracy` for each seed into out/seed<N>/ (each with its accuracy.json, accuracy.png and
+    calibration.png), and
     the summary over all of them: the targets' figures pooled over every scene of every seed,
     and on how many seeds each target held."""
     results = []
@@ -181,10 +272,11 @@ def run_accuracy_seeds(out: Path, scenes=SCENES, seeds=(0,), bundled: Callable[[
         result = run_accuracy(out / f"seed{seed}", scenes, seed, bundled, progress)
         save(result, out / f"seed{seed}" / "accuracy.json")
         write_plot(result, out / f"seed{seed}" / "accuracy.png")
+        write_calibration_plot(result, out / f"seed{seed}" / "calibration.png")
         results.append(result)
     pooled = summary([row for result in results for row in result["scenes"]])
     pooled["seeds_met"] = {target: sum(bool(result["summary"]["met"][target]) for result in results)
-                           for target in TARGETS}
+                           for target in ALL_TARGETS}
     return {"seeds": list(seeds), "results": results, "summary": pooled}
 
 
@@ -227,8 +319,25 @@ def format_table(result: dict) -> str:
         cells = [f"{_x(row.get(f'correction_{name}_alignment_mean'))} / {_x(row.get(f'correction_{name}_gain_mean'))}"
                  for name in CORRECTION_SETS]
         lines.append(f"| {row['scene']} | " + " | ".join(cells) + " |")
+    lines += ["", f"| scene | mean NEES all: final / steps {CALIBRATION_POOLED_FROM_STEP}-last "
+              "| unobserved ext.: final / pooled | 95 % coverage all: final / pooled | unobserved ext.: final / pooled "
+              "| median std observed / unobserved ext. (mm, pooled) | zero-std vertices with an error (pooled) |",
+              "|---|---|---|---|---|---|---|"]
+    for row in result["scenes"]:
+        nees = [f"{_x(row.get(f'mean_nees_{name}_final'))} / {_x(row.get(f'mean_nees_{name}_pooled'))}"
+                for name in _CALIBRATION_ROW_SETS]
+        coverage = [f"{_x(row.get(f'coverage_95_{name}_final'), 3)} / {_x(row.get(f'coverage_95_{name}_pooled'), 3)}"
+                    for name in _CALIBRATION_ROW_SETS]
+        zero = " / ".join(_count(row.get(f"zero_std_vertices_{name}_pooled")) for name in _CALIBRATION_ROW_SETS)
+        lines.append(f"| {row['scene']} | " + " | ".join(nees + coverage) +
+                     f" | {_mm(row.get('median_std_observed_external_pooled_m'))} / "
+                     f"{_mm(row.get('median_std_unobserved_external_pooled_m'))} | {zero} |")
     lines += ["", _summary_line(result["summary"])]
     return "\n".join(lines)
+
+
+def _count(value) -> str:
+    return "-" if value is None else f"{value}"
 
 
 def _worst(summary_: dict, with_seed: bool, key: str = "worst") -> str:
@@ -250,7 +359,40 @@ def _summary_line(s: dict, with_seed: bool = False) -> str:
         f"{_x(s['worst_ratio_over_steps'], 3)}{_worst(s, with_seed, 'worst_over_steps')} "
         f"(target <= 1, {'met' if met['worst_ratio_over_steps'] else 'NOT met'}); "
         f"LM converged in {100 * s['converged_share']:.0f} % of updates (target >= 95 %, "
-        f"{'met' if met['converged_share'] else 'NOT met'})")
+        f"{'met' if met['converged_share'] else 'NOT met'}); {_calibration_line(s, with_seed)}")
+
+
+def _calibration_line(s: dict, with_seed: bool) -> str:
+    """The calibration targets' part of the summary line: each range's lowest and highest scene
+    value (where), and the lowest unobserved/observed std ratio, with met / NOT met; a figure
+    the summary lacks reads '-' (and its target NOT met)."""
+    def where(place):
+        if not place:
+            return ""
+        seed = f", seed {place['seed']}" if with_seed and place.get("seed") is not None else ""
+        return f" ({place['scene']}{seed})"
+
+    def verdict(target):
+        return "met" if s.get("met", {}).get(target) else "NOT met"
+
+    names = {"coverage_all": "95 % coverage all", "coverage_unobserved": "unobserved external",
+             "mean_nees_all": "mean NEES all", "mean_nees_unobserved": "unobserved external"}
+    parts = []
+    for target, ((low, high), _) in CALIBRATION_TARGETS.items():
+        figures = s.get(target) or {}
+        digits = 3 if target.startswith("coverage") else 2
+        missing = figures.get("scenes_without")
+        parts.append(f"{names[target]} {_x(figures.get('lowest'), digits)}{where(figures.get('lowest_at'))} to "
+                     f"{_x(figures.get('highest'), digits)}{where(figures.get('highest_at'))}"
+                     + (f", {missing} scenes without" if missing else "")
+                     + f" (target {low}-{high}, {verdict(target)})")
+    missing = s.get("std_ratio_scenes_without")
+    parts.append(f"median std unobserved / observed external, lowest {_x(s.get('std_ratio_unobserved_observed'))}"
+                 f"{where(s.get('std_ratio_lowest_at'))}" + (f", {missing} scenes without" if missing else "")
+                 + f" (target > {STD_RATIO_TARGET:g} on every scene, "
+                 f"{verdict('std_ratio_unobserved_observed')})")
+    return (f"calibration of the std pooled over steps {CALIBRATION_POOLED_FROM_STEP}-last, every scene: "
+            + ", ".join(parts))
 
 
 def format_seeds_table(result: dict) -> str:
@@ -270,7 +412,7 @@ def format_seeds_table(result: dict) -> str:
     lines += [f"seed {seed}: {_summary_line(r['summary'])}" for seed, r in zip(seeds, results)]
     pooled = result["summary"]
     count = len(seeds)
-    held = ", ".join(f"{target.replace('_', ' ')} {pooled['seeds_met'][target]} of {count}" for target in TARGETS)
+    held = ", ".join(f"{target.replace('_', ' ')} {pooled['seeds_met'][target]} of {count}" for target in ALL_TARGETS)
     lines += ["", f"pooled over the {count} seeds' scenes: {_summary_line(pooled, with_seed=True)}",
               f"seeds on which each target held: {held}"]
     return "\n".join(lines)
@@ -345,6 +487,41 @@ def write_seeds_plot(result: dict, path: Path) -> None:
     axes.legend(fontsize=8)
     figure.tight_layout()
     figure.savefig(path, dpi=120)
+
+
+def write_calibration_plot(result: dict, path: Path) -> None:
+    """PNG: reliability diagrams of the published std (evaluation.render.reliability_figure),
+    all free vertices and unobserved external ones, one line per scene, pooled over its steps
+    from CALIBRATION_POOLED_FROM_STEP on and, for a result over several seeds, over the seeds
+    (each seed's coverage weighted by its judged vertices: the coverage of all their NEES together)."""
+    from meshfg_ros.evaluation.render import reliability_figure
+
+    results = result.get("results", [result])
+    names = list(dict.fromkeys(row["scene"] for seed_result in results for row in seed_result["scenes"]))
+    panels = {}
+    for name, title in (("all", "all free vertices"), ("unobserved_external", "unobserved external vertices")):
+        panels[title] = {}
+        for scene in names:
+            curves = [(row[f"reliability_{name}_pooled"], row[f"nees_vertices_{name}_pooled"])
+                      for seed_result in results for row in seed_result["scenes"]
+                      if row["scene"] == scene and row.get(f"reliability_{name}_pooled") is not None
+                      and row[f"nees_vertices_{name}_pooled"]]
+            panels[title][scene] = _pooled_reliability(curves)
+    figure = reliability_figure(panels)
+    seeds = result.get("seeds", [result.get("seed")])
+    figure.suptitle(f"calibration of the factor graph's position_std, steps {CALIBRATION_POOLED_FROM_STEP}-last "
+                    f"(seed{'s' if len(seeds) > 1 else ''} {', '.join(str(seed) for seed in seeds)})")
+    figure.savefig(path, dpi=120)
+
+
+def _pooled_reliability(curves: list[tuple[dict, int]]) -> dict | None:
+    """One reliability curve of several (curve, judged vertices), weighted by the vertices; None
+    without any."""
+    if not curves:
+        return None
+    weights = np.asarray([count for _, count in curves], dtype=np.float64)
+    empirical = np.asarray([curve["empirical"] for curve, _ in curves], dtype=np.float64)
+    return {"nominal": curves[0][0]["nominal"], "empirical": [float(v) for v in weights @ empirical / weights.sum()]}
 
 
 def save(result: dict, path: Path) -> None:
