@@ -67,8 +67,8 @@ TARGETS = {"median_ratio_all": 0.7, "median_ratio_unobserved": 0.8, "worst_ratio
            "converged_share": 0.95}
 # The published position_std's calibration, pooled over each scene's steps from
 # CALIBRATION_POOLED_FROM_STEP on: target -> ([low, high] that every scene's value must lie in,
-# the row's column). Calibrated: coverage 0.95 and mean NEES 3; the ranges allow for the
-# sampling spread of one scene and for a moderately conservative uncertainty.
+# the row's column). Calibrated: coverage 0.95 and mean NEES 3; a mean NEES of 1 is a published
+# variance three times the actual one, 6 one half of it.
 CALIBRATION_TARGETS = {
     "coverage_all": ((0.85, 0.995), "coverage_95_all_pooled"),
     "coverage_unobserved": ((0.85, 0.995), "coverage_95_unobserved_external_pooled"),
