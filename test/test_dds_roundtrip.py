@@ -42,6 +42,7 @@ def test_tetramesh_roundtrip_10k_vertices(tmp_path):
         "fixed_vertices": np.arange(0, n_vertices, 17, dtype=np.uint32),
         "position_std": rng.random(n_vertices).astype(np.float32),
         "degraded": np.array(True),
+        "position_covariance": rng.random(6 * n_vertices).astype(np.float32),
     }
     received = run_pair(tmp_path, "TetraMesh", sent)
     assert set(received) == set(sent)
@@ -49,6 +50,7 @@ def test_tetramesh_roundtrip_10k_vertices(tmp_path):
         np.testing.assert_array_equal(received[key], value, err_msg=key)
     assert received["positions"].dtype == np.float64
     assert received["position_std"].dtype == np.float32
+    assert received["position_covariance"].dtype == np.float32
 
 
 def test_estimator_status_roundtrip(tmp_path):

@@ -12,6 +12,7 @@ import pytest
 from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from scipy.spatial.transform import Rotation
 
 from meshfg_ros.io.messages import (
     EARLIER_MSG_DEFINITIONS,
@@ -70,10 +71,23 @@ def grid_mesh(n):
     return vertices, tetrahedra, triangles
 
 
+def posterior_covariance(rng, vertex_count, fixed_vertices):
+    """Symmetric positive definite 3x3 blocks (m^2): axes turned at random, stds of 0.05 to 1 mm
+    along them (condition numbers up to 400; the estimator's on the bundled scenes reach 11), zero
+    on the fixed vertices, as the estimator gives them."""
+    axes = Rotation.random(vertex_count, random_state=rng).as_matrix()
+    variances = rng.uniform(5e-5, 1e-3, (vertex_count, 3)) ** 2
+    covariance = np.einsum("vij,vj,vkj->vik", axes, variances, axes)
+    covariance = 0.5 * (covariance + covariance.transpose(0, 2, 1))
+    covariance[fixed_vertices] = 0.0
+    return covariance
+
+
 @pytest.fixture(scope="module")
 def mesh_states():
     vertices, tetrahedra, triangles = grid_mesh(22)
     rng = np.random.default_rng(3)
+    fixed_vertices = np.arange(0, 22**3, 22)
     return [
         MeshState(
             stamp_ns=1_700_000_000_000_000_000 + step * 33_000_000,
@@ -82,8 +96,9 @@ def mesh_states():
             positions=vertices + rng.normal(scale=1e-3, size=vertices.shape),
             tetrahedra=tetrahedra,
             surface_triangles=triangles,
-            fixed_vertices=np.arange(0, 22**3, 22),
+            fixed_vertices=fixed_vertices,
             position_std=rng.uniform(1e-4, 1e-3, size=len(vertices)) if step else np.zeros(0),
+            position_covariance=posterior_covariance(rng, len(vertices), fixed_vertices) if step else (),
         )
         for step in range(3)
     ]
@@ -102,6 +117,8 @@ def assert_same_mesh(actual, expected):
     np.testing.assert_array_equal(actual.surface_triangles, expected.surface_triangles)
     np.testing.assert_array_equal(actual.fixed_vertices, expected.fixed_vertices)
     np.testing.assert_array_equal(actual.position_std, expected.position_std.astype(np.float32))
+    # Carried as float32: each entry rounded once (and the blocks stay symmetric).
+    np.testing.assert_array_equal(actual.position_covariance, expected.position_covariance.astype(np.float32))
 
 
 def marker_array(store, state):
@@ -199,6 +216,40 @@ def test_mesh_state_converts_to_a_message_and_back(mesh_states):
     assert_same_mesh(mesh_state_from_msg(msg), state)
 
 
+def test_position_covariance_travels_as_float32_upper_triangles(mesh_states):
+    state = mesh_states[1]
+    msg = mesh_state_to_msg(state)
+    assert msg.position_covariance.dtype == np.float32 and msg.position_covariance.shape == (6 * 22**3,)
+    block = state.position_covariance[1]
+    np.testing.assert_array_equal(msg.position_covariance[6:12], np.float32(
+        [block[0, 0], block[0, 1], block[0, 2], block[1, 1], block[1, 2], block[2, 2]]))
+    covariance = mesh_state_from_msg(msg).position_covariance
+    assert covariance.shape == (22**3, 3, 3) and covariance.dtype == np.float64
+    np.testing.assert_array_equal(covariance, covariance.transpose(0, 2, 1))
+    assert not covariance[state.fixed_vertices].any()
+    scale = np.abs(state.position_covariance).max(axis=(1, 2), keepdims=True)
+    assert (np.abs(covariance - state.position_covariance) <= 1e-7 * scale).all()  # float32's 24 bits
+    # Rounded to float32, these blocks keep their smallest eigenvalue positive (positive definite).
+    assert np.linalg.eigvalsh(np.delete(covariance, state.fixed_vertices, axis=0))[:, 0].min() > 0.0
+    # Without a covariance the field is empty, and reads back as none.
+    empty = mesh_state_to_msg(mesh_states[0])
+    assert empty.position_covariance.shape == (0,)
+    assert mesh_state_from_msg(empty).position_covariance.shape == (0, 3, 3)
+
+
+@pytest.mark.parametrize("values, needle", [
+    (np.zeros(6 * 4 - 1, np.float32), "position_covariance has 23 values, expected 6 per vertex (24) or 0"),
+    (np.tile(np.float32([1, 0, 0, 1, 0, np.nan]), 4), "position_covariance of vertex 0 is not finite"),
+    (np.float32([1, 0, 0, 1, 0, 1] * 2 + [1, 0, 0, -1, 0, 1] + [1, 0, 0, 1, 0, 1]),
+     "position_covariance of vertex 2 has a negative variance"),
+])
+def test_a_malformed_covariance_field_is_refused_with_its_reason(values, needle):
+    msg = mesh_state_to_msg(MeshState(0, "tissue", 1, np.eye(4, 3), [[0, 1, 2, 3]]))
+    msg.position_covariance = values
+    with pytest.raises(MessageValidationError, match=re.escape(needle)):
+        mesh_state_from_msg(msg)
+
+
 def test_converters_accept_rclpy_style_messages(mesh_states):
     """Duck typing: array.array sequences and plain attribute objects, as rclpy messages have."""
     rclpy_arrays = RclpyMessageFactory()
@@ -244,6 +295,14 @@ def test_factories_name_unknown_message_types():
         ({"fixed_vertices": [0.5]}, "fixed_vertices holds non-integer vertex indices"),
         ({"position_std": [0.1, 0.1]}, "position_std has 2 values, expected 4 or 0"),
         ({"position_std": [0.1, 0.1, -0.1, 0.1]}, "position_std must be finite and non-negative"),
+        ({"position_covariance": np.zeros((3, 3, 3))}, "position_covariance must be (4, 3, 3) or empty, got shape"),
+        ({"position_covariance": np.zeros(12)}, "position_covariance has 12 values, expected 6 per vertex (24) or 0"),
+        ({"position_covariance": np.tile(np.diag([1.0, 1.0, np.inf]), (4, 1, 1))},
+         "position_covariance of vertex 0 is not finite"),
+        ({"position_covariance": np.concatenate([np.tile(np.eye(3), (3, 1, 1)), -np.eye(3)[None]])},
+         "position_covariance of vertex 3 has a negative variance"),
+        ({"position_covariance": np.tile([[1.0, 0.5, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], (4, 1, 1))},
+         "position_covariance of vertex 0 is not symmetric"),
         ({"step": -1}, "step = -1 is outside the uint32 range"),
     ],
 )
@@ -442,22 +501,38 @@ def test_a_different_tetra_mesh_definition_is_refused(tmp_path):
             reader.messages()
 
 
-def test_a_recording_with_the_tetra_mesh_before_degraded_is_read_with_its_own_definition(tmp_path):
-    """Recordings made before TetraMesh.degraded (the bundled ones among them) stay readable;
-    their meshes read as not degraded."""
-    (earlier,) = EARLIER_MSG_DEFINITIONS[TETRA_MESH]
-    assert "degraded" not in earlier and "degraded" in MSG_DEFINITIONS[TETRA_MESH]
+@pytest.mark.parametrize("missing", [("position_covariance",), ("position_covariance", "degraded")])
+def test_a_recording_with_an_earlier_tetra_mesh_is_read_with_its_own_definition(tmp_path, missing):
+    """Recordings made before TetraMesh.position_covariance, or before degraded too (the bundled
+    ones), stay readable; their meshes read as without covariance and not degraded."""
+    (earlier,) = [text for text in EARLIER_MSG_DEFINITIONS[TETRA_MESH]
+                  if all(f" {name} " not in text for name in missing)
+                  and all(f" {name} " in text for name in {"position_covariance", "degraded"} - set(missing))]
+    assert all(f" {name} " in MSG_DEFINITIONS[TETRA_MESH] for name in missing)
     store = get_typestore(Stores.ROS2_JAZZY)
     store.register(get_types_from_msg(earlier, TETRA_MESH))
     corners = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
-    old = store.types[TETRA_MESH](
-        header=header_msg(5, "tissue", RosbagsMessageFactory(store)), step=3, positions=corners.reshape(-1),
-        tetrahedra=np.array([0, 1, 2, 3], np.uint32), surface_triangles=np.zeros(0, np.uint32),
-        fixed_vertices=np.array([0], np.uint32), position_std=np.zeros(0, np.float32))
+    fields = dict(header=header_msg(5, "tissue", RosbagsMessageFactory(store)), step=3, positions=corners.reshape(-1),
+                  tetrahedra=np.array([0, 1, 2, 3], np.uint32), surface_triangles=np.zeros(0, np.uint32),
+                  fixed_vertices=np.array([0], np.uint32), position_std=np.zeros(0, np.float32))
+    if "degraded" not in missing:
+        fields["degraded"] = True
     with Writer(tmp_path / "earlier", version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         connection = writer.add_connection("/meshfg/mesh", TETRA_MESH, typestore=store)
-        writer.write(connection, 5, store.serialize_cdr(old, TETRA_MESH))
+        writer.write(connection, 5, store.serialize_cdr(store.types[TETRA_MESH](**fields), TETRA_MESH))
     with RecordingReader(tmp_path / "earlier") as reader:
         (state,) = list(reader.records("/meshfg/mesh", MeshState))
-    assert state.step == 3 and state.degraded is False and state.fixed_vertices.tolist() == [0]
+    assert state.step == 3 and state.degraded is ("degraded" not in missing) and state.fixed_vertices.tolist() == [0]
     np.testing.assert_array_equal(state.positions[3], [0.0, 0.0, 1.0])
+    assert state.position_covariance.shape == (0, 3, 3)
+
+
+@pytest.mark.parametrize("bag", sorted(path.name for path in (REPO / "bags").iterdir() if path.is_dir()))
+def test_the_bundled_recordings_meshes_still_load(bag):
+    """The bundled recordings hold TetraMesh as it was before degraded and position_covariance."""
+    with RecordingReader(REPO / "bags" / bag) as reader:
+        (initial,) = list(reader.records("/meshfg/initial_mesh", MeshState))
+        truths = list(reader.records("/meshfg/ground_truth", MeshState))
+    assert initial.tet_mesh().vertex_count > 0 and len(truths) > 1
+    assert all(truth.positions.shape == initial.positions.shape for truth in truths)
+    assert initial.position_covariance.shape == (0, 3, 3) and not initial.degraded

@@ -42,6 +42,7 @@ uint32[] surface_triangles  # 3F vertex indices, counter-clockwise seen from out
 uint32[] fixed_vertices     # vertices held fixed (boundary condition)
 float32[] position_std      # N per-vertex posterior standard deviation (m), or empty
 bool degraded               # an estimate whose update ran without a simulator prediction (as EstimatorStatus.degraded)
+float32[] position_covariance  # 6N: per vertex the upper triangle xx xy xz yy yz zz of its 3x3 posterior covariance (m^2), or empty
 """,
     ESTIMATOR_STATUS: """\
 # Outcome of one estimator update (one step of the sliding-window Levenberg-Marquardt).
@@ -60,13 +61,24 @@ string message
 """,
 }
 
+_TETRA_MESH_COVARIANCE_LINE = (
+    "float32[] position_covariance  # 6N: per vertex the upper triangle xx xy xz yy yz zz of its 3x3 posterior "
+    "covariance (m^2), or empty\n")
+_TETRA_MESH_DEGRADED_LINE = (
+    "bool degraded               # an estimate whose update ran without a simulator prediction "
+    "(as EstimatorStatus.degraded)\n")
 # Earlier definitions a recording may hold, read with their own definition (fields added since
-# take their defaults): TetraMesh before `degraded`.
+# take their defaults): TetraMesh before `position_covariance`, and before `degraded` too (the
+# bundled recordings').
 EARLIER_MSG_DEFINITIONS: dict[str, tuple[str, ...]] = {
-    TETRA_MESH: (MSG_DEFINITIONS[TETRA_MESH].replace(
-        "bool degraded               # an estimate whose update ran without a simulator prediction "
-        "(as EstimatorStatus.degraded)\n", ""),),
+    TETRA_MESH: (
+        MSG_DEFINITIONS[TETRA_MESH].replace(_TETRA_MESH_COVARIANCE_LINE, ""),
+        MSG_DEFINITIONS[TETRA_MESH].replace(_TETRA_MESH_COVARIANCE_LINE, "").replace(_TETRA_MESH_DEGRADED_LINE, ""),
+    ),
 }
+# Row and column of each entry of a vertex's 3x3 covariance in TetraMesh.position_covariance:
+# the upper triangle, xx xy xz yy yz zz.
+_UPPER_ROWS, _UPPER_COLUMNS = np.triu_indices(3)
 
 _UINT32_MAX = 2**32 - 1
 _INT32_MIN, _INT32_MAX = -(2**31), 2**31 - 1
@@ -205,6 +217,46 @@ def _frozen(values: np.ndarray) -> np.ndarray:
     return values
 
 
+def covariance_upper_triangles(covariance: np.ndarray) -> np.ndarray:
+    """(N, 6) upper triangles xx xy xz yy yz zz of (N, 3, 3) covariance blocks: the layout of
+    TetraMesh.position_covariance (a symmetric block is whole in its upper triangle)."""
+    return np.asarray(covariance, dtype=np.float64).reshape(-1, 3, 3)[:, _UPPER_ROWS, _UPPER_COLUMNS]
+
+
+def covariance_from_upper_triangles(values: Any, vertex_count: int) -> np.ndarray:
+    """(N, 3, 3) symmetric covariance blocks (m^2) of a TetraMesh.position_covariance field: 6N
+    values, per vertex xx xy xz yy yz zz; (0, 3, 3) when the field is empty (no covariance).
+
+    Raises MessageValidationError (naming the first bad vertex) for a count other than 6N or 0,
+    a non-finite entry or a negative variance. Positive semi-definiteness is not required: a
+    block's float32 entries keep its eigenvalues to about 1e-7 of its largest one, so a nearly
+    singular block may come with a slightly negative one (clip at zero where it matters).
+    """
+    flat = np.asarray(values, dtype=np.float64).reshape(-1)
+    if flat.size == 0:
+        return np.zeros((0, 3, 3))
+    if flat.size != 6 * vertex_count:
+        raise MessageValidationError(
+            f"position_covariance has {flat.size} values, expected 6 per vertex ({6 * vertex_count}) or 0")
+    upper = flat.reshape(vertex_count, 6)
+    covariance = np.empty((vertex_count, 3, 3))
+    covariance[:, _UPPER_ROWS, _UPPER_COLUMNS] = upper
+    covariance[:, _UPPER_COLUMNS, _UPPER_ROWS] = upper
+    _check_covariance(covariance)
+    return covariance
+
+
+def _check_covariance(covariance: np.ndarray) -> None:
+    """MessageValidationError unless every (3, 3) block is finite with non-negative variances."""
+    finite = np.isfinite(covariance).all(axis=(1, 2))
+    if not finite.all():
+        raise MessageValidationError(f"position_covariance of vertex {int(np.argmin(finite))} is not finite")
+    negative = (np.einsum("vii->vi", covariance) < 0.0).any(axis=1)
+    if negative.any():
+        raise MessageValidationError(
+            f"position_covariance of vertex {int(np.argmax(negative))} has a negative variance")
+
+
 def _as_index_array(name: str, values: Any, width: int | None, num_vertices: int) -> np.ndarray:
     """Copy `values` to int64 of shape (n, width) (or (n,) if width is None), indices in range."""
     raw = np.asarray(values)
@@ -226,8 +278,9 @@ class MeshState:
     """One tetrahedral mesh state (meshfg_msgs/TetraMesh as arrays), validated on construction.
 
     positions (N, 3) float64 metres (a flat 3N array is reshaped); tetrahedra (M, 4), surface_triangles (F, 3),
-    fixed_vertices (K,) int64 vertex indices; position_std (N,) float64 or (0,) when unknown.
-    Arrays are copied and read-only.
+    fixed_vertices (K,) int64 vertex indices; position_std (N,) float64 or (0,) when unknown;
+    position_covariance (N, 3, 3) float64 symmetric blocks (m^2) or (0, 3, 3) when unknown (the
+    message's 6N upper-triangle values are unpacked). Arrays are copied and read-only.
     """
 
     stamp_ns: int
@@ -239,6 +292,7 @@ class MeshState:
     fixed_vertices: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     position_std: np.ndarray = field(default_factory=lambda: np.zeros(0))
     degraded: bool = False  # an estimate made without a simulator prediction
+    position_covariance: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
 
     def __post_init__(self) -> None:
         positions = np.array(self.positions, dtype=np.float64)
@@ -274,10 +328,31 @@ class MeshState:
         set_field("fixed_vertices", _as_index_array("fixed_vertices", self.fixed_vertices, None, num_vertices))
         set_field("position_std", _frozen(position_std))
         set_field("degraded", bool(self.degraded))
+        set_field("position_covariance", _frozen(_mesh_covariance(self.position_covariance, num_vertices)))
 
     def tet_mesh(self, name: str = "") -> TetMesh:
         """The core mesh (vertices, tetrahedra, fixed vertices) of this state."""
         return TetMesh(self.positions, self.tetrahedra, self.fixed_vertices, name=name)
+
+
+def _mesh_covariance(values: Any, num_vertices: int) -> np.ndarray:
+    """MeshState.position_covariance as (N, 3, 3) or (0, 3, 3): blocks checked (finite, symmetric,
+    variances non-negative), or the message's 6N values unpacked."""
+    covariance = np.array(values, dtype=np.float64)
+    if covariance.ndim <= 1:
+        return covariance_from_upper_triangles(covariance, num_vertices)
+    if covariance.size == 0:
+        return np.zeros((0, 3, 3))
+    if covariance.shape != (num_vertices, 3, 3):
+        raise MessageValidationError(
+            f"position_covariance must be ({num_vertices}, 3, 3) or empty, got shape {covariance.shape}")
+    _check_covariance(covariance)
+    # The message carries the upper triangle: a block that is not symmetric would arrive changed.
+    scale = np.abs(covariance).max(axis=(1, 2))
+    asymmetric = np.abs(covariance - covariance.transpose(0, 2, 1)).max(axis=(1, 2)) > 1e-9 * scale
+    if asymmetric.any():
+        raise MessageValidationError(f"position_covariance of vertex {int(np.argmax(asymmetric))} is not symmetric")
+    return covariance
 
 
 @dataclass(frozen=True)
@@ -369,6 +444,7 @@ def mesh_state_to_msg(state: MeshState, factory: MessageFactory | None = None) -
         fixed_vertices=factory.sequence(state.fixed_vertices, np.uint32),
         position_std=factory.sequence(state.position_std, np.float32),
         degraded=bool(state.degraded),
+        position_covariance=factory.sequence(covariance_upper_triangles(state.position_covariance), np.float32),
     )
 
 
@@ -383,7 +459,9 @@ def mesh_state_from_msg(msg: Any) -> MeshState:
         surface_triangles=np.asarray(msg.surface_triangles, dtype=np.int64),
         fixed_vertices=np.asarray(msg.fixed_vertices, dtype=np.int64),
         position_std=np.asarray(msg.position_std, dtype=np.float64),
-        degraded=bool(getattr(msg, "degraded", False)),  # recordings made before the field have none
+        # Recordings made before these fields have none.
+        degraded=bool(getattr(msg, "degraded", False)),
+        position_covariance=np.asarray(getattr(msg, "position_covariance", ()), dtype=np.float64),
     )
 
 
