@@ -59,7 +59,7 @@ from meshfg_ros.io.recording import (
     RecordingReader,
     RecordingWriter,
 )
-from meshfg_ros.markers import mesh_markers, surface_edges
+from meshfg_ros.markers import mesh_markers, spread_surface_sample, surface_edges
 from meshfg_ros.io.scenario_metadata import ScenarioMetadata, read_metadata
 from meshfg_ros.topics import (
     BODY_ACCELERATION_TOPIC,
@@ -290,10 +290,12 @@ def _raw_messages(path: Path, topics: tuple[str, ...]) -> list[tuple[str, int, A
 
 
 def _mesh_state(template: MeshState, positions: np.ndarray, stamp_ns: int, step: int,
-                position_std: np.ndarray | None = None, degraded: bool = False) -> MeshState:
+                position_std: np.ndarray | None = None, degraded: bool = False,
+                position_covariance: np.ndarray | None = None) -> MeshState:
     return MeshState(stamp_ns, template.frame_id, step, positions, template.tetrahedra,
                      template.surface_triangles, template.fixed_vertices,
-                     np.zeros(0) if position_std is None else position_std, degraded)
+                     np.zeros(0) if position_std is None else position_std, degraded,
+                     np.zeros((0, 3, 3)) if position_covariance is None else position_covariance)
 
 
 def _cost_history(writer: RecordingWriter, history: np.ndarray, stamp_ns: int) -> None:
@@ -312,9 +314,9 @@ def write_replay(
 ) -> dict[str, int]:
     """Replay recording `path` and write the outputs to the new recording `out`.
 
-    Writes the estimate, prediction, open-loop simulation, markers, status and LM cost history
-    of every step, and copies the input topics (COPIED_TOPICS) verbatim. Returns the message
-    count per topic. progress(iterator, total) may wrap the step iterator (a progress bar).
+    Writes the estimate (with its std and covariance), prediction, open-loop simulation, markers,
+    status and LM cost history of every step, and copies the input topics (COPIED_TOPICS)
+    verbatim. Returns the message count per topic. progress(iterator, total) may wrap the step iterator (a progress bar).
     The output is finalised also when a step fails, so finished steps stay readable.
     """
     path, out = Path(path), Path(out)
@@ -325,6 +327,7 @@ def write_replay(
     frame = parameters["world_frame"]
     template = inputs.initial_state
     edges = surface_edges(template.surface_triangles)
+    ellipsoid_vertices = spread_surface_sample(template.positions, template.surface_triangles, template.fixed_vertices)
     steps = iterate_replay(inputs, parameters)
     if progress is not None:
         steps = progress(steps, len(inputs.clouds))
@@ -350,13 +353,14 @@ def write_replay(
                              _mesh_state(template, step.simulation_only, step.stamp_ns, index))
             writer.write(ESTIMATED_MESH_TOPIC,
                          _mesh_state(template, result.positions, step.stamp_ns, result.step, result.position_std,
-                                     result.degraded))
+                                     result.degraded, result.position_covariance))
             writer.write(STATUS_TOPIC, status_record(result, frame))
             if step.body_acceleration is not None:
                 writer.write(BODY_ACCELERATION_TOPIC, vector_msg(step.stamp_ns, frame, step.body_acceleration))
             _cost_history(writer, np.asarray(result.cost_history, dtype=np.float64), step.stamp_ns)
             writer.write(MARKERS_TOPIC, mesh_markers(
                 result.positions, template.surface_triangles, result.position_std, step.points, frame,
-                step.stamp_ns, parameters["marker_std_max"], edges), step.stamp_ns)
+                step.stamp_ns, parameters["marker_std_max"], edges, position_covariance=result.position_covariance,
+                ellipsoid_vertices=ellipsoid_vertices), step.stamp_ns)
         copy_until(float("inf"))
         return dict(writer.counts)

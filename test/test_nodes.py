@@ -6,6 +6,7 @@ NaN), degraded steps without the simulator and recovery, and the bag player.
 """
 import os
 import py_compile
+import re
 import signal
 import subprocess
 import sys
@@ -34,6 +35,7 @@ from meshfg_ros.core.poisson_ratio import PoissonRatioEstimate
 from meshfg_ros.core.simulator import ElasticSimulator
 from meshfg_ros.io.messages import (
     MeshState,
+    MessageValidationError,
     PointCloudRecord,
     PoseRecord,
     RclpyMessageFactory,
@@ -46,7 +48,13 @@ from meshfg_ros.io.messages import (
 from meshfg_ros.io.pointcloud import decode_pointcloud2, encode_xyz
 from meshfg_ros.io.recording import RecordingWriter
 from meshfg_ros.nodes.estimator_node import PREDICTION_QOS
-from meshfg_ros.nodes.ros_conversions import position_std_from_msg, rclpy_message
+from meshfg_ros.markers import MAX_ELLIPSOIDS, NAMESPACE_ELLIPSOIDS, NAMESPACE_LEGEND
+from meshfg_ros.nodes.ros_conversions import (
+    MeshMessages,
+    position_covariance_from_msg,
+    position_std_from_msg,
+    rclpy_message,
+)
 
 REPOSITORY = Path(__file__).resolve().parents[1]
 CONFIG = REPOSITORY / "config" / "meshfg.yaml"
@@ -520,9 +528,13 @@ def test_estimator_node_survives_bad_input_and_recovers_from_a_missing_simulator
         assert np.isfinite([status.initial_cost, status.final_cost, status.solve_time_ms]).all()
     # Markers of the newest estimates (built while someone subscribes).
     assert spin_until(probe, lambda: io.markers and stamp_ns_from_msg(io.markers[-1].markers[0].header.stamp) == S // 2)
-    surface, wireframe, cloud = io.markers[-1].markers
+    surface, wireframe, cloud = io.markers[-1].markers[:3]
     assert len(surface.points) == len(surface.colors) == 3 * len(mesh.surface_triangles)
     assert surface.header.frame_id == "world" and len(wireframe.points) > 0 and len(cloud.points) == 5
+    # The std's legend and the covariance's ellipsoids, one per free surface vertex (fewer than the bound).
+    ellipsoids = [m for m in io.markers[-1].markers if m.ns == NAMESPACE_ELLIPSOIDS]
+    assert len(ellipsoids) == min(len(np.setdiff1d(mesh.surface_vertices, mesh.fixed_vertices)), MAX_ELLIPSOIDS)
+    assert any(m.ns == NAMESPACE_LEGEND and m.text.endswith(" mm") for m in io.markers[-1].markers)
     # The measured top face stays near z = SIDE.
     top = np.isclose(mesh.vertices[:, 2], SIDE)
     assert np.abs(np.asarray(io.estimates[2].positions).reshape(-1, 3)[top, 2] - SIDE).max() < 2e-3
@@ -635,6 +647,16 @@ def test_estimated_mesh_reaches_a_late_subscriber(probe, processes, tmp_path):
     probe.create_subscription(TetraMesh, "/late/estimated_mesh", late.append, LATCHED)
     assert spin_until(probe, lambda: len(late) == 1)
     assert stamp_ns_from_msg(late[0].header.stamp) == 7 * S
+    # ... with its covariance: symmetric 3x3 blocks, zero on the fixed vertices, positive variances
+    # elsewhere, whose trace / 3 is the std's square (to float32's rounding of both).
+    covariance = position_covariance_from_msg(late[0])
+    assert covariance.shape == (mesh.vertex_count, 3, 3)
+    np.testing.assert_array_equal(covariance, covariance.transpose(0, 2, 1))
+    variances = np.einsum("vii->vi", covariance)
+    fixed = np.isin(np.arange(mesh.vertex_count), mesh.fixed_vertices)
+    assert not covariance[fixed].any() and (variances[~fixed] > 0.0).all()
+    std = position_std_from_msg(late[0], mesh.vertex_count)
+    np.testing.assert_allclose(variances.sum(axis=1) / 3.0, std**2, rtol=1e-6, atol=0.0)
     assert_clean_exit(node, node.interrupt())
     # The executable chose CHOLMOD's BLAS at start-up as every entry point does (this session's
     # conftest too: same CPU, same environment).
@@ -725,6 +747,33 @@ def test_position_std_of_an_estimate_is_taken_unless_malformed():
                       np.zeros(0, dtype=np.float32)):
         msg.position_std = malformed
         assert position_std_from_msg(msg, mesh.vertex_count) is None, malformed
+
+
+def test_position_covariance_of_an_estimate_reads_back_or_is_refused_with_its_reason():
+    """What a planner reads from estimated_mesh: the (N, 3, 3) blocks the estimator sent (as
+    float32), None without any, and a clear error for a malformed field."""
+    mesh = cube_mesh(side=SIDE, divisions=2).with_fixed([0, 1])
+    rng = np.random.default_rng(4)
+    factors = rng.normal(scale=1e-4, size=(mesh.vertex_count, 3, 3))
+    covariance = factors @ factors.transpose(0, 2, 1)
+    covariance = 0.5 * (covariance + covariance.transpose(0, 2, 1))
+    covariance[mesh.fixed_vertices] = 0.0
+    state = MeshState(S, "world", 1, mesh.vertices, mesh.tetrahedra, mesh.surface_triangles, mesh.fixed_vertices)
+    msg = MeshMessages(state).message(S, "world", 1, mesh.vertices, position_covariance=covariance)
+    read = position_covariance_from_msg(msg)
+    scale = np.abs(covariance).max(axis=(1, 2), keepdims=True)
+    assert read.shape == covariance.shape and (np.abs(read - covariance) <= 2**-24 * scale).all()
+    np.testing.assert_array_equal(read, read.transpose(0, 2, 1))
+    assert not read[:2].any()
+    assert position_covariance_from_msg(MeshMessages(state).message(S, "world", 1, mesh.vertices)) is None
+    sent = np.asarray(msg.position_covariance)
+    entry = np.arange(sent.size)  # vertex 2's are 12 to 17: xx xy xz yy yz zz
+    for malformed, reason in ((sent[:-1], f"has {sent.size - 1} values, expected 6 per vertex ({sent.size}) or 0"),
+                              (np.where(entry == 13, np.float32(np.nan), sent), "vertex 2 is not finite"),
+                              (np.where(entry == 15, -sent, sent), "vertex 2 has a negative variance")):
+        msg.position_covariance = malformed
+        with pytest.raises(MessageValidationError, match=re.escape(reason)):
+            position_covariance_from_msg(msg)
 
 
 def test_recorded_messages_of_any_type_convert_to_rclpy():

@@ -18,6 +18,7 @@ from meshfg_ros.synthetic.scenarios import FIRST_STAMP_NS, STEP_PERIOD_NS
 from meshfg_ros.core.simulator import ElasticSimulator
 from meshfg_ros.io.messages import MeshState, PointCloudRecord, PoseRecord, StatusRecord, stamp_ns_from_msg
 from meshfg_ros.io.recording import RecordingExistsError, RecordingReader, RecordingWriter
+from meshfg_ros.markers import MAX_ELLIPSOIDS, NAMESPACE_ELLIPSOIDS, NAMESPACE_LEGEND
 from meshfg_ros.replay import (
     ReplayError,
     config_overrides,
@@ -220,6 +221,17 @@ def test_outputs_and_copies(output, replayed, scenario):
                                   [step.body_acceleration for step in replayed.steps])
     np.testing.assert_array_equal(estimates[-1].positions, final.positions)
     np.testing.assert_allclose(estimates[-1].position_std, final.position_std)
+    # Every estimate with its covariance, as float32: each entry within float32's rounding of the
+    # estimator's (24 bits), symmetric, zero on the fixed vertices only.
+    assert len(estimates) == len(replayed.steps)
+    for estimate, step in zip(estimates, replayed.steps, strict=True):
+        expected = step.result.position_covariance
+        assert estimate.position_covariance.shape == expected.shape == (scenario.initial_mesh.vertex_count, 3, 3)
+        np.testing.assert_allclose(estimate.position_covariance, expected, rtol=2**-24, atol=0.0)
+        np.testing.assert_array_equal(estimate.position_covariance, estimate.position_covariance.transpose(0, 2, 1))
+        variances = np.einsum("vii->vi", estimate.position_covariance)
+        fixed = np.isin(np.arange(len(variances)), scenario.initial_mesh.fixed_vertices)
+        assert not variances[fixed].any() and (variances[~fixed] > 0.0).all()
     assert estimates[-1].stamp_ns == scenario.steps[-1].stamp_ns and estimates[-1].step == final.step
     assert [s.iterations for s in statuses] == [s.result.iterations for s in replayed.steps]
     np.testing.assert_array_equal(histories[-1], final.cost_history)
@@ -237,9 +249,16 @@ def test_outputs_decode_with_an_independent_reader(output, scenario):
             seen[channel.topic] = seen.get(channel.topic, 0) + 1
             log_times.append(message.log_time)
             if channel.topic == MARKERS_TOPIC:
-                surface, wireframe, cloud = decoded.markers
+                surface, wireframe, cloud = decoded.markers[:3]
                 assert len(surface.points) == 3 * len(scenario.initial_mesh.surface_triangles)
                 assert len(cloud.points) == len(scenario.steps[0].points)
+                ellipsoids = [m for m in decoded.markers if m.ns == NAMESPACE_ELLIPSOIDS]
+                free_surface = np.setdiff1d(scenario.initial_mesh.surface_vertices,
+                                            scenario.initial_mesh.fixed_vertices)
+                assert len(ellipsoids) == min(len(free_surface), MAX_ELLIPSOIDS)
+                assert any(m.ns == NAMESPACE_LEGEND and m.text.endswith(" mm") for m in decoded.markers)
+            if channel.topic == ESTIMATED_MESH_TOPIC:
+                assert len(decoded.position_covariance) == 6 * scenario.initial_mesh.vertex_count
             if channel.topic == POINTS_TOPIC:
                 assert [f.name for f in decoded.fields] == ["x", "y", "z", "label"]  # copied verbatim
     assert seen == counts

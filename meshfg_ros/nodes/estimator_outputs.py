@@ -1,9 +1,9 @@
 """What the estimator node publishes, and the bookkeeping behind its diagnostics.
 
-`EstimatorOutputs` owns the node's publishers (`estimated_mesh` latched, `status`, `markers`
-built only while someone subscribes, `/diagnostics` after each step and every second), its
-counters and health (nodes/diagnostics.py), and the latency history. Input callbacks and the
-solver thread both report to it; a lock of its own guards the counters.
+`EstimatorOutputs` owns the node's publishers (`estimated_mesh` latched, with its std and
+covariance, `status`, `markers` built only while someone subscribes, `/diagnostics` after each
+step and every second), its counters and health (nodes/diagnostics.py), and the latency history.
+Input callbacks and the solver thread both report to it; a lock of its own guards the counters.
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import replace
 
+import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
@@ -22,7 +23,7 @@ from visualization_msgs.msg import MarkerArray
 from meshfg_msgs.msg import EstimatorStatus, TetraMesh
 from meshfg_ros.core.scheduler import CloudStep, Rejection, StepOutcome
 from meshfg_ros.io.messages import MeshState, status_record, status_to_msg
-from meshfg_ros.markers import mesh_markers, surface_edges
+from meshfg_ros.markers import mesh_markers, spread_surface_sample, surface_edges
 from meshfg_ros.nodes.diagnostics import EstimatorCounters, EstimatorHealth, diagnostic_array
 from meshfg_ros.nodes.ros_conversions import LATCHED_QOS, RCLPY_FACTORY, STREAM_QOS, MeshMessages
 
@@ -44,7 +45,8 @@ class EstimatorOutputs:
         self._unanswered_since_s: float | None = None
         self._last_rejection = ""
         self._markers_job: tuple | None = None
-        self._mesh: tuple[MeshState, MeshMessages, object] | None = None
+        # The mesh's state, its TetraMesh builder, surface edges and vertices given ellipsoids (markers).
+        self._mesh: tuple[MeshState, MeshMessages, np.ndarray, np.ndarray] | None = None
         self._estimates = node.create_publisher(TetraMesh, "estimated_mesh", LATCHED_QOS)
         self._statuses = node.create_publisher(EstimatorStatus, "status", STREAM_QOS)
         self._markers = node.create_publisher(MarkerArray, "markers", STREAM_QOS)
@@ -55,7 +57,8 @@ class EstimatorOutputs:
     def set_mesh(self, state: MeshState) -> None:
         """The topology of the estimates to come. Clouds that came before it (held until now)
         are awaited from now on: the stall test does not count the wait for the mesh."""
-        self._mesh = (state, MeshMessages(state), surface_edges(state.surface_triangles))
+        self._mesh = (state, MeshMessages(state), surface_edges(state.surface_triangles),
+                      spread_surface_sample(state.positions, state.surface_triangles, state.fixed_vertices))
         with self._lock:
             if self._unanswered_since_s is not None:
                 self._unanswered_since_s = time.monotonic()
@@ -88,10 +91,10 @@ class EstimatorOutputs:
             self._node.get_logger().error(f"update at {step.stamp_ns} ns: {outcome.error}")
             self.count(outcome.counter)
             return self._wake.trigger()
-        _, messages, _ = self._mesh
+        _, messages, _, _ = self._mesh
         publish_start = time.monotonic()
         self._estimates.publish(messages.message(step.stamp_ns, self._frame, result.step, result.positions,
-                                                 result.position_std, result.degraded))
+                                                 result.position_std, result.degraded, result.position_covariance))
         self._statuses.publish(status_to_msg(status_record(result, self._frame), RCLPY_FACTORY))
         done = time.monotonic()
         with self._lock:
@@ -101,7 +104,8 @@ class EstimatorOutputs:
             self.health.record(result.degraded, result.converged, result.num_points, result.num_points_rejected,
                                result.noise_off_nominal)
             self._unanswered_since_s = None
-            self._markers_job = (result.positions, result.position_std, step.points, step.stamp_ns)
+            self._markers_job = (result.positions, result.position_std, result.position_covariance, step.points,
+                                 step.stamp_ns)
         self._wake.trigger()
 
     def report(self) -> None:
@@ -116,7 +120,8 @@ class EstimatorOutputs:
         self._diagnostics.publish(diagnostic_array(f"{self._node.get_fully_qualified_name()}: estimation", level,
                                                    message, counters, self._node.get_clock().now().nanoseconds))
         if job is not None and self._markers.get_subscription_count() > 0:
-            state, _, edges = self._mesh
-            positions, position_std, points, stamp_ns = job
+            state, _, edges, ellipsoid_vertices = self._mesh
+            positions, position_std, position_covariance, points, stamp_ns = job
             self._markers.publish(mesh_markers(positions, state.surface_triangles, position_std, points, self._frame,
-                                               stamp_ns, self._marker_std_max(), edges, RCLPY_FACTORY))
+                                               stamp_ns, self._marker_std_max(), edges, RCLPY_FACTORY,
+                                               position_covariance, ellipsoid_vertices))

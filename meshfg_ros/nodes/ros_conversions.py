@@ -22,6 +22,8 @@ from meshfg_ros.io.messages import (
     MeshState,
     MessageValidationError,
     RclpyMessageFactory,
+    covariance_from_upper_triangles,
+    covariance_upper_triangles,
     header_msg,
     mesh_state_from_msg,
 )
@@ -83,10 +85,13 @@ class MeshMessages:
         self._fixed_vertices = RCLPY_FACTORY.sequence(state.fixed_vertices, np.uint32)
 
     def message(self, stamp_ns: int, frame_id: str, step: int, positions: np.ndarray,
-                position_std: np.ndarray | None = None, degraded: bool = False) -> Any:
-        """TetraMesh of `positions` (N, 3) (finite: checked by the caller), optional std (N,), and
-        whether it is an estimate made without a simulator prediction."""
+                position_std: np.ndarray | None = None, degraded: bool = False,
+                position_covariance: np.ndarray | None = None) -> Any:
+        """TetraMesh of `positions` (N, 3) (finite: checked by the caller), optional std (N,) and
+        covariance blocks (N, 3, 3, symmetric: sent as their upper triangles), and whether it is
+        an estimate made without a simulator prediction."""
         std = np.zeros(0) if position_std is None else position_std
+        covariance = np.zeros((0, 3, 3)) if position_covariance is None else position_covariance
         return RCLPY_FACTORY.make(
             TETRA_MESH,
             header=header_msg(stamp_ns, frame_id, RCLPY_FACTORY),
@@ -97,6 +102,7 @@ class MeshMessages:
             fixed_vertices=self._fixed_vertices,
             position_std=RCLPY_FACTORY.sequence(std, np.float32),
             degraded=bool(degraded),
+            position_covariance=RCLPY_FACTORY.sequence(covariance_upper_triangles(covariance), np.float32),
         )
 
 
@@ -114,6 +120,19 @@ def position_std_from_msg(msg: Any, vertex_count: int) -> np.ndarray | None:
     nothing of, which the model's fit weighs by zero (core/model_fit.py)."""
     std = np.asarray(msg.position_std, dtype=np.float64)
     return std if std.shape == (vertex_count,) and np.all(std >= 0.0) else None  # NaN fails >= too
+
+
+def position_covariance_from_msg(msg: Any) -> np.ndarray | None:
+    """Posterior covariance blocks (N, 3, 3), m^2, of a TetraMesh's vertices (symmetric, zero on
+    fixed vertices), or None when it has none (an empty field). N is the message's vertex count.
+
+    Raises MessageValidationError (a ValueError naming the first bad vertex) when the field is
+    malformed: a count other than 6N, an entry NaN or infinite, a negative variance. A planner
+    that reads estimated_mesh counts such a message and warns, as the simulation node does for
+    a malformed position_std, and keeps the estimate's positions.
+    """
+    covariance = covariance_from_upper_triangles(msg.position_covariance, len(msg.positions) // 3)
+    return covariance if len(covariance) else None
 
 
 def same_mesh(a: MeshState, b: MeshState) -> bool:
