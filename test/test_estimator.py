@@ -9,6 +9,7 @@ import pytest
 
 from meshfg_ros.benchmarks.baselines import WhitenedProblem, freeze_associations, synthetic_sequence
 from meshfg_ros.core import estimator as estimator_module
+from meshfg_ros.core.covariance import DENSE_MAX_DOFS
 from meshfg_ros.core.estimator import (
     FACTOR_CONFIGURATIONS,
     EstimatorConfig,
@@ -137,25 +138,30 @@ def test_conditioning_window_against_growing_full_batch(scene):
     assert abs(np.mean(errors_window) - np.mean(errors_batch)) < 0.1 * np.mean(errors_batch)
 
 
-def test_exact_position_std_equals_dense_marginal(scene, monkeypatch):
+def test_position_covariance_is_the_published_optimums_from_dense_matrices(scene):
+    """With the optimum published (alpha = 1), Sigma = S + (lambda^2 - 1) S A S (core/covariance.py):
+    S the newest state's posterior given the window's other states, A the prior's information."""
     mesh, sequence = scene
     estimator, results = run(mesh, sequence, 2, factors="full", window_size=2, exact_lm=True,
-                             stiffness_kind="linear", robust_kernel=None)
-    assert 2 * estimator.graph.block_size <= estimator_module.EXACT_COVARIANCE_MAX_DOFS  # the exact marginal
+                             stiffness_kind="linear", robust_kernel=None, keep_persistent_correction=False)
     graph = estimator.graph
+    assert graph.block_size <= DENSE_MAX_DOFS  # the marginals are exact, not sampled
+    newest_information = graph.newest_information().toarray()
     freeze_associations(graph)
     jacobian = WhitenedProblem(graph).jacobian(graph.get_x()).toarray()
-    covariance = np.linalg.inv(jacobian.T @ jacobian)
-    newest = covariance[-graph.block_size:, -graph.block_size:]
-    expected = np.sqrt(np.einsum("vivi->v", newest.reshape(graph.block_size // 3, 3, graph.block_size // 3, 3)) / 3.0)
-    np.testing.assert_allclose(results[-1].position_std[graph.free_vertices], expected, rtol=1e-6)
-    monkeypatch.setattr(estimator_module, "EXACT_COVARIANCE_MAX_DOFS", 0)  # the vertex-conditional bound
-    conditional = SlidingWindowEstimator(mesh, EstimatorConfig(factors="full", window_size=2, stiffness_kind="linear",
-                                                               robust_kernel=None))
-    for step in sequence[:2]:
-        approximate = conditional.update(step.stamp_ns, step.points, step.predicted).position_std
-    free = graph.free_vertices
-    assert np.all(approximate[free] > 0.0) and np.all(approximate[free] <= expected * (1 + 1e-6))
+    # The newest state's last linearisation is the Gauss-Newton information at the optimum.
+    np.testing.assert_allclose(newest_information, (jacobian.T @ jacobian)[-graph.block_size:, -graph.block_size:],
+                               atol=0.02 * np.abs(newest_information).max())
+    posterior = np.linalg.inv(newest_information)
+    prior_information = estimator.marginals.prior_information.toarray() / estimator.simulation_sigma**2
+    expected = posterior + (estimator.prior_error_scale - 1.0) * posterior @ prior_information @ posterior
+    vertices = graph.block_size // 3
+    blocks = expected.reshape(vertices, 3, vertices, 3)[np.arange(vertices), :, np.arange(vertices), :]
+    covariance = results[-1].position_covariance
+    np.testing.assert_allclose(covariance[graph.free_vertices], blocks, rtol=1e-6, atol=1e-9 * np.abs(blocks).max())
+    assert np.all(covariance[mesh.fixed_vertices] == 0.0)
+    np.testing.assert_allclose(results[-1].position_std ** 2, np.einsum("vii->v", covariance) / 3.0, rtol=1e-12)
+    assert estimator.prior_error_scale != 1.0  # learnt from the innovations
 
 
 def test_non_spd_prior_stays_finite(scene):

@@ -69,7 +69,7 @@ def test_a_failed_update_leaves_the_persistence_as_it_was(monkeypatch):
     def fail(*_):
         raise RuntimeError("posterior std failed")
 
-    monkeypatch.setattr(SlidingWindowEstimator, "_position_std", fail)
+    monkeypatch.setattr(SlidingWindowEstimator, "_position_covariance", fail)
     with pytest.raises(EstimatorStepError, match="posterior std failed"):
         estimator.update(sequence[2].stamp_ns, sequence[2].points, sequence[2].predicted)
     after = vars(estimator.persistence)

@@ -85,9 +85,16 @@ import time
 from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
-import scipy.linalg
+import scipy.sparse
 
 from meshfg_ros.core.closest_point import ClosestPointIndex
+from meshfg_ros.core.covariance import (
+    PRIOR_ERROR_MEMORY,
+    ForgettingMean,
+    MarginalCovariance,
+    prior_error_scale,
+    published_covariance,
+)
 from meshfg_ros.core.factor_graph import FactorGraph
 from meshfg_ros.core.factors import (
     MAX_BACK_FACING_SHARE,
@@ -152,9 +159,9 @@ LM_CONFIG = LevenbergMarquardtConfig(cost_tolerance=1e-9, absolute_cost_toleranc
 LINEAR_TOLERANCE = 1e-1
 # The physics prior's ridge, relative to its mean information: a free body's rigid modes get a tiny information.
 PRIOR_RIDGE = 1e-6
-# position_std is the exact marginal up to this many window unknowns (a dense factorisation),
-# the vertex-conditional bound beyond.
-EXACT_COVARIANCE_MAX_DOFS = 1000
+# Draws for the prior's marginal covariance, made once per estimator (core/covariance.py):
+# a 2.5 % relative spread of its variances.
+PRIOR_MARGINAL_SAMPLES = 1024
 # Data-driven defaults (robust_scale = 0, gating_distance = 0), in estimated sigmas: the Cauchy
 # kernel's scale (2.3849 sigma gives 95 % efficiency on Gaussian noise), the gate on the
 # distance of a point to the predicted surface (robust spread of those distances, at least the
@@ -338,6 +345,8 @@ class PendingStep:
     # (vertices, Association of `points` on their surface): the innovation test's, which the
     # measurement factor's gate reuses when the vertices are the prediction's.
     association: tuple | None = None
+    # The share of the correction published (core/persistence.py): 1 when the optimum is published.
+    published_share: float = 1.0
 
 
 class _PendingChanges:
@@ -378,6 +387,19 @@ class SlidingWindowEstimator:
             self.unit_prior_scale = prior_scale(rest_stiffness, 1.0, self.graph.free_dofs)
             # kappa V_e per element: the prior's volume barrier in the prior's own units
             self.bulk_energy_scale = (self.model.lam + 2.0 * self.model.mu / 3.0) * self.model.volumes
+            # The prior's covariance blocks at the rest shape for a unit simulation sigma
+            # (core/covariance.py): scaled by simulation_sigma^2 at each update.
+            free = self.graph.free_dofs
+            unit_information = (self.unit_prior_scale * scipy.sparse.csr_matrix(rest_stiffness)[free][:, free]
+                                + PRIOR_RIDGE * scipy.sparse.identity(free.size, format="csr"))
+            self.marginals = MarginalCovariance(unit_information)
+            self.unit_prior_covariance = self.marginals.prior_blocks(PRIOR_MARGINAL_SAMPLES)
+        else:
+            self.marginals = MarginalCovariance()
+        # lambda^2: the prediction's real error over the prior's model of it, learnt from each
+        # update's innovation (core/covariance.py); 1 until the first.
+        self.prior_error_scale = 1.0
+        self._prior_error_memory = ForgettingMean(PRIOR_ERROR_MEMORY, initial=self.prior_error_scale)
         self.noise = MeasurementNoise(self.config.measurement_sigma)
         self.persistence = CorrectionPersistence()
         # The window's W block factors are made (ordering, symbolic analysis, memory first
@@ -513,7 +535,7 @@ class SlidingWindowEstimator:
         aside (the step runs degraded on the copy-forward), each said in the result's message.
         Settings changed by `reconfigure` apply from here on, also when the update fails."""
         self._apply_pending_changes()
-        kept_objects = (self, self.graph, self.noise, self.persistence)
+        kept_objects = (self, self.graph, self.noise, self.persistence, self._prior_error_memory)
         saved = [_saved(obj) for obj in kept_objects]
         try:
             result = self.solve(self._prepare(stamp_ns, points, predicted, tool_pose, viewpoint))
@@ -623,7 +645,27 @@ class SlidingWindowEstimator:
                                         f"limit {1e3 * limit:.3g} mm)")
                 return None
         pending.association = (predicted, association)
+        self._learn_prior_error_scale(predicted, association)
         return predicted
+
+    def _learn_prior_error_scale(self, predicted: np.ndarray, association) -> None:
+        """lambda^2 from the cloud's distances to the predicted surface against the prior's
+        variance along each point's normal (core/covariance.py); kept when too few points tell."""
+        if "simulation" not in self.enabled:
+            return
+        triangles = self.mesh.surface_triangles
+        found = association.triangle >= 0
+        corners = triangles[association.triangle[found]]
+        normals = np.cross(predicted[corners[:, 1]] - predicted[corners[:, 0]],
+                           predicted[corners[:, 2]] - predicted[corners[:, 0]])
+        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+        covariance = np.zeros((self.mesh.vertex_count, 3, 3))
+        covariance[self.graph.free_vertices] = self.unit_prior_covariance
+        at_points = np.einsum("pk,pkij->pij", association.barycentric[found], covariance[corners])
+        variance = self.simulation_sigma**2 * np.einsum("pi,pij,pj->p", normals, at_points, normals)
+        scale = prior_error_scale(association.distance[found], variance, self.noise.sigma)
+        if scale is not None:
+            self.prior_error_scale = self._prior_error_memory.add(scale)
 
     def _state_factors(self, pending: PendingStep) -> list:
         """The physics prior and measurement factors of the pending state at the current weights."""
@@ -695,7 +737,7 @@ class SlidingWindowEstimator:
         self._keep_persistent_correction(pending)
         positions = graph.states[pending.key].copy()
         self.last_estimate = positions
-        covariance = self._position_covariance(messages)
+        covariance = self._position_covariance(pending, messages)
         std = np.sqrt(np.clip(np.einsum("vii->v", covariance) / 3.0, 0.0, None))
         return StepResult(
             step=pending.key, stamp_ns=pending.stamp_ns, positions=positions, position_std=std,
@@ -719,6 +761,7 @@ class SlidingWindowEstimator:
         key = pending.key
         correction = self.graph.states[key] - pending.prediction
         share = self.persistence.observe(correction)
+        pending.published_share = share
         self.graph.set_state(key, pending.prediction + share * correction)
         pending.messages.append(f"correction kept {share:.2f} (the share persisting between updates)")
 
@@ -769,32 +812,29 @@ class SlidingWindowEstimator:
                     solve_times_ms=list(lm.solve_times_ms))
 
     # ------------------------------------------------------------------------- covariance
-    def _position_covariance(self, messages) -> np.ndarray:
-        """(N, 3, 3) posterior covariance blocks of the newest state's vertices (zero on fixed ones)."""
+    def _position_covariance(self, pending: PendingStep, messages) -> np.ndarray:
+        """(N, 3, 3) covariance blocks of the published estimate's vertices, zero on fixed ones
+        (core/covariance.py): the newest state's marginal posterior at its last linearisation
+        (conditioned on the window's other states, which the weak temporal factors tie to it),
+        mixed with the prior's covariance by the share of the correction published and scaled
+        by the prior's learnt error."""
         graph = self.graph
-        size = len(graph.keys) * graph.block_size
-        method = "exact" if size <= EXACT_COVARIANCE_MAX_DOFS else "vertex-conditional"
-        n = graph.block_size
-        if method == "exact":
-            system, _, _ = graph.linearize(graph.get_x())
-            try:
-                factor = scipy.linalg.cho_factor(system.to_csr().toarray(), lower=True)
-                newest_columns = np.zeros((system.size, n))
-                newest_columns[system.size - n:] = np.eye(n)
-                covariance = scipy.linalg.cho_solve(factor, newest_columns)[system.size - n:]
-                blocks = np.einsum("viwj->vwij", covariance.reshape(n // 3, 3, n // 3, 3))
-                blocks = blocks[np.arange(n // 3), np.arange(n // 3)]
-            except np.linalg.LinAlgError:
-                messages.append("posterior information not positive definite: vertex-conditional std")
-                method = "vertex-conditional"
-        if method == "vertex-conditional":
-            # The newest state's last linearisation (LM's final steps are small) plus its
-            # temporal terms: no extra linearisation.
+        sigma_squared = self.simulation_sigma**2 if "simulation" in self.enabled else 1.0
+        through_prior, prior = None, None
+        try:
+            posterior, through_prior = self.marginals.blocks(graph.newest_information(), 1.0 / sigma_squared,
+                                                             seed=pending.key)
+        except NotPositiveDefiniteError:
+            messages.append("posterior information not positive definite: vertex-conditional covariance")
             eigenvalues, eigenvectors = np.linalg.eigh(graph.newest_vertex_information())
             floor = 1e-12 * max(float(np.abs(eigenvalues).max()), 1e-300)
-            blocks = np.einsum("vij,vj,vkj->vik", eigenvectors, 1.0 / np.maximum(eigenvalues, floor), eigenvectors)
-            if np.any(eigenvalues <= floor):
-                messages.append("some vertex information blocks not positive definite: their std is clamped")
+            posterior = np.einsum("vij,vj,vkj->vik", eigenvectors, 1.0 / np.maximum(eigenvalues, floor), eigenvectors)
+        if "simulation" in self.enabled:
+            prior = sigma_squared * self.unit_prior_covariance
+        blocks = published_covariance(posterior, through_prior, prior, pending.published_share,
+                                      self.prior_error_scale)
+        if prior is not None:
+            messages.append(f"prior error scale {np.sqrt(self.prior_error_scale):.3g}")
         covariance = np.zeros((self.mesh.vertex_count, 3, 3))
         covariance[graph.free_vertices] = 0.5 * (blocks + blocks.transpose(0, 2, 1))
         return np.where(np.isfinite(covariance), covariance, 0.0)

@@ -158,6 +158,17 @@ class FactorGraph:
         self._csr_slot_cache = (matrix.indptr.copy(), matrix.indices.copy(), slots)
         return slots
 
+    def newest_information(self) -> scipy.sparse.csr_matrix:
+        """The newest state's information over its free dofs (block_pattern): its single-state
+        factors at their last linearisation plus its temporal terms, conditioned on the other
+        states of the window."""
+        key = self.keys[-1]
+        cached = self._cache.get(key) or self._relinearize([key], self.states)[key]
+        temporal = sum(factor.identity_terms().get((key, key), 0.0) for factor in self._identity_factors())
+        block = cached.block.copy()
+        block.data[self._diagonal_index] += temporal
+        return block
+
     def newest_vertex_information(self) -> np.ndarray:
         """3x3 information blocks (free vertices, 3, 3) of the newest state: its single-state
         factors at their last linearisation plus its temporal terms."""

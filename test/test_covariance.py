@@ -1,0 +1,135 @@
+"""The published estimate's covariance (core/covariance.py): sampled marginals against dense
+inverses, the mixing formula against a Monte Carlo of the linear-Gaussian model it describes,
+and the prior's error scale learnt from an innovation."""
+
+import numpy as np
+import pytest
+import scipy.sparse
+
+from meshfg_ros.core.covariance import (
+    DENSE_MAX_DOFS,
+    ForgettingMean,
+    MarginalCovariance,
+    prior_error_scale,
+    published_covariance,
+)
+from meshfg_ros.core.noise import NotPositiveDefiniteError
+
+
+def _blocks(matrix: np.ndarray) -> np.ndarray:
+    vertices = matrix.shape[0] // 3
+    return matrix.reshape(vertices, 3, vertices, 3)[np.arange(vertices), :, np.arange(vertices), :]
+
+
+def _chain_information(vertices: int, seed: int) -> scipy.sparse.csr_matrix:
+    """A mesh-like SPD matrix: vertices coupled to their neighbours along a chain, random 3x3 blocks."""
+    rng = np.random.default_rng(seed)
+    size = 3 * vertices
+    rows, cols, values = [], [], []
+    for offset in (0, 1, 2):
+        for i in range(vertices - offset):
+            block = rng.normal(size=(3, 3))
+            rows += list(np.repeat(3 * i + np.arange(3), 3))
+            cols += list(np.tile(3 * (i + offset) + np.arange(3), 3))
+            values += list(block.ravel())
+    half = scipy.sparse.csr_matrix((values, (rows, cols)), shape=(size, size))
+    return (half @ half.T + 0.1 * scipy.sparse.identity(size)).tocsr()
+
+
+@pytest.mark.parametrize("vertices", [40, DENSE_MAX_DOFS // 3 + 100])
+def test_marginal_blocks_match_the_dense_inverse(vertices):
+    information = _chain_information(vertices, seed=1)
+    prior = _chain_information(vertices, seed=2)
+    marginals = MarginalCovariance(prior, samples=6000)
+    posterior, through_prior = marginals.blocks(information, prior_scale=0.5, seed=3)
+    inverse = np.linalg.inv(information.toarray())
+    exact_posterior = _blocks(inverse)
+    exact_through = _blocks(0.5 * inverse @ prior.toarray() @ inverse)
+    # Sampled beyond DENSE_MAX_DOFS: 6000 draws give about 1.1 % relative spread per variance.
+    tolerance = 1e-9 if 3 * vertices <= DENSE_MAX_DOFS else 0.08
+    for estimate, exact in ((posterior, exact_posterior), (through_prior, exact_through)):
+        traces = np.einsum("vii->v", estimate) / np.einsum("vii->v", exact)
+        assert np.max(np.abs(traces - 1.0)) < tolerance
+    np.testing.assert_allclose(marginals.prior_blocks(6000), _blocks(np.linalg.inv(prior.toarray())),
+                               rtol=tolerance if tolerance < 1e-6 else 0.2, atol=0.02 * np.abs(exact_posterior).max()
+                               if tolerance > 1e-6 else 1e-12)
+
+
+def test_sampled_marginals_are_the_same_for_the_same_seed_and_refactor_on_the_kept_pattern():
+    vertices = DENSE_MAX_DOFS // 3 + 10
+    first = _chain_information(vertices, seed=4)
+    marginals = MarginalCovariance(samples=16)
+    a, _ = marginals.blocks(first, seed=7)
+    b, _ = marginals.blocks(2.0 * first, seed=7)  # same pattern: numeric refactorisation
+    np.testing.assert_allclose(b, 0.5 * a, rtol=1e-9)
+
+
+def test_a_matrix_that_is_not_positive_definite_is_refused():
+    matrix = -scipy.sparse.identity(6, format="csr")
+    with pytest.raises(NotPositiveDefiniteError):
+        MarginalCovariance().blocks(matrix)
+
+
+@pytest.mark.parametrize("alpha, scale", [(1.0, 1.0), (0.0, 2.5), (0.6, 4.0), (0.3, 0.2)])
+def test_published_covariance_is_the_covariance_of_the_published_mean(alpha, scale):
+    """m = Xhat + alpha S H^T (y - H Xhat) with Xhat - X ~ N(0, scale A^-1) and unit noise on y."""
+    rng = np.random.default_rng(5)
+    size, observed = 6, 4
+    half = rng.normal(size=(size, size))
+    prior_information = half @ half.T + np.eye(size)
+    observation = rng.normal(size=(observed, size))
+    measurement_information = observation.T @ observation
+    posterior = np.linalg.inv(prior_information + measurement_information)
+    prior = np.linalg.inv(prior_information)
+    draws = 200_000
+    prediction_error = rng.multivariate_normal(np.zeros(size), scale * prior, size=draws)
+    noise = rng.normal(size=(draws, observed))
+    innovation = noise - prediction_error @ observation.T
+    published_error = prediction_error + alpha * (innovation @ observation) @ posterior
+    empirical = published_error.T @ published_error / draws
+    model = published_covariance(_blocks(posterior), _blocks(posterior @ prior_information @ posterior),
+                                 _blocks(prior), alpha, scale)
+    np.testing.assert_allclose(model, _blocks(empirical), rtol=0.03, atol=0.01 * np.abs(_blocks(empirical)).max())
+
+
+def test_published_covariance_without_a_prior_is_the_posterior():
+    posterior = np.tile(np.eye(3), (4, 1, 1))
+    assert published_covariance(posterior, None, None, 0.3, 5.0) is posterior
+
+
+def test_sampled_blocks_that_are_not_semidefinite_are_clipped():
+    posterior = np.tile(np.diag([1.0, 1.0, 1.0]), (2, 1, 1))
+    through_prior = np.tile(np.diag([1.2, 0.5, 0.5]), (2, 1, 1))  # sampling put S A S above S on x
+    covariance = published_covariance(posterior, through_prior, 2.0 * posterior, 0.5, 3.0)
+    assert np.all(np.linalg.eigvalsh(covariance) >= -1e-15)
+
+
+@pytest.mark.parametrize("scale", [0.01, 1.0, 30.0])
+def test_prior_error_scale_recovers_the_prediction_error_despite_leaks(scale):
+    rng = np.random.default_rng(int(scale * 100))
+    points = 4000
+    variance = rng.uniform(0.5e-8, 2e-8, points)
+    sigma = 1e-4
+    distances = np.abs(rng.normal(size=points)) * np.sqrt(scale * variance + sigma**2)
+    distances[: points // 5] = rng.uniform(0.0, 1e-2, points // 5)  # 20 % leaks, far off
+    estimate = prior_error_scale(distances, variance, sigma)
+    total = scale * variance.mean() + sigma**2
+    # Judged on the whole variance it explains (noise masks a small prediction error); the leaks
+    # within the gate bias it up, never down.
+    explained = estimate * variance.mean() + sigma**2
+    assert 0.95 * total < explained < 1.25 * total
+
+
+def test_prior_error_scale_needs_enough_points():
+    assert prior_error_scale(np.ones(10), np.ones(10), 1.0) is None
+    assert prior_error_scale(np.full(100, np.nan), np.ones(100), 1.0) is None
+
+
+def test_forgetting_mean_starts_at_its_initial_value_and_follows_the_values():
+    mean = ForgettingMean(0.5, initial=1.0)
+    assert mean.add(3.0) == pytest.approx((0.5 * 1.0 + 3.0) / 1.5)
+    for _ in range(30):
+        value = mean.add(3.0)
+    assert value == pytest.approx(3.0, rel=1e-6)
+    with pytest.raises(ValueError):
+        ForgettingMean(1.0, initial=1.0)
