@@ -7,7 +7,7 @@ inverted densely, exactly. Larger ones are estimated from `samples` draws x = P^
 z ~ N(0, I), of N(0, H^-1) through the sparse Cholesky factor P H P^T = L L^T (CHOLMOD, whose
 solves take many right-hand sides at once): each block is the draws' second moment. The estimate
 of a vertex's variance trace/3 has a relative standard deviation of sqrt(2 / (3 samples))
-(10 % at 64 draws, 5 % in its std); the draws are seeded, so one matrix gives one answer.
+(14 % at 32 draws, 7 % in its std); the draws are seeded, so one matrix gives one answer.
 Selected inversion (Takahashi's recursion on L) would be exact at about a factorisation's cost,
 but neither CHOLMOD through cvxopt nor any kept Python package exposes it.
 
@@ -58,7 +58,7 @@ __all__ = ["DENSE_MAX_DOFS", "INNOVATION_GATE", "MARGINAL_SAMPLES", "PRIOR_ERROR
 # Up to this many unknowns the marginals are exact (a dense inverse takes a few milliseconds).
 DENSE_MAX_DOFS = 600
 # Draws per marginal estimate beyond DENSE_MAX_DOFS (see the module doc).
-MARGINAL_SAMPLES = 64
+MARGINAL_SAMPLES = 32
 # Weight of an update's lambda^2 estimate relative to the next one's (module doc).
 PRIOR_ERROR_MEMORY = 0.7
 # Points farther from the predicted surface than this many robust spreads 1.4826 median(d) do
