@@ -66,12 +66,12 @@ Design decisions (see also factors.py, factor_graph.py, levenberg_marquardt.py, 
   cost after the newest state's factorisation) with 4.4 LM iterations per update against 4.25
   and the same vertex RMSE to 0.2 %, and the accuracy suite's ratios move by at most 0.01, its
   LM iterations per update by at most 0.1.
-- Posterior std (position_std, (N,), sqrt(trace(Sigma_ii)/3), 0 on fixed vertices): up to
-  EXACT_COVARIANCE_MAX_DOFS window unknowns the exact marginal of the newest state, diag
-  blocks of H^-1 of the undamped Gauss-Newton matrix of the whole window at the solution
-  (dense); beyond that vertex-conditional: each vertex's 3x3 covariance given all other
-  unknowns, inv(H_ii), a cheap lower bound of the marginal that shows where measurements and
-  priors constrain the mesh.
+- Published covariance (position_covariance (N, 3, 3), position_std = sqrt(trace / 3), 0 on
+  fixed vertices): the covariance of the published mean, not of the optimum (core/covariance.py):
+  the newest state's marginal posterior at its last linearisation (given the window's other
+  states, tied to it only by the weak temporal factors), mixed with the prior's covariance by the
+  share of the correction published, with the prior's real error scale learnt from each cloud's
+  distances to the prediction (`_learn_prior_error_scale`).
 - Dynamic settings (`reconfigure`: the sigmas, the robust kernel's scale, the gate) apply from
   the next update on: the factors it adds use them, the factors already in the window keep
   theirs (as they keep the weights estimated when they were added).
@@ -92,6 +92,7 @@ from meshfg_ros.core.covariance import (
     PRIOR_ERROR_MEMORY,
     ForgettingMean,
     MarginalCovariance,
+    clipped_inverse,
     prior_error_scale,
     published_covariance,
 )
@@ -392,10 +393,10 @@ class SlidingWindowEstimator:
             free = self.graph.free_dofs
             unit_information = (self.unit_prior_scale * scipy.sparse.csr_matrix(rest_stiffness)[free][:, free]
                                 + PRIOR_RIDGE * scipy.sparse.identity(free.size, format="csr"))
-            self.marginals = MarginalCovariance(unit_information)
-            self.unit_prior_covariance = self.marginals.prior_blocks(PRIOR_MARGINAL_SAMPLES)
-        else:
-            self.marginals = MarginalCovariance()
+            self.unit_prior_covariance = np.zeros((initial_mesh.vertex_count, 3, 3))  # zero on fixed vertices
+            self.unit_prior_covariance[self.graph.free_vertices] = MarginalCovariance(PRIOR_MARGINAL_SAMPLES).blocks(
+                unit_information)
+        self.marginals = MarginalCovariance()
         # lambda^2: the prediction's real error over the prior's model of it, learnt from each
         # update's innovation (core/covariance.py); 1 until the first.
         self.prior_error_scale = 1.0
@@ -659,11 +660,9 @@ class SlidingWindowEstimator:
         normals = np.cross(predicted[corners[:, 1]] - predicted[corners[:, 0]],
                            predicted[corners[:, 2]] - predicted[corners[:, 0]])
         normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
-        covariance = np.zeros((self.mesh.vertex_count, 3, 3))
-        covariance[self.graph.free_vertices] = self.unit_prior_covariance
-        at_points = np.einsum("pk,pkij->pij", association.barycentric[found], covariance[corners])
+        at_points = np.einsum("pk,pkij->pij", association.barycentric[found], self.unit_prior_covariance[corners])
         variance = self.simulation_sigma**2 * np.einsum("pi,pij,pj->p", normals, at_points, normals)
-        scale = prior_error_scale(association.distance[found], variance, self.noise.sigma)
+        scale = prior_error_scale(association.distance[found], variance, self.noise.sigma, GATE_SIGMAS)
         if scale is not None:
             self.prior_error_scale = self._prior_error_memory.add(scale)
 
@@ -819,22 +818,18 @@ class SlidingWindowEstimator:
         mixed with the prior's covariance by the share of the correction published and scaled
         by the prior's learnt error."""
         graph = self.graph
-        sigma_squared = self.simulation_sigma**2 if "simulation" in self.enabled else 1.0
-        through_prior, prior = None, None
+        key, prior = pending.key, None
         try:
-            posterior, through_prior = self.marginals.blocks(graph.newest_information(), 1.0 / sigma_squared,
-                                                             seed=pending.key)
+            posterior = self.marginals.blocks(graph.newest_information(), seed=key, factor=self.solver.state_factor(key))
         except NotPositiveDefiniteError:
-            messages.append("posterior information not positive definite: vertex-conditional covariance")
-            eigenvalues, eigenvectors = np.linalg.eigh(graph.newest_vertex_information())
-            floor = 1e-12 * max(float(np.abs(eigenvalues).max()), 1e-300)
-            posterior = np.einsum("vij,vj,vkj->vik", eigenvectors, 1.0 / np.maximum(eigenvalues, floor), eigenvectors)
+            posterior, clamped = clipped_inverse(graph.newest_vertex_information())
+            messages.append("posterior information not positive definite: vertex-conditional covariance"
+                            + (", some blocks clamped" if clamped else ""))
         if "simulation" in self.enabled:
-            prior = sigma_squared * self.unit_prior_covariance
-        blocks = published_covariance(posterior, through_prior, prior, pending.published_share,
-                                      self.prior_error_scale)
+            prior = self.simulation_sigma**2 * self.unit_prior_covariance[graph.free_vertices]
+        blocks = published_covariance(posterior, prior, pending.published_share, self.prior_error_scale)
         if prior is not None:
             messages.append(f"prior error scale {np.sqrt(self.prior_error_scale):.3g}")
         covariance = np.zeros((self.mesh.vertex_count, 3, 3))
-        covariance[graph.free_vertices] = 0.5 * (blocks + blocks.transpose(0, 2, 1))
+        covariance[graph.free_vertices] = blocks
         return np.where(np.isfinite(covariance), covariance, 0.0)

@@ -87,6 +87,11 @@ class LinearSolver:
         """Make, before any solve, what solves of windows of `count` states with state blocks of
         `pattern` would otherwise make at their first use. Nothing to make for this solver."""
 
+    def state_factor(self, key) -> SparseCholesky | None:
+        """A Cholesky factor of state `key`'s block, or of one close to it, that this solver's
+        last solves used, or None: this solver keeps none."""
+        return None
+
 
 class CholeskySolver(LinearSolver):
     """Sparse Cholesky (CHOLMOD) of the whole window; the symbolic analysis is kept while the
@@ -252,6 +257,12 @@ class PCGSolver(LinearSolver):
         first = SparseCholesky(scipy.sparse.csr_matrix((identity, pattern.indices, pattern.indptr), shape=pattern.shape),
                                node_size=3)
         self._spare.extend([first] + [first.sibling(identity) for _ in range(count - 1)])
+
+    def state_factor(self, key):
+        """The factor serving state `key` ("block" preconditioner): its own, or the one it
+        borrows (an earlier state's block); None without one."""
+        cached = self._block_factors.get(key)
+        return None if cached is None else cached.factor
 
     @staticmethod
     def _change(data: np.ndarray, reference: np.ndarray) -> float:
@@ -538,6 +549,10 @@ class FallbackSolver(LinearSolver):
     def reserve(self, pattern, count):
         """The first solver's reservation (the others serve only when it fails)."""
         self.solvers[0].reserve(pattern, count)
+
+    def state_factor(self, key):
+        """The first solver's factor of state `key` (the others serve only when it fails)."""
+        return self.solvers[0].state_factor(key)
 
 
 def make_linear_solver(name: str, fallback: bool = True, **pcg_options) -> LinearSolver:
