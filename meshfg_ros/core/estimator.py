@@ -820,7 +820,9 @@ class SlidingWindowEstimator:
         graph = self.graph
         key, prior = pending.key, None
         try:
-            posterior = self.marginals.blocks(graph.newest_information(), seed=key, factor=self.solver.state_factor(key))
+            information = graph.newest_information()
+            factor = self.solver.state_factor(key, information.data)
+            posterior = self.marginals.blocks(information, seed=key, factor=factor)
         except NotPositiveDefiniteError:
             posterior, clamped = clipped_inverse(graph.newest_vertex_information())
             messages.append("posterior information not positive definite: vertex-conditional covariance"
