@@ -51,15 +51,24 @@ def test_marginal_blocks_match_the_dense_inverse(vertices):
     np.testing.assert_allclose(estimate, exact, atol=tolerance * np.abs(exact).max())
 
 
-def test_marginal_draws_go_through_a_given_factor_of_the_pattern():
-    vertices = DENSE_MAX_DOFS // 3 + 10
+def test_marginal_draws_through_a_given_factor_are_rescaled_to_the_matrix():
+    vertices = DENSE_MAX_DOFS // 3 + 100
     information = _chain_information(vertices, seed=4)
-    marginals = MarginalCovariance(samples=16)
+    exact = _blocks(np.linalg.inv(information.toarray()))
+    marginals = MarginalCovariance(samples=4000)
     own = marginals.blocks(information, seed=7)
+    # A factor of 2 H draws N(0, H^-1 / 2): rescaled, H's own factor's draws to within the
+    # scale's sampling spread, sqrt(2 / (n k)) = 6e-4 for n = 1,500 unknowns and k = 4,000 draws.
     given = marginals.blocks(information, seed=7, factor=SparseCholesky(2.0 * information, node_size=3))
-    np.testing.assert_allclose(given, 0.5 * own, rtol=1e-9)  # the draws of the factor given, not of H
-    wrong_pattern = SparseCholesky(scipy.sparse.identity(information.shape[0], format="csr"))
-    np.testing.assert_allclose(marginals.blocks(information, seed=7, factor=wrong_pattern), own, rtol=1e-12)
+    np.testing.assert_allclose(given, own, rtol=3e-3, atol=1e-6 * np.abs(own).max())
+    unscaled = marginals.blocks(information, seed=7, factor=SparseCholesky(2.0 * information, node_size=3)) * 0.5
+    assert not np.allclose(unscaled, own, rtol=0.1)
+    # A factor of a nearby matrix at another scale (an earlier state's block, weighted with an
+    # earlier noise estimate): the variances within sampling of H's.
+    nearby = 1.5 * (information + 1e-4 * scipy.sparse.diags(information.diagonal()))
+    close = marginals.blocks(information, seed=7, factor=SparseCholesky(nearby.tocsr(), node_size=3))
+    ratios = np.einsum("vii->v", close) / np.einsum("vii->v", exact)
+    assert np.median(np.abs(ratios - 1.0)) < 0.1
 
 
 def test_sampled_marginals_are_the_same_for_the_same_seed_and_refactor_on_the_kept_pattern():

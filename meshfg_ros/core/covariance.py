@@ -28,13 +28,17 @@ prior's factor) triples the draws' cost and moved the mean NEES of the accuracy 
 by 2-10 % (slab-inclusion 1.82 against 1.91, dome-tilted 0.44 against 0.48, the cube 0.47
 against 0.46, seed 0).
 
-The factor. LM's linear solver may already hold a Cholesky factor that fits the newest state's
-block (PCGSolver's block preconditioner, refreshed when its block drifts by refresh_change, 5 %,
-damping included); the draws go through it when its values are within that distance of the
-block, else the block is factored here. A factor the newest state borrows from an earlier one
-is 1-25 % off on the bench's boxes and is not used: its variances carry the earlier noise
-estimate's scale (the whole block scales with 1 / sigma_m^2), which on the accuracy suite's
-slab-inclusion took the mean NEES from 6 to 9.
+The factor. LM's linear solver already holds a Cholesky factor for the newest state's block
+(PCGSolver's block preconditioner: the state's own, refreshed when its block drifts by 5 %,
+damping included, or one it borrows from an earlier state, 1-25 % off on the bench's boxes);
+the draws go through it, and the block is factored here only where the solver holds none.
+A factor of M draws N(0, M^-1); where M is close to c H (a borrowed block carries an earlier
+noise estimate's scale: the whole block scales with 1 / sigma_m^2), E[x^T H x] = n / c, so the
+draws are rescaled by sqrt(n / mean x^T H x), one product with H. Measured on the accuracy
+suite (seed 0) against a fresh factor of each block: slab-inclusion's mean NEES 5.88 against
+5.95, dome-tilted 1.10 against 1.06, cao-push 13.3 against 13.0, flap-bend 2.25 against 2.22
+(unrescaled, slab-inclusion's was 9.4); a fresh factor costs about 0.1 s of an update at
+5,000 vertices and 0.3 s at 10,000.
 
 lambda^2, the prior's real error relative to its model, is learnt from the innovation: the
 distances d_k of a cloud's points to the predicted surface, each with the model's variance
@@ -99,8 +103,9 @@ class MarginalCovariance:
     def blocks(self, information: scipy.sparse.csr_matrix, seed: int = 0,
                factor: SparseCholesky | None = None) -> np.ndarray:
         """(V, 3, 3) blocks of H^-1, H = `information`: exact up to DENSE_MAX_DOFS, else from
-        draws seeded by `seed`, through `factor` (a factor of H, or of a matrix close to it, on
-        H's pattern) when given, else through a factor of H made here."""
+        draws seeded by `seed`, through `factor` when given (of H, or of a matrix close to it
+        on H's pattern: its draws are rescaled to H, module doc), else through a factor of H
+        made here."""
         matrix = scipy.sparse.csr_matrix(information, dtype=np.float64)
         matrix.sort_indices()
         size = matrix.shape[0]
@@ -115,6 +120,9 @@ class MarginalCovariance:
                 self._factor.refactor(matrix.data)
             factor = self._factor
         draws = factor.sample(np.random.default_rng(seed).standard_normal((size, self.samples)))
+        if factor is not self._factor:
+            # A factor of M = c H draws N(0, H^-1 / c), and E[x^T H x] = size / c: rescaled by it.
+            draws *= np.sqrt(size * self.samples / np.einsum("is,is->", draws, matrix @ draws))
         vertices = draws.reshape(size // 3, 3, self.samples)
         return np.einsum("vis,vjs->vij", vertices, vertices) / self.samples
 

@@ -820,9 +820,7 @@ class SlidingWindowEstimator:
         graph = self.graph
         key, prior = pending.key, None
         try:
-            information = graph.newest_information()
-            factor = self.solver.state_factor(key, information.data)
-            posterior = self.marginals.blocks(information, seed=key, factor=factor)
+            posterior = self.marginals.blocks(graph.newest_information(), seed=key, factor=self.solver.state_factor(key))
         except NotPositiveDefiniteError:
             posterior, clamped = clipped_inverse(graph.newest_vertex_information())
             messages.append("posterior information not positive definite: vertex-conditional covariance"

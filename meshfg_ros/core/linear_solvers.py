@@ -87,10 +87,9 @@ class LinearSolver:
         """Make, before any solve, what solves of windows of `count` states with state blocks of
         `pattern` would otherwise make at their first use. Nothing to make for this solver."""
 
-    def state_factor(self, key, data: np.ndarray) -> SparseCholesky | None:
-        """A Cholesky factor that this solver's last solves used for state `key`'s block and
-        that fits the block values `data` (on the block pattern) closely, or None: this solver
-        keeps none."""
+    def state_factor(self, key) -> SparseCholesky | None:
+        """The Cholesky factor this solver's last solves used for state `key`'s block (of that
+        block, or of one close to it), or None: this solver keeps none."""
         return None
 
 
@@ -259,14 +258,11 @@ class PCGSolver(LinearSolver):
                                node_size=3)
         self._spare.extend([first] + [first.sibling(identity) for _ in range(count - 1)])
 
-    def state_factor(self, key, data):
-        """The factor serving state `key` ("block" preconditioner: its own, or the one it
-        borrows from an earlier state) when the block values it was made from are within
-        refresh_change of `data` (relative Frobenius distance, as a refresh judges), else None."""
+    def state_factor(self, key):
+        """The factor serving state `key` ("block" preconditioner): its own, or the one it
+        borrows from an earlier state; None without one."""
         cached = self._block_factors.get(key)
-        if cached is None or self._change(data, cached.reference) > self.refresh_change:
-            return None
-        return cached.factor
+        return None if cached is None else cached.factor
 
     @staticmethod
     def _change(data: np.ndarray, reference: np.ndarray) -> float:
@@ -554,9 +550,9 @@ class FallbackSolver(LinearSolver):
         """The first solver's reservation (the others serve only when it fails)."""
         self.solvers[0].reserve(pattern, count)
 
-    def state_factor(self, key, data):
+    def state_factor(self, key):
         """The first solver's factor of state `key` (the others serve only when it fails)."""
-        return self.solvers[0].state_factor(key, data)
+        return self.solvers[0].state_factor(key)
 
 
 def make_linear_solver(name: str, fallback: bool = True, **pcg_options) -> LinearSolver:
