@@ -117,7 +117,7 @@ from meshfg_ros.core.input_checks import (
 )
 from meshfg_ros.core.levenberg_marquardt import LevenbergMarquardtConfig, levenberg_marquardt
 from meshfg_ros.core.linear_solvers import LINEAR_SOLVERS, LinearSolveError, NotPositiveDefiniteError, make_linear_solver
-from meshfg_ros.core.mesh import TetMesh, signed_volumes
+from meshfg_ros.core.mesh import InvalidMeshError, TetMesh, signed_volumes
 from meshfg_ros.core.noise import RayNoise
 from meshfg_ros.core.persistence import CorrectionPersistence
 from meshfg_ros.core.robust import ROBUST_KERNELS, make_robust_kernel
@@ -374,6 +374,7 @@ class SlidingWindowEstimator:
     def __init__(self, initial_mesh: TetMesh, config: EstimatorConfig | None = None):
         self.config = config or EstimatorConfig()
         self.mesh = initial_mesh
+        self.initial_mesh = initial_mesh  # before any cut (remove_elements): what a restart starts from
         self.enabled = FACTOR_CONFIGURATIONS[self.config.factors]
         self.graph = FactorGraph(
             initial_mesh.vertex_count, initial_mesh.tetrahedra, initial_mesh.surface_triangles,
@@ -437,9 +438,43 @@ class SlidingWindowEstimator:
         """A new estimator from the initial mesh with this one's settings. It shares the queue of
         changes not yet applied, so a `reconfigure` that reaches this estimator while the restart
         is under way (from another thread) still applies to the new one."""
-        fresh = SlidingWindowEstimator(self.mesh, self.config)
+        fresh = SlidingWindowEstimator(self.initial_mesh, self.config)
         fresh._pending_changes = self._pending_changes
         return fresh
+
+    def remove_elements(self, removed_elements) -> bool:
+        """Follow a cut: from the next update on, the window's states, the physics prior (the
+        FEM stiffness of the remaining elements), the surface the points are projected on and
+        the estimate use the mesh without the element slots `removed_elements`
+        (TetMesh.without_elements: slots of the uncut mesh, cumulative; those removed already
+        may be repeated). The vertices left without an element are held like fixed vertices at
+        their last estimate (never estimated; zero std).
+
+        The window restarts at the last estimate, which anchors the next state's temporal
+        factor: the states and factors it held were made on the old elements and surface.
+        What was learnt (measurement noise, correction persistence, the prior's error scale,
+        stamps and step count) is kept. Returns whether the topology changed; raises
+        EstimatorInputError, and changes nothing, for a slot out of range or a cut of every
+        element."""
+        try:
+            mesh = self.mesh.without_elements(removed_elements)
+        except InvalidMeshError as error:
+            raise EstimatorInputError(f"removed_elements: {error}") from None
+        if mesh is self.mesh:
+            return False
+        last = self.last_estimate
+        held = mesh.vertices.copy()
+        held[mesh.invalid_vertices] = last[mesh.invalid_vertices]
+        fresh = SlidingWindowEstimator(mesh.with_vertices(held), self.config)
+        kept = {name: getattr(self, name) for name in (
+            "initial_mesh", "noise", "persistence", "prior_error_scale", "_prior_error_memory", "step",
+            "last_stamp_ns", "scene", "_pending_changes")}
+        vars(self).clear()
+        vars(self).update(vars(fresh))
+        vars(self).update(kept)
+        self.last_estimate = last.copy()
+        self.anchor = last.copy()
+        return True
 
     def _apply_pending_changes(self) -> None:
         """Start using the settings `reconfigure` changed: a new nominal measurement sigma restarts

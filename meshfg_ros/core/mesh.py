@@ -1,10 +1,11 @@
 """Tetrahedral mesh: vertices + fixed connectivity, validation, topology and file IO.
 
 A `TetMesh` holds one geometric state (`vertices`) of a fixed connectivity (`tetrahedra`)
-plus the set of vertices that are held fixed (boundary conditions). The connectivity never
-changes while tissue deforms, so the topology derived from it (boundary surface, edges,
+plus the set of vertices that are held fixed (boundary conditions). The connectivity does not
+change while tissue deforms, so the topology derived from it (boundary surface, edges,
 vertex sets) is computed lazily once and shared by every mesh made with `with_vertices` or
-`with_fixed`.
+`with_fixed`. A cut changes it (`without_elements`): element slots are removed with every
+index kept stable, and the vertices left without an element become invalid.
 """
 
 from __future__ import annotations
@@ -212,11 +213,21 @@ def orient_tetrahedra(vertices: np.ndarray, tetrahedra: np.ndarray) -> tuple[np.
 
 
 class _Topology:
-    """Connectivity-derived data, computed on first use and shared between mesh states."""
+    """Connectivity-derived data, computed on first use and shared between mesh states.
 
-    def __init__(self, tetrahedra: np.ndarray, vertex_count: int):
+    `all_tetrahedra` are the element slots of the mesh before any cut; `tetrahedra` the
+    remaining ones (all of them on a mesh that was never cut), `removed_elements` the slots
+    removed and `invalid_vertices` the vertices no remaining element uses."""
+
+    def __init__(self, tetrahedra: np.ndarray, vertex_count: int, all_tetrahedra: np.ndarray | None = None,
+                 removed_elements: np.ndarray | None = None):
         self.tetrahedra = tetrahedra
         self.vertex_count = vertex_count
+        self.all_tetrahedra = tetrahedra if all_tetrahedra is None else all_tetrahedra
+        self.removed_elements = _read_only(np.zeros(0, np.int64) if removed_elements is None else removed_elements)
+        used = np.zeros(vertex_count, dtype=bool)
+        used[tetrahedra.reshape(-1)] = True
+        self.invalid_vertices = _read_only(np.flatnonzero(~used).astype(np.int64))
         self._surface_triangles: np.ndarray | None = None
         self._surface_vertices: np.ndarray | None = None
         self._internal_vertices: np.ndarray | None = None
@@ -248,6 +259,7 @@ class _Topology:
         if self._internal_vertices is None:
             is_internal = np.ones(self.vertex_count, dtype=bool)
             is_internal[self.surface_vertices] = False
+            is_internal[self.invalid_vertices] = False
             self._internal_vertices = _read_only(np.flatnonzero(is_internal).astype(np.int64))
         return self._internal_vertices
 
@@ -337,9 +349,36 @@ class TetMesh:
         return TetMesh._from_parts(new_vertices, self._fixed, self._topology, self.name, 0)
 
     def with_fixed(self, fixed_vertices) -> TetMesh:
-        """Same geometry and topology with a new set of fixed vertex indices."""
-        fixed = _as_fixed(fixed_vertices, self.vertex_count)
+        """Same geometry and topology with a new set of fixed vertex indices (the invalid
+        vertices of a cut mesh stay held)."""
+        fixed = _as_fixed(np.concatenate([np.asarray(fixed_vertices, dtype=np.int64).reshape(-1),
+                                          self.invalid_vertices]), self.vertex_count)
         return TetMesh._from_parts(self._vertices, fixed, self._topology, self.name, 0)
+
+    def without_elements(self, removed_elements) -> TetMesh:
+        """The mesh after a cut: the element slots `removed_elements` (indices into
+        `all_tetrahedra`, the elements before any cut) removed on top of those removed already.
+
+        Indices stay stable: vertices keep their rows and `removed_elements` names slots of
+        the uncut mesh, so that successive cuts (and a simulator's invalid indices) compose.
+        `tetrahedra` holds the remaining elements in slot order, the surface is that of the
+        remaining elements (the wound's faces become surface), and the vertices no remaining
+        element uses become `invalid_vertices`: held like fixed vertices (they are in
+        `fixed_vertices`, so simulator and estimator leave them where they are), never
+        estimated, published as invalid. Raises InvalidMeshError for a slot out of range or a
+        cut that leaves no element."""
+        slots = _as_index_array(removed_elements, self.all_tetrahedra.shape[0], "removed_elements").reshape(-1)
+        removed = np.union1d(self.removed_elements, slots).astype(np.int64)
+        if removed.size == self.removed_elements.size:
+            return self
+        keep = np.ones(self.all_tetrahedra.shape[0], dtype=bool)
+        keep[removed] = False
+        if not keep.any():
+            raise InvalidMeshError("the cut removes every element")
+        topology = _Topology(_read_only(self.all_tetrahedra[keep]), self.vertex_count, self.all_tetrahedra,
+                             removed)
+        fixed = np.union1d(self._fixed, topology.invalid_vertices).astype(np.int64)
+        return TetMesh._from_parts(self._vertices, _read_only(fixed), topology, self.name, 0)
 
     @property
     def vertices(self) -> np.ndarray:
@@ -351,7 +390,34 @@ class TetMesh:
 
     @property
     def fixed_vertices(self) -> np.ndarray:
+        """Vertices held where they are: the boundary condition, and the invalid vertices of a
+        cut mesh (`boundary_vertices` without them)."""
         return self._fixed
+
+    @property
+    def boundary_vertices(self) -> np.ndarray:
+        """The fixed vertices of the boundary condition (`fixed_vertices` but the invalid ones)."""
+        return np.setdiff1d(self._fixed, self.invalid_vertices).astype(np.int64)
+
+    @property
+    def all_tetrahedra(self) -> np.ndarray:
+        """Every element slot (M0, 4) of the mesh before any cut (`tetrahedra` when never cut)."""
+        return self._topology.all_tetrahedra
+
+    @property
+    def removed_elements(self) -> np.ndarray:
+        """Slots of `all_tetrahedra` a cut removed (sorted; empty when never cut)."""
+        return self._topology.removed_elements
+
+    @property
+    def invalid_vertices(self) -> np.ndarray:
+        """Vertices no remaining element uses (sorted; empty when never cut): not part of the body."""
+        return self._topology.invalid_vertices
+
+    @property
+    def valid_vertices(self) -> np.ndarray:
+        """Vertices of the remaining elements (all of them when never cut)."""
+        return np.setdiff1d(np.arange(self.vertex_count), self.invalid_vertices).astype(np.int64)
 
     @property
     def free_vertices(self) -> np.ndarray:

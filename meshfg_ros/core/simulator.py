@@ -776,6 +776,29 @@ class ElasticSimulator:
             raise SimulatorInputError("grasped_vertices must not include fixed vertices")
         return grasped
 
+    def remove_elements(self, removed_elements) -> bool:
+        """Follow a cut: from the next prediction on, simulate the rest mesh without the element
+        slots `removed_elements` (TetMesh.without_elements: slots of the uncut mesh, cumulative;
+        those removed already may be repeated). The vertices left without an element are held
+        where the state has them (they are no longer part of the body) and leave the grasped
+        and stuck sets; the load, the Poisson ratio and the tool's poses are kept. Returns
+        whether the topology changed. Raises, and changes nothing, InvalidMeshError for a slot
+        out of range and NotPositiveDefiniteError for a cut that leaves a piece with rigid modes
+        (core/topology.py: cut_elements removes such pieces too)."""
+        mesh = self.rest_mesh.without_elements(removed_elements)
+        if mesh is self.rest_mesh:
+            return False
+        grasped = None
+        if self.config.tool_mode == "grasp":
+            grasped = np.setdiff1d(self.grasped_vertices, mesh.invalid_vertices)
+        cut = ElasticSimulator(mesh, self.config, grasped)
+        cut.body_acceleration = self._body_acceleration
+        cut._first_pose, cut._previous_pose = self._first_pose, self._previous_pose
+        cut._stuck = np.setdiff1d(self._stuck, mesh.invalid_vertices)
+        vars(self).clear()
+        vars(self).update(vars(cut))
+        return True
+
     @property
     def vertex_mass(self) -> np.ndarray:
         """Lumped mass (N,) of every vertex in kg (density times a quarter of each incident volume)."""
