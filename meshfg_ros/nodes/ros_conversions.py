@@ -38,6 +38,15 @@ PREDICTION_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
 REQUEST_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 STREAM_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+# tool_pose with tool_pose_reliable false: matches best-effort and reliable publishers alike.
+BEST_EFFORT_POSE_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
+# What to do about a tool_pose publisher the subscription cannot match (nodes/publisher_qos.py).
+TOOL_POSE_QOS_FIX = "publish it reliable, or set tool_pose_reliable:=false"
+
+
+def tool_pose_qos(params: dict) -> QoSProfile:
+    """The tool_pose subscription's QoS that parameter tool_pose_reliable asks for."""
+    return STREAM_QOS if params["tool_pose_reliable"] else BEST_EFFORT_POSE_QOS
 # numpy dtype -> array.array type code of the same item size (Linux), for primitive sequences.
 _TYPECODES = {
     np.dtype(np.float64): "d", np.dtype(np.float32): "f",
@@ -83,6 +92,8 @@ class MeshMessages:
         self._tetrahedra = RCLPY_FACTORY.sequence(state.tetrahedra, np.uint32)
         self._surface_triangles = RCLPY_FACTORY.sequence(state.surface_triangles, np.uint32)
         self._fixed_vertices = RCLPY_FACTORY.sequence(state.fixed_vertices, np.uint32)
+        self._invalid_vertices = RCLPY_FACTORY.sequence(state.invalid_vertices, np.uint32)
+        self._removed_elements = RCLPY_FACTORY.sequence(state.removed_elements, np.uint32)
 
     def message(self, stamp_ns: int, frame_id: str, step: int, positions: np.ndarray,
                 position_std: np.ndarray | None = None, degraded: bool = False,
@@ -103,6 +114,8 @@ class MeshMessages:
             position_std=RCLPY_FACTORY.sequence(std, np.float32),
             degraded=bool(degraded),
             position_covariance=RCLPY_FACTORY.sequence(covariance_upper_triangles(covariance), np.float32),
+            invalid_vertices=self._invalid_vertices,
+            removed_elements=self._removed_elements,
         )
 
 
