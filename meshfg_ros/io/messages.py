@@ -43,6 +43,8 @@ uint32[] fixed_vertices     # vertices held fixed (boundary condition)
 float32[] position_std      # N per-vertex posterior standard deviation (m), or empty
 bool degraded               # an estimate whose update ran without a simulator prediction (as EstimatorStatus.degraded)
 float32[] position_covariance  # 6N: per vertex the upper triangle xx xy xz yy yz zz of its 3x3 posterior covariance (m^2), or empty
+uint32[] invalid_vertices   # vertices no remaining element uses (removed by a cut): neither estimated nor drawn; empty when none
+uint32[] removed_elements   # slots of the uncut mesh's elements a cut removed (tetrahedra lists the others in slot order); empty when none
 """,
     ESTIMATOR_STATUS: """\
 # Outcome of one estimator update (one step of the sliding-window Levenberg-Marquardt).
@@ -64,16 +66,23 @@ string message
 _TETRA_MESH_COVARIANCE_LINE = (
     "float32[] position_covariance  # 6N: per vertex the upper triangle xx xy xz yy yz zz of its 3x3 posterior "
     "covariance (m^2), or empty\n")
+_TETRA_MESH_CUT_LINES = (
+    "uint32[] invalid_vertices   # vertices no remaining element uses (removed by a cut): neither estimated nor "
+    "drawn; empty when none\n"
+    "uint32[] removed_elements   # slots of the uncut mesh's elements a cut removed (tetrahedra lists the others "
+    "in slot order); empty when none\n")
 _TETRA_MESH_DEGRADED_LINE = (
     "bool degraded               # an estimate whose update ran without a simulator prediction "
     "(as EstimatorStatus.degraded)\n")
 # Earlier definitions a recording may hold, read with their own definition (fields added since
-# take their defaults): TetraMesh before `position_covariance`, and before `degraded` too (the
-# bundled recordings').
+# take their defaults): TetraMesh before `invalid_vertices` and `removed_elements`, before
+# `position_covariance` too, and before `degraded` too (the bundled recordings').
+_TETRA_MESH_UNCUT = MSG_DEFINITIONS[TETRA_MESH].replace(_TETRA_MESH_CUT_LINES, "")
 EARLIER_MSG_DEFINITIONS: dict[str, tuple[str, ...]] = {
     TETRA_MESH: (
-        MSG_DEFINITIONS[TETRA_MESH].replace(_TETRA_MESH_COVARIANCE_LINE, ""),
-        MSG_DEFINITIONS[TETRA_MESH].replace(_TETRA_MESH_COVARIANCE_LINE, "").replace(_TETRA_MESH_DEGRADED_LINE, ""),
+        _TETRA_MESH_UNCUT,
+        _TETRA_MESH_UNCUT.replace(_TETRA_MESH_COVARIANCE_LINE, ""),
+        _TETRA_MESH_UNCUT.replace(_TETRA_MESH_COVARIANCE_LINE, "").replace(_TETRA_MESH_DEGRADED_LINE, ""),
     ),
 }
 # Row and column of each entry of a vertex's 3x3 covariance in TetraMesh.position_covariance:
@@ -280,7 +289,10 @@ class MeshState:
     positions (N, 3) float64 metres (a flat 3N array is reshaped); tetrahedra (M, 4), surface_triangles (F, 3),
     fixed_vertices (K,) int64 vertex indices; position_std (N,) float64 or (0,) when unknown;
     position_covariance (N, 3, 3) float64 symmetric blocks (m^2) or (0, 3, 3) when unknown (the
-    message's 6N upper-triangle values are unpacked). Arrays are copied and read-only.
+    message's 6N upper-triangle values are unpacked); after a cut, invalid_vertices (V,) (no
+    remaining element uses them; not part of the body) and removed_elements (R,) (slots of the
+    uncut mesh's elements, `tetrahedra` holding the others), both empty otherwise. Arrays are
+    copied and read-only.
     """
 
     stamp_ns: int
@@ -293,6 +305,8 @@ class MeshState:
     position_std: np.ndarray = field(default_factory=lambda: np.zeros(0))
     degraded: bool = False  # an estimate made without a simulator prediction
     position_covariance: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    invalid_vertices: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    removed_elements: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
     def __post_init__(self) -> None:
         positions = np.array(self.positions, dtype=np.float64)
@@ -329,6 +343,20 @@ class MeshState:
         set_field("position_std", _frozen(position_std))
         set_field("degraded", bool(self.degraded))
         set_field("position_covariance", _frozen(_mesh_covariance(self.position_covariance, num_vertices)))
+        set_field("invalid_vertices", _as_index_array("invalid_vertices", self.invalid_vertices, None, num_vertices))
+        removed = np.asarray(self.removed_elements)
+        set_field("removed_elements", _as_index_array("removed_elements", removed, None,
+                                                      len(self.tetrahedra) + removed.size))
+        if self.invalid_vertices.size and np.isin(self.tetrahedra, self.invalid_vertices).any():
+            raise MessageValidationError("tetrahedra use an invalid vertex")
+
+    @classmethod
+    def of_mesh(cls, mesh: TetMesh, stamp_ns: int, frame_id: str, step: int, positions=None, **fields) -> MeshState:
+        """The state of `mesh`'s topology (remaining elements, surface, boundary-fixed, invalid
+        vertices and removed elements of a cut mesh) at `positions` (default: the mesh's)."""
+        return cls(stamp_ns, frame_id, step, mesh.vertices if positions is None else positions, mesh.tetrahedra,
+                   mesh.surface_triangles, mesh.boundary_vertices, invalid_vertices=mesh.invalid_vertices,
+                   removed_elements=mesh.removed_elements, **fields)
 
     def tet_mesh(self, name: str = "") -> TetMesh:
         """The core mesh (vertices, tetrahedra, fixed vertices) of this state."""
@@ -445,6 +473,8 @@ def mesh_state_to_msg(state: MeshState, factory: MessageFactory | None = None) -
         position_std=factory.sequence(state.position_std, np.float32),
         degraded=bool(state.degraded),
         position_covariance=factory.sequence(covariance_upper_triangles(state.position_covariance), np.float32),
+        invalid_vertices=factory.sequence(state.invalid_vertices, np.uint32),
+        removed_elements=factory.sequence(state.removed_elements, np.uint32),
     )
 
 
@@ -462,6 +492,8 @@ def mesh_state_from_msg(msg: Any) -> MeshState:
         # Recordings made before these fields have none.
         degraded=bool(getattr(msg, "degraded", False)),
         position_covariance=np.asarray(getattr(msg, "position_covariance", ()), dtype=np.float64),
+        invalid_vertices=np.asarray(getattr(msg, "invalid_vertices", ()), dtype=np.int64),
+        removed_elements=np.asarray(getattr(msg, "removed_elements", ()), dtype=np.int64),
     )
 
 
