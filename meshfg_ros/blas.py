@@ -18,50 +18,22 @@ A process that loads cvxopt without calling it runs CHOLMOD on cvxopt's own BLAS
 `backend()` says so.
 
 What `configure()` binds: `MESHFG_BLAS` (`mkl` or `bundled`) when set; otherwise MKL on Intel
-CPUs and cvxopt's bundled OpenBLAS on every other CPU (vendor_id in /proc/cpuinfo), because:
+CPUs and cvxopt's bundled OpenBLAS on every other CPU (vendor_id in /proc/cpuinfo). On the
+project's 2-core Intel VMs MKL's kernels factor and solve the organ-scale blocks faster than the
+bundled OpenBLAS 0.3.15; on its AMD EPYC VMs MKL takes no AVX code path and the bundled
+OpenBLAS's Zen kernels are the faster ones (measurements: docs/design-notes.md, "CHOLMOD's BLAS").
 
-- Intel (the 2-core Xeon VM the project was first tuned on), organ-scale state block (31,944
-  dofs, METIS ordering): numeric factorisation 0.50 s (bundled) against 0.36 s (MKL, 1 thread)
-  and 0.26 s (MKL, 2 threads); one solve 20.8 ms against 17.2 and 11.7 ms. Organ-scale window
-  update median 1.25 s against 0.88-0.92 s, paper-scale 25.9 ms against 23.2-24.9 ms. On a
-  later 2-core Xeon VM (AVX-512, KVM), `meshfg bench` with MESHFG_BLAS=mkl and =bundled back to
-  back: organ-scale update p95 0.83 s against 1.06 s (linear solves 34 against 51 ms per
-  update), paper scale 20.6 against 20.8 ms, one small-window update 17.3 against 18.0 ms.
-- AMD (2-core EPYC, Zen 4 with AVX-512, KVM), the same blocks (paper scale: 1,536 dofs, AMD
-  ordering); medians of repeated factorisations and solves, each configuration in a fresh
-  interpreter, best of five interleaved rounds (other processes shared the machine; see below):
-
-  | BLAS                                  | paper factor | paper solve | organ factor | organ solve |
-  |---------------------------------------|--------------|-------------|--------------|-------------|
-  | cvxopt's OpenBLAS 0.3.15 (1 thread)   | 2.03 ms      | 0.114 ms    | 462 ms       | 18.9 ms     |
-  | MKL 2026.2, 2 threads (GNU OpenMP)    | 3.66 ms      | 0.109 ms    | 393 ms       | 17.0 ms     |
-  | MKL 2026.2, 1 thread                  | 3.10 ms      | 0.110 ms    | 634 ms       | 17.3 ms     |
-
-  MKL_VERBOSE names no AVX2 or AVX-512 code path on this CPU ("Intel(R) Architecture
-  processors"): MKL's 1-thread factorisations are 1.4-1.5x slower than OpenBLAS's Zen kernels,
-  and its two threads win back 15% at organ scale but cost 80% at paper scale, where a window
-  update makes one new factorisation. Solves differ by less than 10%. With other processes on
-  the cores, MKL's two threads fell far behind: in three of the five rounds its paper-scale
-  factorisation took 27-66 ms and once the organ-scale one 4.9 s, while the single-threaded
-  OpenBLAS stayed within 2.03-2.09 ms and 462-494 ms in every round; in `meshfg bench` under
-  such load the organ-scale p95 was 12.7 and 25.4 s with MKL against 1.7 and 2.1 s with OpenBLAS
-  (paper scale 36-42 ms against 38-55 ms). With the machine to itself, two `meshfg bench` runs
-  back to back: paper-scale p95 27.1 ms with OpenBLAS against 32.4 ms with MKL, organ-scale p95
-  1.07 s against 1.16 s, one small-window update 19.2 against 21.0 ms. On AMD the
-  single-threaded OpenBLAS is therefore chosen, and MKL is not loaded. Threaded OpenBLAS builds
-  that export the plain symbols (Debian's libopenblas0-pthread 0.3.21, the ngsolve-openblas
-  wheel 0.3.33) factor the organ-scale block in 323-327 ms (paper scale 2.24-2.27 ms), but need
-  the system's libgfortran.so.5 (no wheel ships it under that name) and collapsed like MKL under
-  load (1.1-3.0 s); BLIS (Debian's libblis4-pthread 0.9) took 2.5 s.
-
-With MKL, it runs on the GNU OpenMP runtime that torch ships (loaded here by path, without
-importing torch), so a process that also uses torch has one OpenMP runtime, not two.
-MKL_NUM_THREADS and MKL_THREADING_LAYER are honoured when set. With either backend the
-process's OpenBLAS pools (numpy's, scipy's) are held to one thread: their threads, woken by
-PCG's long dot products and the estimator's vector work, spin after each call; they took the
-cores from MKL's (the organ-scale preconditioner application 139 ms against 70 ms on the Intel
-machine), and with another process on the second core a 40k-element norm took 10 ms instead of
-microseconds (the live pipeline runs two node processes on two cores).
+One thread, always, unless MKL_NUM_THREADS says otherwise. The robot's computer shares its cores
+with perception, planning and control, and the two nodes of this package are two processes. A
+threaded BLAS makes every supernode a parallel region that waits for all its threads: with
+another process on a core, each region waits for that core's time slice (or spins for it), and
+an update that should take twice as long with half the CPU took 4-7 times as long (MKL, two
+threads, one busy process per core). A single thread slows in proportion to the CPU it gets.
+Where the cores are the estimator's alone, MKL_NUM_THREADS=2 factors faster; see the README.
+MKL_THREADING_LAYER is honoured when set. MKL runs on the GNU OpenMP runtime that torch ships
+(loaded here by path, without importing torch), so a process that also uses torch has one
+OpenMP runtime, not two. With either backend the process's OpenBLAS pools (numpy's, scipy's)
+are held to one thread for the same reason: their threads spin after each call.
 """
 
 from __future__ import annotations
@@ -186,7 +158,7 @@ def _bind_mkl(cpu: str, reason: str) -> BlasBackend:
         layer = "GNU" if openmp is not None else "INTEL"  # INTEL: the mkl wheel's own libiomp5
         mkl.MKL_Set_Threading_Layer(ctypes.c_int(_MKL_THREADING_LAYERS[layer]))
     if "MKL_NUM_THREADS" not in os.environ:
-        mkl.MKL_Set_Num_Threads(ctypes.c_int(len(os.sched_getaffinity(0))))
+        mkl.MKL_Set_Num_Threads(ctypes.c_int(1))
     threads = int(mkl.MKL_Get_Max_Threads())
     _limit_openblas_pools()
     return BlasBackend("mkl", threads, f"{reason}; {runtime}, {layer} threading", cpu)

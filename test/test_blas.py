@@ -128,6 +128,8 @@ def test_default_is_the_choice_for_this_cpu():
     assert probe["cpu"] == blas.cpu_model() and blas.cpu_vendor() in probe["detail"]
     assert probe["residual"] < 1e-10
     assert probe["openblas_threads"] and set(probe["openblas_threads"]) == {1}  # no spinning pools
+    # One BLAS thread unless MKL_NUM_THREADS asks for more: fair to the other processes' cores.
+    assert probe["threads"] == 1 and set(probe["mkl_threads"]) <= {1}
 
 
 @pytest.mark.slow
