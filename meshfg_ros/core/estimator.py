@@ -348,6 +348,9 @@ class PendingStep:
     association: tuple | None = None
     # The share of the correction published (core/persistence.py): 1 when the optimum is published.
     published_share: float = 1.0
+    # (3N, 3N) csr on the model's stiffness pattern [N/m]: an external simulator's stiffness used
+    # instead of the model's K as the prior's information (core/external_prior.py); None: the model's.
+    prior_stiffness: object | None = None
 
 
 class _PendingChanges:
@@ -366,6 +369,18 @@ class _PendingChanges:
         with self._lock:
             changes, self._changes = self._changes, {}
         return changes
+
+
+class _GivenStiffness:
+    """An ElasticModel's stand-in for PhysicsPriorFactor whose K is a given matrix on the
+    model's pattern (an external simulator's stiffness), whatever the state."""
+
+    def __init__(self, model: ElasticModel, stiffness) -> None:
+        self.vertex_count, self.diagonal_positions = model.vertex_count, model.diagonal_positions
+        self._stiffness = scipy.sparse.csr_matrix(stiffness, dtype=np.float64)
+
+    def stiffness(self, state=None, kind: str = "linear", spd_projection: bool = False):
+        return self._stiffness.copy()
 
 
 class SlidingWindowEstimator:
@@ -556,12 +571,16 @@ class SlidingWindowEstimator:
         return points, predicted, tool_pose, dropped
 
     # ----------------------------------------------------------------------------- update
-    def update(self, stamp_ns: int, points=None, predicted=None, tool_pose=None, viewpoint=None) -> StepResult:
+    def update(self, stamp_ns: int, points=None, predicted=None, tool_pose=None, viewpoint=None,
+               prior_stiffness=None) -> StepResult:
         """Add a state for `stamp_ns` with cloud `points` (K, 3) and simulator prediction
         `predicted` (N, 3) (either may be None), optimise the window, return the newest state.
         tool_pose (7,) (optional): where the tool is, to drop the cloud's points on it.
         viewpoint (3,) (optional): the sensor's centre, to drop the points against back faces
         of the predicted surface (PointToSurfaceFactor).
+        prior_stiffness (optional): (3N, 3N) csr on the model's stiffness pattern, positive
+        definite on the free dofs, [N/m]: the prior's information instead of the model's K (an
+        external simulator's, core/external_prior.py), scaled like it; unused without `predicted`.
 
         Raises only EstimatorInputError (EstimatorStampError: stamps must be integer nanoseconds
         in [0, 2**63), each newer than the last update's) and EstimatorStepError; after either,
@@ -574,7 +593,7 @@ class SlidingWindowEstimator:
         kept_objects = (self, self.graph, self.noise, self.persistence, self._prior_error_memory)
         saved = [_saved(obj) for obj in kept_objects]
         try:
-            result = self.solve(self._prepare(stamp_ns, points, predicted, tool_pose, viewpoint))
+            result = self.solve(self._prepare(stamp_ns, points, predicted, tool_pose, viewpoint, prior_stiffness))
             if not _finite_result(result):
                 raise EstimatorStepError("the update produced non-finite values")
             return result
@@ -590,14 +609,15 @@ class SlidingWindowEstimator:
             raise EstimatorStepError(f"update at {stamp_ns} ns failed: {type(error).__name__}: "
                                      f"{' '.join(str(error).split())[:300]}") from error
 
-    def prepare(self, stamp_ns: int, points=None, predicted=None, tool_pose=None, viewpoint=None) -> PendingStep:
+    def prepare(self, stamp_ns: int, points=None, predicted=None, tool_pose=None, viewpoint=None,
+                prior_stiffness=None) -> PendingStep:
         """First half of `update`: validate the input, append the new state and its factors and
         slide the window, without optimising (benchmarks hand the same problem to other solvers).
         Input errors are raised before anything changes; `update` undoes a later failure."""
         self._apply_pending_changes()
-        return self._prepare(stamp_ns, points, predicted, tool_pose, viewpoint)
+        return self._prepare(stamp_ns, points, predicted, tool_pose, viewpoint, prior_stiffness)
 
-    def _prepare(self, stamp_ns, points, predicted, tool_pose, viewpoint=None) -> PendingStep:
+    def _prepare(self, stamp_ns, points, predicted, tool_pose, viewpoint=None, prior_stiffness=None) -> PendingStep:
         """`prepare` with the settings as they are (`update` applied the pending changes before
         it saved the state a failure restores)."""
         start = time.perf_counter()
@@ -626,6 +646,7 @@ class SlidingWindowEstimator:
         previous_key = graph.keys[-1] if graph.keys else None
         graph.add_state(key, prediction)
         pending.points, pending.prediction = points, graph.states[key].copy()
+        pending.prior_stiffness = prior_stiffness if predicted is not None else None
         for factor in self._state_factors(pending):
             graph.add_factor(factor)
         if "temporal" in self.enabled:
@@ -708,8 +729,14 @@ class SlidingWindowEstimator:
         if "simulation" in self.enabled:
             sigma = self.simulation_sigma
             scale = self.unit_prior_scale / sigma**2
-            factors.append(PhysicsPriorFactor(key, pending.prediction, self.model, cfg.stiffness_kind,
-                                              cfg.spd_projection, scale, PRIOR_RIDGE / sigma**2))
+            if pending.prior_stiffness is None:
+                factors.append(PhysicsPriorFactor(key, pending.prediction, self.model, cfg.stiffness_kind,
+                                                  cfg.spd_projection, scale, PRIOR_RIDGE / sigma**2))
+            else:  # held for the whole update, as the model's K ("linear": never re-evaluated)
+                given_scale = prior_scale(pending.prior_stiffness, 1.0, graph.free_dofs) / sigma**2
+                factors.append(PhysicsPriorFactor(key, pending.prediction, _GivenStiffness(self.model,
+                                                  pending.prior_stiffness), "linear", False, given_scale,
+                                                  PRIOR_RIDGE / sigma**2))
             factors.append(VolumeBarrierFactor(key, self.model.tetrahedra,
                                                signed_volumes(pending.prediction, self.model.tetrahedra),
                                                scale * self.bulk_energy_scale,

@@ -53,6 +53,7 @@ from meshfg_ros.core.input_checks import (
     stamp_order,
 )
 from meshfg_ros.core.body_load import BodyLoadEstimate
+from meshfg_ros.core.external_prior import ExternalPriorError, ExternalStiffness
 from meshfg_ros.core.model_fit import learn
 from meshfg_ros.core.poisson_ratio import PoissonRatioEstimate
 from meshfg_ros.core.mesh import TetMesh
@@ -94,6 +95,9 @@ class Prediction:
     positions: np.ndarray | None
     failure: str = ""
     tool_pose: np.ndarray | None = None  # (7,) the tool pose the simulator moved to
+    # An external simulator's stiffness at `positions` (world frame), the prior's information
+    # for the step (core/external_prior.py); None: the estimator's own model.
+    stiffness: ExternalStiffness | None = None
     # slots of the uncut mesh's elements the simulator has removed (TetMesh.without_elements);
     # None: the simulator says nothing of its topology (the uncut mesh)
     removed_elements: np.ndarray | None = None
@@ -333,6 +337,7 @@ class CloudStep:
     tool_pose: np.ndarray | None
     restart: bool = False  # the estimator restarts from the initial mesh before this step
     viewpoint: np.ndarray | None = None  # the sensor's centre (world frame), when known
+    stiffness: ExternalStiffness | None = None  # the prediction's stiffness (Prediction.stiffness)
     removed_elements: np.ndarray | None = None  # the answer's (Prediction.removed_elements)
 
 
@@ -344,6 +349,8 @@ class StepOutcome:
     result: StepResult | None
     error: str = ""
     counter: str = ""  # "failed_steps" or "nonfinite_estimates" when result is None
+    # What was set aside or changed on the way: an external stiffness refused or repaired.
+    notes: tuple[Rejection, ...] = ()
 
 
 class EstimationScheduler:
@@ -370,6 +377,7 @@ class EstimationScheduler:
         self._last_step_ns: int | None = None
         self._solver_free_s = 0.0
         self._registered = False  # whether a cloud has confirmed the mesh's size and place
+        self._stiffness_template: tuple | None = None  # (the estimator's model, its K's pattern)
 
     def reconfigure(self, changes: dict) -> None:
         """Apply changed dynamic settings (field name -> value) from the next update on, also after
@@ -477,6 +485,7 @@ class EstimationScheduler:
         tool_pose = answer.tool_pose if answer is not None and answer.tool_pose is not None else self._tool_pose(stamp)
         predicted = answer.positions if answer is not None else None
         removed = answer.removed_elements if answer is not None else None
+        queued = replace(queued, stiffness=answer.stiffness if answer is not None else None)
         return replace(queued, predicted=predicted, tool_pose=tool_pose, removed_elements=removed)
 
     def _tool_pose(self, stamp_ns: int) -> np.ndarray | None:
@@ -490,21 +499,40 @@ class EstimationScheduler:
         non-finite result (never returned) restarts the estimator from the initial mesh."""
         if step.restart:
             self.estimator = self.estimator.restarted()
+        notes: tuple[Rejection, ...] = ()
         try:
             if step.removed_elements is not None:
                 self.estimator.remove_elements(step.removed_elements)
-            result = self.estimator.update(step.stamp_ns, step.points, step.predicted, step.tool_pose, step.viewpoint)
+            prior_stiffness, notes = self._prior_stiffness(step)
+            result = self.estimator.update(step.stamp_ns, step.points, step.predicted, step.tool_pose, step.viewpoint,
+                                           prior_stiffness)
         except (EstimatorInputError, EstimatorStepError) as error:
-            outcome = StepOutcome(step, None, str(error), "failed_steps")
+            outcome = StepOutcome(step, None, str(error), "failed_steps", notes)
         else:
             if _finite(result):
-                outcome = StepOutcome(step, result)
+                outcome = StepOutcome(step, result, notes=notes)
             else:
                 self.estimator = self.estimator.restarted()
                 outcome = StepOutcome(step, None, "the estimate is not finite: the estimator restarts from the "
-                                      "initial mesh", "nonfinite_estimates")
+                                      "initial mesh", "nonfinite_estimates", notes)
         self._solver_free_s = now() if now is not None else 0.0
         return outcome
+
+    def _prior_stiffness(self, step: CloudStep) -> tuple:
+        """(the prior's information made of the step's external stiffness or None, notes): a
+        stiffness refused leaves the step on the estimator's own (core/external_prior.py)."""
+        model = self.estimator.model
+        if step.stiffness is None or step.predicted is None or model is None:
+            return None, ()
+        if self._stiffness_template is None or self._stiffness_template[0] is not model:
+            self._stiffness_template = (model, model.stiffness(None, kind="linear"))
+        try:
+            information = step.stiffness.information(self._stiffness_template[1], self.estimator.graph.free_dofs)
+        except ExternalPriorError as error:
+            return None, (Rejection(error.counter, f"stiffness at {step.stamp_ns} ns: {error}"),)
+        notes = (Rejection("sim_bridge_stiffness_repaired", f"stiffness at {step.stamp_ns} ns: {information.note}"),
+                 ) if information.note else ()
+        return information.matrix, notes
 
 
 def _finite(result: StepResult) -> bool:

@@ -1,0 +1,229 @@
+"""A physics prior from an external simulator (the authors' XPBD simulator through its
+sim_bridge service, nodes/sim_bridge_client.py): its state and stiffness as the estimator's
+prediction and prior information, checked and made usable, without ROS.
+
+The simulator answers with every vertex and element slot (removed ones listed as invalid, the
+indices stable) and, on request, its stiffness: a symmetric COO matrix in float32 over 3 dofs
+per vertex slot, from the constraint Hessian, so it may be indefinite, and the dofs the
+simulator holds carry FIXED_DIAGONAL-sized entries (it writes 1e9) on the diagonal.
+
+`bridge_state` checks an answer against the estimator's mesh (slot counts, finite values, the
+same elements) and moves it into the world frame: positions (N, 3) and, when given, the
+stiffness as an `ExternalStiffness` (COO, rotated: K_world = B K B^T with B = diag(R, ..., R)).
+Each failure is an `ExternalPriorError` with the diagnostics counter it counts in.
+
+`ExternalStiffness.information(template, free_dofs)` makes the prior's information of it, on the
+estimator's own stiffness pattern (the window's block pattern only holds pairs of vertices
+sharing a tetrahedron):
+- symmetrised, (K + K^T) / 2;
+- entries coupling vertices that share no tetrahedron (a contact constraint's) dropped;
+- the dofs the simulator holds (diagonal >= FIXED_DIAGONAL): their rows and columns cleared;
+  where the estimator's mesh leaves such a vertex free, its diagonal block is set to the largest
+  diagonal entry of the free dofs, so that the prior holds it at the simulator's position as
+  firmly as the stiffest free dof (the estimator keeps its own fixed vertices fixed);
+- made positive definite on the estimator's free dofs by the smallest added multiple of the
+  identity that lets a sparse Cholesky factorisation through (Nocedal & Wright, Numerical
+  Optimization, Alg. 3.3: shifts of REPAIR_SHIFTS times the mean free diagonal, tried in
+  order). A uniform shift keeps the pattern and the ratios of the simulator's stiffness
+  between vertices, and a Cholesky that succeeds proves definiteness, at the cost of a few
+  factorisations; a per-vertex-block eigenvalue clip does neither (the off-diagonal blocks can
+  keep the whole matrix indefinite), and a full eigen-decomposition costs O((3N)^3). A matrix
+  that needs more than the largest shift is indefinite beyond a repair that keeps its meaning:
+  refused (ExternalPriorError "sim_bridge_stiffness_rejected"), and the step uses the
+  estimator's own FEM stiffness.
+The estimator scales the result as it scales its own stiffness (core/factors.prior_scale: mean
+free diagonal = 1 / simulation_sigma^2), so only the simulator's stiffness ratios enter.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse
+
+from meshfg_ros.core.noise import NotPositiveDefiniteError
+from meshfg_ros.core.sparse_cholesky import SparseCholesky
+
+__all__ = ["FIXED_DIAGONAL", "REPAIR_SHIFTS", "BridgeAnswer", "ExternalPriorError", "ExternalStiffness",
+           "StiffnessInformation", "bridge_state"]
+
+# A dof whose diagonal stiffness reaches this is held by the simulator (it writes 1e9 [N/m]; a
+# tissue's own diagonal stays below ~1e4 N/m at millimetre elements and 1e5 Pa).
+FIXED_DIAGONAL = 1e8
+# Shifts tried, relative to the mean free diagonal: the first is the ridge size that makes a free
+# body's rigid modes definite; beyond the last the matrix is refused.
+REPAIR_SHIFTS = (0.0, 1e-6, 1e-4, 1e-3, 1e-2, 3e-2, 1e-1)
+
+
+class ExternalPriorError(ValueError):
+    """An answer of the external simulator that cannot be used, with its diagnostics counter."""
+
+    def __init__(self, counter: str, reason: str) -> None:
+        super().__init__(reason)
+        self.counter = counter
+
+
+@dataclass(frozen=True)
+class BridgeAnswer:
+    """A sim_bridge answer as arrays (nodes/sim_bridge_client.py makes it from the message).
+
+    positions: every vertex slot's xyz, flat (3S,); valid_vertex_count: the `size` field;
+    invalid_vertices: removed slots; elements: every element slot's 4 indices, flat (4E,);
+    invalid_elements: removed slots; stiffness: (rows, cols, values, shape) or None."""
+
+    positions: np.ndarray
+    valid_vertex_count: int
+    invalid_vertices: np.ndarray
+    elements: np.ndarray
+    invalid_elements: np.ndarray
+    stiffness: tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int]] | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class StiffnessInformation:
+    """The prior information made of a simulator's stiffness: `matrix` (3N, 3N) csr on the
+    template's pattern [N/m], and what was changed to make it usable (one line, "" if nothing)."""
+
+    matrix: scipy.sparse.csr_matrix
+    note: str = ""
+
+
+@dataclass(frozen=True, eq=False)
+class ExternalStiffness:
+    """The simulator's stiffness in the world frame as COO triplets over 3N dofs."""
+
+    rows: np.ndarray
+    cols: np.ndarray
+    values: np.ndarray
+
+    def information(self, template: scipy.sparse.csr_matrix, free_dofs: np.ndarray) -> StiffnessInformation:
+        """The prior's information on `template`'s pattern (module docstring), or
+        ExternalPriorError("sim_bridge_stiffness_rejected", why)."""
+        size = template.shape[0]
+        rows, cols, values = self.rows, self.cols, self.values
+        diagonal = np.zeros(size)
+        on_diagonal = rows == cols
+        np.add.at(diagonal, rows[on_diagonal], values[on_diagonal])
+        held_dofs = diagonal >= FIXED_DIAGONAL
+        notes = []
+        # Symmetrise: each entry and its mirror, halved; the held dofs' rows and columns cleared.
+        keep = ~(held_dofs[rows] | held_dofs[cols])
+        sym_rows = np.concatenate([rows[keep], cols[keep]])
+        sym_cols = np.concatenate([cols[keep], rows[keep]])
+        sym_values = 0.5 * np.concatenate([values[keep], values[keep]])
+        keys = sym_rows * size + sym_cols
+        template_rows = np.repeat(np.arange(size, dtype=np.int64), np.diff(template.indptr))
+        template_keys = template_rows * size + template.indices.astype(np.int64)  # sorted: csr with sorted indices
+        slots = np.minimum(np.searchsorted(template_keys, keys), template_keys.size - 1)
+        inside = template_keys[slots] == keys
+        if not inside.all():
+            dropped = float(np.abs(sym_values[~inside]).sum() / max(np.abs(sym_values).sum(), 1e-300))
+            notes.append(f"{dropped:.1%} of the stiffness (by magnitude) couples vertices sharing no element: dropped")
+        data = np.bincount(slots[inside], weights=sym_values[inside], minlength=template_keys.size)
+        matrix = scipy.sparse.csr_matrix((data, template.indices.copy(), template.indptr.copy()), shape=template.shape)
+        diagonal_slots = np.searchsorted(template_keys, np.arange(size, dtype=np.int64) * (size + 1))
+        is_free = np.zeros(size, dtype=bool)
+        is_free[free_dofs] = True
+        free_diagonal = data[diagonal_slots][is_free & ~held_dofs]
+        if free_diagonal.size == 0 or not np.mean(free_diagonal) > 0.0:
+            raise ExternalPriorError("sim_bridge_stiffness_rejected", "the simulator's stiffness has no positive "
+                                     "diagonal on the free vertices: the estimator's own stiffness is used")
+        held_free = np.flatnonzero(held_dofs & is_free)
+        if held_free.size:
+            matrix.data[diagonal_slots[held_free]] = float(free_diagonal.max())
+            notes.append(f"{held_free.size // 3} vertices the simulator holds are free in the mesh: held by the prior")
+        shift = _definite_shift(matrix, free_dofs, float(np.mean(free_diagonal)))
+        if shift is None:
+            raise ExternalPriorError("sim_bridge_stiffness_rejected", (
+                f"the simulator's stiffness is indefinite beyond a shift of {REPAIR_SHIFTS[-1]:g} of its mean diagonal: "
+                "the estimator's own stiffness is used (check the simulator's state for inverted elements)"))
+        if shift > 0.0:
+            matrix.data[diagonal_slots] += shift
+            notes.append(f"made positive definite by a shift of {shift / np.mean(free_diagonal):.2g} of its mean diagonal")
+        return StiffnessInformation(matrix, "; ".join(notes))
+
+
+def _definite_shift(matrix: scipy.sparse.csr_matrix, free_dofs: np.ndarray, mean_diagonal: float) -> float | None:
+    """The first of REPAIR_SHIFTS x mean_diagonal that makes the free block positive definite."""
+    block = scipy.sparse.csr_matrix(matrix[free_dofs][:, free_dofs])
+    block.sort_indices()
+    diagonal = np.flatnonzero(np.repeat(np.arange(block.shape[0]), np.diff(block.indptr)) == block.indices)
+    factor = None
+    for relative in REPAIR_SHIFTS:
+        data = block.data.copy()
+        data[diagonal] += relative * mean_diagonal
+        try:
+            if factor is None:
+                factor = SparseCholesky(scipy.sparse.csr_matrix((data, block.indices, block.indptr), shape=block.shape),
+                                        node_size=3)
+            else:
+                factor.refactor(data)
+        except NotPositiveDefiniteError:
+            continue
+        return relative * mean_diagonal
+    return None
+
+
+def bridge_state(answer: BridgeAnswer, vertex_count: int, tetrahedra: np.ndarray,
+                 to_world: np.ndarray) -> tuple[np.ndarray, ExternalStiffness | None]:
+    """Positions (N, 3) in the world frame and the stiffness (or None) of a sim_bridge answer for
+    a mesh of `vertex_count` vertices and `tetrahedra` (M, 4), the simulator's vertex order;
+    `to_world` (4, 4): the simulator frame's points into the world frame. ExternalPriorError
+    with the counter "sim_bridge_rejected_malformed" (sizes, non-finite values) or
+    "sim_bridge_rejected_mesh" (another mesh, removed vertices or elements)."""
+    positions = np.asarray(answer.positions, dtype=np.float64)
+    if positions.size % 3 or positions.size // 3 != vertex_count:
+        raise ExternalPriorError("sim_bridge_rejected_mesh", (
+            f"the simulator's mesh has {positions.size / 3:g} vertex slots, the initial mesh {vertex_count}: "
+            "set mesh_file to the simulator's mesh, in its vertex order"))
+    positions = positions.reshape(-1, 3)
+    if not np.isfinite(positions).all():
+        raise ExternalPriorError("sim_bridge_rejected_malformed", "the simulator's positions are not all finite")
+    removed = np.asarray(answer.invalid_vertices).size + np.asarray(answer.invalid_elements).size
+    if removed or answer.valid_vertex_count != vertex_count:
+        raise ExternalPriorError("sim_bridge_rejected_mesh", (
+            f"the simulator removed {np.asarray(answer.invalid_vertices).size} vertices and "
+            f"{np.asarray(answer.invalid_elements).size} elements (size {answer.valid_vertex_count} of "
+            f"{vertex_count}): this estimator does not follow topology changes"))
+    elements = np.asarray(answer.elements, dtype=np.int64)
+    if elements.size and not _same_elements(elements, tetrahedra):
+        raise ExternalPriorError("sim_bridge_rejected_mesh", (
+            f"the simulator's {elements.size / 4:g} elements are not those of the initial mesh "
+            f"({len(tetrahedra)}): set mesh_file to the simulator's mesh, in its vertex order"))
+    rotation, translation = to_world[:3, :3], to_world[:3, 3]
+    world = positions @ rotation.T + translation
+    if answer.stiffness is None:
+        return world, None
+    return world, _rotated_stiffness(answer.stiffness, vertex_count, rotation)
+
+
+def _same_elements(elements: np.ndarray, tetrahedra: np.ndarray) -> bool:
+    """Whether flat element indices (4E,) list the same tetrahedra as (M, 4), in any order of
+    elements and of corners (a mesh file's tetrahedra may be reoriented)."""
+    if elements.size % 4 or elements.size // 4 != len(tetrahedra):
+        return False
+    ours = np.sort(np.asarray(tetrahedra, dtype=np.int64), axis=1)
+    theirs = np.sort(elements.reshape(-1, 4), axis=1)
+    return np.array_equal(ours[np.lexsort(ours.T[::-1])], theirs[np.lexsort(theirs.T[::-1])])
+
+
+def _rotated_stiffness(stiffness, vertex_count: int, rotation: np.ndarray) -> ExternalStiffness:
+    rows, cols, values, shape = stiffness
+    rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
+    values = np.asarray(values, dtype=np.float64)
+    size = 3 * vertex_count
+    if tuple(shape) != (size, size) or not (rows.shape == cols.shape == values.shape):
+        raise ExternalPriorError("sim_bridge_rejected_malformed", (
+            f"the simulator's stiffness is {shape[0]} x {shape[1]} with {rows.size}/{cols.size}/{values.size} "
+            f"row/column/value entries; expected {size} x {size} (3 dofs per vertex) and equal counts"))
+    if rows.size and (min(rows.min(), cols.min()) < 0 or max(rows.max(), cols.max()) >= size):
+        raise ExternalPriorError("sim_bridge_rejected_malformed", "the simulator's stiffness has indices outside "
+                                 f"its {size} x {size} shape")
+    if not np.isfinite(values).all():
+        raise ExternalPriorError("sim_bridge_rejected_malformed", "the simulator's stiffness is not all finite")
+    if np.allclose(rotation, np.eye(3)):
+        return ExternalStiffness(rows, cols, values)
+    blocks = scipy.sparse.kron(scipy.sparse.identity(vertex_count, format="csr"), rotation, format="csr")
+    rotated = (blocks @ scipy.sparse.csr_matrix((values, (rows, cols)), shape=(size, size)) @ blocks.T).tocoo()
+    return ExternalStiffness(rotated.row.astype(np.int64), rotated.col.astype(np.int64), rotated.data)
