@@ -190,6 +190,24 @@ class TransformBuffer:
 
     def lookup(self, target_frame: str, source_frame: str, stamp_ns: int) -> np.ndarray:
         """4x4 float64 matrix mapping points in `source_frame` to `target_frame` at `stamp_ns`."""
+        target_chain, source_chain, common = self._paths(target_frame, source_frame)
+        root_from_source = self._pose_in_ancestor(source_chain, common, int(stamp_ns))
+        root_from_target = self._pose_in_ancestor(target_chain, common, int(stamp_ns))
+        return _rigid_inverse(root_from_target) @ root_from_source
+
+    def newest_stamp(self, target_frame: str, source_frame: str) -> int | None:
+        """The newest stamp `lookup(target_frame, source_frame, stamp)` answers without
+        extrapolating: the oldest of the newest samples of the time-stamped transforms between
+        the two frames (tf2's latest common time, what its lookups at time zero use); None when
+        only static transforms join them (any stamp). FrameLookupError as `lookup`."""
+        target_chain, source_chain, common = self._paths(target_frame, source_frame)
+        path = target_chain[:target_chain.index(common)] + source_chain[:source_chain.index(common)]
+        newest = [self._edges[child].history.newest_ns for child in path if self._edges[child].history is not None]
+        return min(newest) if newest else None
+
+    def _paths(self, target_frame: str, source_frame: str) -> tuple[list[str], list[str], str]:
+        """The chains of the two frames to their root, and their nearest common frame, or
+        FrameLookupError (an unknown frame, separate trees)."""
         target, source = target_frame.strip("/"), source_frame.strip("/")
         known = self.frames
         for frame in (target, source):
@@ -204,10 +222,7 @@ class TransformBuffer:
                 f"no path between {target!r} and {source!r}: they are in separate trees, rooted at "
                 f"{target_chain[-1]!r} and {source_chain[-1]!r}")
         target_ancestors = set(target_chain)
-        common = next(frame for frame in source_chain if frame in target_ancestors)
-        root_from_source = self._pose_in_ancestor(source_chain, common, int(stamp_ns))
-        root_from_target = self._pose_in_ancestor(target_chain, common, int(stamp_ns))
-        return _rigid_inverse(root_from_target) @ root_from_source
+        return target_chain, source_chain, next(frame for frame in source_chain if frame in target_ancestors)
 
     def transform_points(self, points: np.ndarray, target_frame: str, source_frame: str,
                          stamp_ns: int) -> np.ndarray:

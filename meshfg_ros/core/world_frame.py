@@ -102,6 +102,18 @@ class WorldFrameInputs:
         self._queues = {key: queue for key, queue in self._queues.items() if queue}
         return [item for _, item in sorted(placed, key=lambda entry: entry[0])], set_aside
 
+    def matrix_to_world(self, frame_id: str, stamp_ns: int | None) -> np.ndarray:
+        """4x4 mapping points in frame_id into world_frame at stamp_ns (None: at the newest stamp
+        the transforms between them allow, as tf2's time zero), placed as inputs are (with the
+        static fallback poses); FrameLookupError when it cannot be."""
+        if stamp_ns is None:
+            try:
+                stamp_ns = self.transforms.newest_stamp(self.world_frame, frame_id)
+            except FrameLookupError:
+                pass  # a fallback frame, or the lookup below says why it cannot be placed
+        matrix = self._matrix(frame_id, 0 if stamp_ns is None else stamp_ns)
+        return np.eye(4) if matrix is None else matrix
+
     def _matrix(self, frame_id: str, stamp_ns: int) -> np.ndarray | None:
         """frame_id's points into world_frame at stamp_ns (None: the identity), or FrameLookupError."""
         if frame_id == self.world_frame:
