@@ -30,6 +30,7 @@ setup(
             "estimator_node = meshfg_ros.nodes.estimator_node:main",
             "meshfg_stack = meshfg_ros.nodes.stack:main",
             "bag_player = meshfg_ros.nodes.bag_player:main",
+            "tool_clearance_node = meshfg_ros.nodes.tool_clearance_node:main",
         ],
     },
 )

@@ -54,6 +54,7 @@ __all__ = [
     "PlaybackConfig",
     "SharedNodeConfig",
     "SimulationNodeConfig",
+    "ToolClearanceConfig",
     "check_parameter_names",
     "config_changes",
     "config_from_parameters",
@@ -288,11 +289,25 @@ class PlaybackConfig:
     loop: bool = setting(False, "Start again at the end of the recording.")
 
 
+@dataclass(frozen=True)
+class ToolClearanceConfig:
+    """Settings of tool_clearance_node, the example planner (nodes/tool_clearance_node.py)."""
+
+    clearance_sigmas: float = setting(
+        3.0, "Standard deviations of the tissue surface's position (along its normal, from the estimate's "
+        "covariance) that the tool tip keeps from it: a desired tip nearer than that, or inside, is moved out "
+        "along the surface normal.", range=(0.0, 100.0), dynamic=True)
+    min_clearance: float = setting(
+        0.001, "Least distance (metres) the tool tip keeps from the tissue surface, however certain the "
+        "estimate is.", range=(0.0, 1.0), dynamic=True)
+
+
 # The configurations each node reads: it declares the parameters of their fields.
 NODE_CONFIGURATIONS: dict[str, tuple[type, ...]] = {
     "simulation_node": (SimulatorConfig, SimulationNodeConfig, SharedNodeConfig),
     "estimator_node": (EstimatorConfig, EstimatorNodeConfig, SharedNodeConfig),
     "bag_player": (PlaybackConfig,),
+    "tool_clearance_node": (ToolClearanceConfig,),
 }
 # The pipeline (both nodes, and the offline replay that reproduces them), in the order of config/meshfg.yaml.
 _PIPELINE_CONFIGURATIONS = (SimulatorConfig, SimulationNodeConfig, EstimatorConfig, EstimatorNodeConfig,

@@ -72,6 +72,10 @@ def clearance_positions(points, answer: SurfaceAnswer, clearance_sigmas: float, 
     return points + shortfall[:, None] * answer.normal
 
 
+def _xyz(values) -> np.ndarray:
+    return np.asarray(values, dtype=np.float64).reshape(-1, 3)
+
+
 class RecordedSurface:
     """Surface queries on the estimates of a recording, without ROS (module docstring).
 
@@ -120,9 +124,7 @@ class SurfaceQueryClient:
         # ROS is imported here, not with the module: RecordedSurface needs none.
         from meshfg_msgs.srv import SurfaceQuery as SurfaceQueryService
 
-        from meshfg_ros.nodes.planner_service import points_to_msgs
-
-        self._node, self._service_type, self._points_to_msgs = node, SurfaceQueryService, points_to_msgs
+        self._node, self._service_type = node, SurfaceQueryService
         self._factory = RclpyMessageFactory()
         self.client = node.create_client(SurfaceQueryService, service)
 
@@ -131,7 +133,7 @@ class SurfaceQueryClient:
         (empty: the estimate's frame), placed through /tf at stamp_ns (0: the newest transforms)."""
         request = self._service_type.Request()
         request.header = header_msg(int(stamp_ns), frame_id, self._factory)
-        request.points = self._points_to_msgs(np.asarray(points, dtype=np.float64).reshape(-1, 3))
+        request.points = self._factory.sequence(np.asarray(points, dtype=np.float64).reshape(-1, 3), np.float64)
         return self.client.call_async(request)
 
     def query(self, points, frame_id: str = "", stamp_ns: int = 0, timeout_s: float = 1.0) -> SurfaceAnswer:
@@ -151,13 +153,11 @@ class SurfaceQueryClient:
     @staticmethod
     def answer_from_response(response) -> SurfaceAnswer:
         """The SurfaceAnswer of a SurfaceQuery response, or SurfaceQueryError with its reason."""
-        from meshfg_ros.nodes.planner_service import points_from_msgs
-
         if not response.success:
             raise SurfaceQueryError(f"surface query refused: {response.message}")
         signed_distance = np.asarray(response.signed_distances, dtype=np.float64)
         distance_std = np.asarray(response.distance_std, dtype=np.float64)
         return SurfaceAnswer(stamp_ns_from_msg(response.header.stamp), response.estimate_step, response.degraded,
-                             response.header.frame_id, points_from_msgs(response.closest_points), signed_distance,
-                             points_from_msgs(response.normals),
+                             response.header.frame_id, _xyz(response.closest_points), signed_distance,
+                             _xyz(response.normals),
                              None if distance_std.size < signed_distance.size else distance_std)

@@ -27,7 +27,7 @@ ros_provides() {
 inputs_hash() {  # whether a sourced ROS gives tf2_msgs is an input too
   { ros_provides tf2_msgs || true
     cat requirements.txt requirements-core.txt scripts/setup_env.sh setup.py setup.cfg package.xml \
-        meshfg_msgs/CMakeLists.txt meshfg_msgs/package.xml meshfg_msgs/msg/*.msg \
+        meshfg_msgs/CMakeLists.txt meshfg_msgs/package.xml meshfg_msgs/msg/*.msg meshfg_msgs/srv/*.srv \
         sim_bridge/CMakeLists.txt sim_bridge/package.xml sim_bridge/msg/*.msg sim_bridge/srv/*.srv \
         tf2_msgs/CMakeLists.txt tf2_msgs/package.xml tf2_msgs/msg/*.msg tf2_msgs/srv/*.srv tf2_msgs/action/*.action
   } | sha256sum | cut -d' ' -f1
@@ -103,7 +103,7 @@ log "installing meshfg_ros (editable) into the venv"
 "$PY" -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e . \
   >"$ROOT/build/venv/pip-editable.log" 2>&1 || { cat "$ROOT/build/venv/pip-editable.log" >&2; exit 1; }
 
-"$PY" -c 'import rclpy, meshfg_msgs.msg, sim_bridge.srv, meshfg_ros' || { echo "[setup] error: import check failed" >&2; exit 1; }
+"$PY" -c 'import rclpy, meshfg_msgs.msg, meshfg_msgs.srv, sim_bridge.srv, meshfg_ros' || { echo "[setup] error: import check failed" >&2; exit 1; }
 if [[ -z "${TF2_PREFIX:-}" ]]; then
   "$PY" -c 'import tf2_msgs.msg' || { echo "[setup] error: tf2_msgs import check failed" >&2; exit 1; }
 fi

@@ -6,7 +6,8 @@ unless points_reliable), `tool_pose` (geometry_msgs/PoseStamped, any frame and r
 the tool are segmentation leaks), `predicted_mesh` and `prediction_failed` (the simulation node's
 answers), `initial_mesh` (or parameter mesh_file), /tf and /tf_static. Each accepted cloud is
 announced on `prediction_request` (std_msgs/Header). Publishes the estimate, its status, markers
-and diagnostics (nodes/estimator_outputs.py). Updates run in their own thread, so a long solve
+and diagnostics (nodes/estimator_outputs.py), and answers planners' `surface_query`
+(nodes/planner_service.py). Updates run in their own thread, so a long solve
 does not make DDS drop input. Clouds and tool poses that arrive before the mesh are held until
 it comes (nodes/held_inputs.py).
 """
@@ -42,6 +43,7 @@ from meshfg_ros.io.pointcloud import PointCloudError, cloud_record_from_msg
 from meshfg_ros.nodes.estimator_outputs import EstimatorOutputs
 from meshfg_ros.nodes.frame_inputs import FrameInputs
 from meshfg_ros.nodes.held_inputs import HeldUntilMesh
+from meshfg_ros.nodes.planner_service import PlannerService
 from meshfg_ros.nodes.ros_conversions import PREDICTION_QOS, RCLPY_FACTORY, REQUEST_QOS, STREAM_QOS
 from meshfg_ros.nodes.ros_conversions import InitialMeshSource, positions_from_msg
 from meshfg_ros.nodes.ros_parameters import declare_parameters
@@ -69,6 +71,7 @@ class EstimatorNode(Node):
         self._held = HeldUntilMesh({POSE: DEFAULT_MAX_SAMPLES, CLOUD: MAX_QUEUED_CLOUDS})
         self._mesh = InitialMeshSource(self, self._frame, self._set_mesh, self._held.release)
         self._inputs = FrameInputs(self, world_frame_inputs(self.params), self._on_placed, self._on_unplaceable)
+        self._planner_service = PlannerService(self, self._inputs.placer)
         self.create_subscription(TetraMesh, "predicted_mesh", self._on_prediction, PREDICTION_QOS)
         self.create_subscription(PredictionFailure, "prediction_failed", self._on_failure, PREDICTION_QOS)
         self.create_subscription(PoseStamped, "tool_pose", self._on_tool_pose, STREAM_QOS)
