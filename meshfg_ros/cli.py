@@ -265,7 +265,7 @@ def run_ablation(args: argparse.Namespace) -> int:
 
 # --------------------------------------------------------------------------- accuracy
 ACCURACY_SCENES = ("cube-shear-spd", "cao-push", "liver-push", "slab-inclusion", "dome-tilted", "liver-gravity",
-                   "kidney-drag", "flap-bend")
+                   "kidney-drag", "flap-bend", "sheet-cut")
 
 
 def _accuracy_arguments(parser: argparse.ArgumentParser) -> None:

@@ -7,6 +7,8 @@ Both run the same step loop (core/scheduler.py, connected synchronously by Offli
   (the order the nodes receive them; at equal log times transforms, then poses, then clouds);
   clouds and tool poses are moved into world_frame at their stamps (core/world_frame.py, with
   the log time as the clock);
+- a cut (/meshfg/remove_elements, element slots) goes to both simulators when it was logged,
+  and the estimator follows it with the next prediction (core/scheduler.py);
 - the first tool pose of a timeline starts the simulator; each cloud at stamp t is predicted
   from the estimate of the previous cloud with the tool pose interpolated at t, and estimated
   with that prediction and tool pose (the stamp rule, waits and failures are the scheduler's).
@@ -70,6 +72,7 @@ from meshfg_ros.topics import (
     MARKERS_TOPIC,
     POINTS_TOPIC,
     PREDICTED_MESH_TOPIC,
+    REMOVE_ELEMENTS_TOPIC,
     SCENARIO_TOPIC,
     SIMULATION_ONLY_MESH_TOPIC,
     STATUS_TOPIC,
@@ -81,8 +84,9 @@ FLOAT64_MULTI_ARRAY = "std_msgs/msg/Float64MultiArray"
 SIMULATOR_PARAMETERS = parameter_names(SimulatorConfig)
 # Input topics copied verbatim into a replay's output, so that it is self-contained (the
 # initial mesh is written as used: the recording's or the --mesh file's).
-COPIED_TOPICS = (SCENARIO_TOPIC, CAMERA_POSE_TOPIC, TOOL_POSE_TOPIC, POINTS_TOPIC)
-_TF, _POSE, _CLOUD = 0, 1, 2  # event kinds: at equal log times transforms first, then poses, then clouds
+COPIED_TOPICS = (SCENARIO_TOPIC, CAMERA_POSE_TOPIC, TOOL_POSE_TOPIC, REMOVE_ELEMENTS_TOPIC, POINTS_TOPIC)
+# Event kinds: at equal log times transforms first, then poses, then cuts, then clouds.
+_TF, _POSE, _CUT, _CLOUD = 0, 1, 2, 3
 
 
 class ReplayError(ValueError):
@@ -103,6 +107,7 @@ class ReplayInputs:
     pose_log_ns: tuple[int, ...] = ()
     cloud_log_ns: tuple[int, ...] = ()
     transforms: tuple[tuple[int, bool, tuple[StampedTransform, ...]], ...] = ()  # (log time, static, /tf content)
+    cuts: tuple[tuple[int, np.ndarray], ...] = ()  # (log time, element slots removed)
 
     def events(self) -> list[tuple[int, int, Any]]:
         """(log time, kind, record) of every transform message, pose and cloud in arrival order:
@@ -112,8 +117,10 @@ class ReplayInputs:
         clouds = self.cloud_log_ns or [cloud.stamp_ns for cloud in self.clouds]
         events = [(log_ns, _TF, index) for index, (log_ns, _, _) in enumerate(self.transforms)]
         events += [(log_ns, _POSE, index) for index, log_ns in enumerate(poses)]
+        events += [(log_ns, _CUT, index) for index, (log_ns, _) in enumerate(self.cuts)]
         events += [(log_ns, _CLOUD, index) for index, log_ns in enumerate(clouds)]
-        records = ([(static, transforms) for _, static, transforms in self.transforms], self.poses, self.clouds)
+        records = ([(static, transforms) for _, static, transforms in self.transforms], self.poses,
+                   [slots for _, slots in self.cuts], self.clouds)
         return [(log_ns, kind, records[kind][index]) for log_ns, kind, index in sorted(events)]
 
 
@@ -149,6 +156,10 @@ def load_inputs(path: str | Path, mesh_path: str | Path | None = None,
         tf_topics = [topic for topic in (TF_TOPIC, TF_STATIC_TOPIC) if topic in reader.topics]
         transforms = tuple((m.log_time_ns, m.topic == TF_STATIC_TOPIC, tuple(tf_message_to_transforms(m.data)))
                            for m in reader.messages(tf_topics)) if tf_topics else ()
+        cuts = ()
+        if REMOVE_ELEMENTS_TOPIC in reader.topics:
+            cuts = tuple((m.log_time_ns, np.asarray(m.data.data, dtype=np.int64))
+                         for m in reader.messages([REMOVE_ELEMENTS_TOPIC]))
     poses = tuple(pose for _, pose in logged_poses)
     clouds = tuple(cloud for _, cloud in logged_clouds)
     if mesh_path is None:
@@ -166,7 +177,7 @@ def load_inputs(path: str | Path, mesh_path: str | Path | None = None,
         raise ReplayError(str(error)) from None
     return ReplayInputs(mesh, initial_state, poses, clouds, metadata, camera_pose,
                         tuple(log_ns for log_ns, _ in logged_poses), tuple(log_ns for log_ns, _ in logged_clouds),
-                        transforms)
+                        transforms, cuts)
 
 
 def _metadata_and_camera(reader: RecordingReader) -> tuple[ScenarioMetadata | None, PoseRecord | None]:
@@ -258,6 +269,9 @@ def _world_frame_events(inputs: ReplayInputs, params: Mapping[str, Any]) -> Iter
             placed, _ = placer.release(now_s)
         elif kind == _POSE:
             placed, _ = placer.add(FramedInput(POSE, record.stamp_ns, record.frame_id, record.pose, now_s), now_s)
+        elif kind == _CUT:
+            placed = []
+            yield "cut", log_ns, record, None
         elif len(record.points):
             placed, _ = placer.add(FramedInput(CLOUD, record.stamp_ns, record.frame_id, record.points, now_s), now_s)
         else:
@@ -292,10 +306,20 @@ def _raw_messages(path: Path, topics: tuple[str, ...]) -> list[tuple[str, int, A
 def _mesh_state(template: MeshState, positions: np.ndarray, stamp_ns: int, step: int,
                 position_std: np.ndarray | None = None, degraded: bool = False,
                 position_covariance: np.ndarray | None = None) -> MeshState:
+    """A state on `template`'s topology (the initial mesh's, or the cut one's: _cut_template)."""
     return MeshState(stamp_ns, template.frame_id, step, positions, template.tetrahedra,
                      template.surface_triangles, template.fixed_vertices,
                      np.zeros(0) if position_std is None else position_std, degraded,
-                     np.zeros((0, 3, 3)) if position_covariance is None else position_covariance)
+                     np.zeros((0, 3, 3)) if position_covariance is None else position_covariance,
+                     template.invalid_vertices, template.removed_elements)
+
+
+def _cut_template(initial: MeshState, mesh: TetMesh | None) -> MeshState:
+    """The template of a step on `mesh`: the initial state's, or, after a cut, the cut mesh's
+    topology (MeshState.of_mesh) in its frame."""
+    if mesh is None or not mesh.removed_elements.size:
+        return initial
+    return MeshState.of_mesh(mesh, initial.stamp_ns, initial.frame_id, 0, initial.positions)
 
 
 def _cost_history(writer: RecordingWriter, history: np.ndarray, stamp_ns: int) -> None:
@@ -346,6 +370,11 @@ def write_replay(
         for index, step in enumerate(steps, start=1):
             copy_until(step.stamp_ns)
             result = step.result
+            if step.mesh is not None and not np.array_equal(step.mesh.removed_elements, template.removed_elements):
+                template = _cut_template(inputs.initial_state, step.mesh)
+                edges = surface_edges(template.surface_triangles)
+                ellipsoid_vertices = spread_surface_sample(template.positions, template.surface_triangles,
+                                                           template.fixed_vertices)
             if step.predicted is not None:
                 writer.write(PREDICTED_MESH_TOPIC, _mesh_state(template, step.predicted, step.stamp_ns, index))
             if step.simulation_only is not None:

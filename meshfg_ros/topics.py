@@ -6,6 +6,7 @@ TOOL_POSE_TOPIC = "/meshfg/tool_pose"                # geometry_msgs/PoseStamped
 INITIAL_MESH_TOPIC = "/meshfg/initial_mesh"          # meshfg_msgs/TetraMesh, step 0
 CAMERA_POSE_TOPIC = "/meshfg/camera_pose"            # geometry_msgs/PoseStamped
 SCENARIO_TOPIC = "/meshfg/scenario"                  # std_msgs/String, JSON metadata of a synthetic scene
+REMOVE_ELEMENTS_TOPIC = "/meshfg/remove_elements"    # std_msgs/UInt32MultiArray: element slots a cut removes
 # Ground truth of synthetic recordings.
 GROUND_TRUTH_TOPIC = "/meshfg/ground_truth"          # meshfg_msgs/TetraMesh per step
 # Outputs of the estimator and simulator (live nodes and offline replay).

@@ -543,8 +543,9 @@ def _finite(result: StepResult) -> bool:
 # --------------------------------------------------------------------------- offline
 @dataclass(frozen=True)
 class PipelineStep:
-    """One estimate of the offline pipeline, with its inputs, the simulation-alone baseline and
-    the body load the simulator learnt from it (None with estimate_body_load off)."""
+    """One estimate of the offline pipeline, with its inputs, the simulation-alone baseline,
+    the body load the simulator learnt from it (None with estimate_body_load off) and the mesh
+    the estimate is on (its topology after any cut)."""
 
     stamp_ns: int
     points: np.ndarray
@@ -552,6 +553,7 @@ class PipelineStep:
     simulation_only: np.ndarray | None
     result: StepResult
     body_acceleration: np.ndarray | None = None
+    mesh: TetMesh | None = None
 
 
 class OfflinePipeline:
@@ -629,7 +631,8 @@ class OfflinePipeline:
                     load = self.simulation.body_load
                     steps.append(PipelineStep(step.stamp_ns, step.points, step.predicted,
                                               self._open_loop_states.pop(step.stamp_ns, None), outcome.result,
-                                              None if load is None else load.acceleration))
+                                              None if load is None else load.acceleration,
+                                              self.estimation.estimator.mesh))
                 for old in [s for s in self._open_loop_states if s < step.stamp_ns]:
                     del self._open_loop_states[old]
                 step = self.estimation.next_step(flush=flush)

@@ -6,7 +6,8 @@ vertices left without an element invalid and held). What follows a cut takes the
 `ElasticSimulator.remove_elements`, `SlidingWindowEstimator.remove_elements`,
 `PredictionScheduler.remove_elements`, whose predictions carry them to the estimator.
 
-`cut_elements` is what a blade removes: the elements whose centroid lies in its box, and then
+`cut_elements` is what a blade removes: the elements reaching into its box (a thin box is the
+blade's swept plane: every element it crosses goes, so the tissue parts), and then
 every piece the cut leaves hanging by less than a face-connected body held at three or more
 boundary vertices (a sliver joined by an edge, a flap cut off): such a piece has rigid modes no
 elastic model can hold, and it is no longer the tissue the camera sees attached.
@@ -28,14 +29,15 @@ _TET_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]], dtype=np.int
 
 
 def elements_in_box(mesh: TetMesh, centre, half_extents, rotation=np.eye(3)) -> np.ndarray:
-    """Slots (of mesh.all_tetrahedra) of the remaining elements whose centroid at the mesh's
-    vertices lies inside the box of `half_extents` (3,) about `centre` (3,), its axes the
-    columns of `rotation` (3, 3)."""
+    """Slots (of mesh.all_tetrahedra) of the remaining elements that reach into the box of
+    `half_extents` (3,) about `centre` (3,), its axes the columns of `rotation` (3, 3): their
+    corners' extent along each box axis overlaps the box's, at the mesh's vertices."""
     slots = np.setdiff1d(np.arange(mesh.all_tetrahedra.shape[0]), mesh.removed_elements)
-    centroids = mesh.vertices[mesh.all_tetrahedra[slots]].mean(axis=1)
-    local = (centroids - np.asarray(centre, dtype=np.float64)) @ np.asarray(rotation, dtype=np.float64)
-    inside = np.all(np.abs(local) <= np.asarray(half_extents, dtype=np.float64), axis=1)
-    return slots[inside]
+    local = (mesh.vertices[mesh.all_tetrahedra[slots]] - np.asarray(centre, dtype=np.float64)) @ np.asarray(
+        rotation, dtype=np.float64)  # (M, 4, 3) corners in the box's frame
+    half = np.asarray(half_extents, dtype=np.float64)
+    overlaps = np.all((local.min(axis=1) <= half) & (local.max(axis=1) >= -half), axis=1)
+    return slots[overlaps]
 
 
 def detached_elements(mesh: TetMesh) -> np.ndarray:
@@ -58,7 +60,7 @@ def detached_elements(mesh: TetMesh) -> np.ndarray:
 
 def cut_elements(mesh: TetMesh, centre, half_extents, rotation=np.eye(3)) -> np.ndarray:
     """All slots a blade's box removes from `mesh`, those removed already included: the
-    elements with their centroid in the box, then the pieces that leaves detached."""
+    elements reaching into the box, then the pieces that leaves detached."""
     removed = np.union1d(mesh.removed_elements, elements_in_box(mesh, centre, half_extents, rotation))
     if removed.size == mesh.removed_elements.size:
         return mesh.removed_elements

@@ -6,7 +6,8 @@ truth is the package's own simulator with other constants) and the five mismatch
 meshfg_ros.synthetic (slab-inclusion, dome-tilted, liver-gravity, kidney-drag, flap-bend, whose
 truth is a heterogeneous compressible neo-Hookean FEM at equilibrium with stiff inclusions,
 unmodelled loads, sticky contact, tool calibration errors, noisy cameras and 10-25 %
-segmentation leaks).
+segmentation leaks), and the cutting scene sheet-cut (meshfg_ros.synthetic.cut_scene: a sheet
+under tension cut mid-sequence, the wound pulled open by a pre-stress the model does not know).
 Each scene is replayed exactly as `meshfg replay` does, with only what a user knows of it: the
 recording's nominal model (E, nu, tool radius) and the sensor's nominal sigma. Per scene:
 vertex RMSE of the factor graph and of the simulation alone (all free vertices, unobserved
@@ -47,18 +48,19 @@ from meshfg_ros.evaluation.evaluate import (
     CORRECTION_SETS,
     evaluate_recordings,
 )
-from meshfg_ros.io.messages import StatusRecord
+from meshfg_ros.core.mesh import inverted_elements
+from meshfg_ros.io.messages import MeshState, StatusRecord
 from meshfg_ros.io.recording import RecordingReader
 from meshfg_ros.replay import write_replay
 from meshfg_ros.synthetic.recordings import synthesize
-from meshfg_ros.topics import BODY_ACCELERATION_TOPIC, STATUS_TOPIC
+from meshfg_ros.topics import BODY_ACCELERATION_TOPIC, ESTIMATED_MESH_TOPIC, GROUND_TRUTH_TOPIC, STATUS_TOPIC
 
 __all__ = ["ALL_TARGETS", "BUNDLED_SCENES", "CALIBRATION_TARGETS", "SCENES", "STD_RATIO_TARGET", "SYNTHESISED_SCENES",
            "TARGETS", "format_seeds_table", "format_table", "run_accuracy", "run_accuracy_seeds", "write_calibration_plot",
            "write_plot", "write_seeds_plot"]
 
 BUNDLED_SCENES = ("cube-shear-spd", "cao-push", "liver-push")
-SYNTHESISED_SCENES = ("slab-inclusion", "dome-tilted", "liver-gravity", "kidney-drag", "flap-bend")
+SYNTHESISED_SCENES = ("slab-inclusion", "dome-tilted", "liver-gravity", "kidney-drag", "flap-bend", "sheet-cut")
 SCENES = BUNDLED_SCENES + SYNTHESISED_SCENES
 # worst_ratio judges each scene's final step, worst_ratio_over_steps its error over the whole run
 # (mean vertex RMSE over the steps, FG over sim): a final step where the simulation alone
@@ -78,8 +80,9 @@ CALIBRATION_TARGETS = {
 # Less certain where nothing is seen: on every scene the unobserved external vertices' median
 # std over the observed external ones' (pooled) must exceed this.
 STD_RATIO_TARGET = 1.0
-# Every target summary() judges (its "met" keys).
-ALL_TARGETS = (*TARGETS, *CALIBRATION_TARGETS, "std_ratio_unobserved_observed")
+# Every target summary() judges (its "met" keys); cut_followed: on every scene each estimate has
+# exactly its step's elements (those of the truth: after a cut, the cut's) and none inverted.
+ALL_TARGETS = (*TARGETS, *CALIBRATION_TARGETS, "std_ratio_unobserved_observed", "cut_followed")
 # The vertex sets whose calibration each scene's row reports (evaluate.CALIBRATION_SETS).
 _CALIBRATION_ROW_SETS = ("all", "unobserved_external")
 
@@ -132,7 +135,24 @@ def scene_result(name: str, recording: Path, replay: Path, seconds: float) -> di
     row["solve_ms_p50"] = float(np.percentile(times, 50)) if times.size else None
     row["solve_ms_p95"] = float(np.percentile(times, 95)) if times.size else None
     row["body_acceleration_final"] = _final_body_acceleration(replay)
+    row.update(_topology_columns(recording, replay))
     return row
+
+
+def _topology_columns(recording: Path, replay: Path) -> dict:
+    """Whether the estimates follow the truth's topology: the steps whose estimate's removed
+    elements differ from the truth's at that stamp, and the elements inverted (non-positive
+    volume) summed over the estimates, each on its own remaining elements."""
+    with RecordingReader(recording) as reader:
+        removed = {state.stamp_ns: state.removed_elements for state in reader.records(GROUND_TRUTH_TOPIC, MeshState)}
+    mismatches = inverted = 0
+    with RecordingReader(replay) as reader:
+        for state in reader.records(ESTIMATED_MESH_TOPIC, MeshState):
+            if state.stamp_ns in removed and not np.array_equal(state.removed_elements, removed[state.stamp_ns]):
+                mismatches += 1
+            inverted += int(inverted_elements(state.positions, state.tetrahedra).size)
+    return {"cut_steps": sum(1 for slots in removed.values() if slots.size), "topology_mismatches": mismatches,
+            "inverted_elements": inverted}
 
 
 def _calibration_columns(section: dict | None) -> dict:
@@ -219,6 +239,8 @@ def summary(rows: list[dict]) -> dict:
                                                 else result[target] <= bound)
         for target, bound in TARGETS.items()
     }
+    result["met"]["cut_followed"] = all(
+        row.get("topology_mismatches", 0) == 0 and row.get("inverted_elements", 0) == 0 for row in rows)
     calibration = _calibration_summary(rows)
     result["met"].update(calibration.pop("met"))
     result.update(calibration)
@@ -359,7 +381,8 @@ def _summary_line(s: dict, with_seed: bool = False) -> str:
         f"{_x(s['worst_ratio_over_steps'], 3)}{_worst(s, with_seed, 'worst_over_steps')} "
         f"(target <= 1, {'met' if met['worst_ratio_over_steps'] else 'NOT met'}); "
         f"LM converged in {100 * s['converged_share']:.0f} % of updates (target >= 95 %, "
-        f"{'met' if met['converged_share'] else 'NOT met'}); {_calibration_line(s, with_seed)}")
+        f"{'met' if met['converged_share'] else 'NOT met'}); estimates on their step's elements, none inverted "
+        f"({'met' if met['cut_followed'] else 'NOT met'}); {_calibration_line(s, with_seed)}")
 
 
 def _calibration_line(s: dict, with_seed: bool) -> str:

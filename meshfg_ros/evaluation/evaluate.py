@@ -96,6 +96,9 @@ class EvaluationInputs:
     observed_faces: (F,) bool on the truth's surface for camera-less scenes, else None.
     position_std: stamp -> (N',) the factor graph's published per-vertex std (metres), for the
     stamps whose estimate carries one.
+    truth_meshes, estimate_meshes (method -> stamp -> MeshState): each step's topology, which a
+    cut changes (removed elements, invalid vertices, the surface with the wound); the invalid
+    vertices of the truth's step are left out of every vertex set.
     """
 
     scenario: str
@@ -109,6 +112,16 @@ class EvaluationInputs:
     camera_center: np.ndarray | None
     observed_faces: np.ndarray | None
     position_std: dict[int, np.ndarray] = field(default_factory=dict)
+    truth_meshes: dict[int, MeshState] = field(default_factory=dict)
+    estimate_meshes: dict[str, dict[int, MeshState]] = field(default_factory=dict)
+
+    def truth_at(self, stamp: int) -> MeshState:
+        """The truth's mesh state at `stamp` (its topology: the first one's when not recorded)."""
+        return self.truth_meshes.get(stamp, self.truth_mesh)
+
+    def estimate_at(self, method: str, stamp: int) -> MeshState:
+        """The estimate's mesh state of `method` at `stamp` (the first one's topology when not recorded)."""
+        return self.estimate_meshes.get(method, {}).get(stamp, self.estimate_mesh)
 
     @functools.cached_property
     def truth_tet_mesh(self) -> TetMesh:
@@ -136,10 +149,16 @@ def mesh_series(reader: RecordingReader, topic: str) -> tuple[MeshState, dict[in
     return states[0], {state.stamp_ns: state.positions for state in states}
 
 
+def _cut_states(states: list[MeshState]) -> dict[int, MeshState]:
+    """stamp -> state of the states whose topology a cut changed."""
+    return {state.stamp_ns: state for state in states if state.removed_elements.size}
+
+
 def load_inputs(replay_path: str | Path, truth_path: str | Path) -> EvaluationInputs:
     """Read the replay output and the ground truth; check that they belong together."""
     with RecordingReader(truth_path) as truth_reader:
-        truth_mesh, truth = mesh_series(truth_reader, GROUND_TRUTH_TOPIC)
+        truth_states = mesh_states(truth_reader, GROUND_TRUTH_TOPIC)
+        truth_mesh, truth = truth_states[0], {state.stamp_ns: state.positions for state in truth_states}
         metadata = read_metadata(truth_reader)
         camera_center = None
         if CAMERA_POSE_TOPIC in truth_reader.topics:
@@ -149,8 +168,11 @@ def load_inputs(replay_path: str | Path, truth_path: str | Path) -> EvaluationIn
         estimate_mesh, estimated = estimated_states[0], {state.stamp_ns: state.positions for state in estimated_states}
         position_std = {state.stamp_ns: state.position_std for state in estimated_states if state.position_std.size}
         estimates = {"factor_graph": estimated}
+        estimate_meshes = {"factor_graph": _cut_states(estimated_states)}
         if SIMULATION_ONLY_MESH_TOPIC in replay_reader.topics:
-            estimates["simulation"] = mesh_series(replay_reader, SIMULATION_ONLY_MESH_TOPIC)[1]
+            simulated_states = mesh_states(replay_reader, SIMULATION_ONLY_MESH_TOPIC)
+            estimates["simulation"] = {state.stamp_ns: state.positions for state in simulated_states}
+            estimate_meshes["simulation"] = _cut_states(simulated_states)
         predictions = {}
         if PREDICTED_MESH_TOPIC in replay_reader.topics:
             predictions = mesh_series(replay_reader, PREDICTED_MESH_TOPIC)[1]
@@ -164,7 +186,8 @@ def load_inputs(replay_path: str | Path, truth_path: str | Path) -> EvaluationIn
             f"no step of {replay_path} has an estimate, a cloud and a ground truth of {truth_path} at the same stamp"
         )
     observed_faces = None
-    if camera_center is None and metadata is not None and metadata.observed_triangles is not None:
+    truth_meshes = _cut_states(truth_states)
+    if camera_center is None and metadata is not None and metadata.observed_triangles is not None and not truth_meshes:
         observed_faces = np.zeros(len(truth_mesh.surface_triangles), bool)
         observed_faces[list(metadata.observed_triangles)] = True
     return EvaluationInputs(
@@ -179,6 +202,8 @@ def load_inputs(replay_path: str | Path, truth_path: str | Path) -> EvaluationIn
         camera_center=camera_center,
         observed_faces=observed_faces,
         position_std=position_std,
+        truth_meshes=truth_meshes,
+        estimate_meshes=estimate_meshes,
     )
 
 
@@ -285,12 +310,14 @@ def evaluate_step(inputs: EvaluationInputs, stamp: int, samples: int = DEFAULT_S
     graph (CALIBRATION_SETS, the external ones where the observed region is known; None for a
     step whose estimate has no std)."""
     cloud = inputs.clouds[stamp]
-    reference = _Surface(inputs.truth_mesh, inputs.truth[stamp], samples, seed, inputs.camera_center, cloud,
+    truth_mesh = inputs.truth_at(stamp)
+    reference = _Surface(truth_mesh, inputs.truth[stamp], samples, seed, inputs.camera_center, cloud,
                          inputs.observed_faces)
     regions = REGIONS if reference.observed is not None else ("full",)
     surface: dict[str, dict] = {}
     for index, (method, series) in enumerate(inputs.estimates.items(), start=1):
-        estimate = _Surface(inputs.estimate_mesh, series[stamp], samples, seed + index, inputs.camera_center, cloud,
+        estimate = _Surface(inputs.estimate_at(method, stamp), series[stamp], samples, seed + index,
+                            inputs.camera_center, cloud,
                             inputs.observed_faces if inputs.same_topology else None)
         usable = [r for r in regions if r == "full" or estimate.observed is not None]
         surface[method] = _surface_metrics(estimate, reference, usable)
@@ -298,8 +325,8 @@ def evaluate_step(inputs: EvaluationInputs, stamp: int, samples: int = DEFAULT_S
         surface["measurements"] = {"observable": _cloud_metrics(cloud, reference)}
     vertex: dict[str, dict] = {}
     if inputs.same_topology:
-        mesh = inputs.truth_mesh
-        free = np.setdiff1d(np.arange(len(mesh.positions)), mesh.fixed_vertices)
+        mesh = truth_mesh
+        free = np.setdiff1d(np.arange(len(mesh.positions)), np.union1d(mesh.fixed_vertices, mesh.invalid_vertices))
         external = np.intersect1d(np.unique(mesh.surface_triangles), free)
         sets = {"all": free, "external": external}
         if reference.observed is not None:
@@ -323,7 +350,7 @@ def evaluate_step(inputs: EvaluationInputs, stamp: int, samples: int = DEFAULT_S
 def _correction(inputs: EvaluationInputs, stamp: int, external: np.ndarray, unobserved: np.ndarray) -> dict:
     """The factor graph's correction of the step's prediction against the truth's, per CORRECTION_SETS."""
     prediction, estimate, truth = inputs.predictions[stamp], inputs.estimates["factor_graph"][stamp], inputs.truth[stamp]
-    normals = inputs.truth_tet_mesh.vertex_normals(prediction)
+    normals = inputs.truth_tet_mesh.without_elements(inputs.truth_at(stamp).removed_elements).vertex_normals(prediction)
     observed = np.setdiff1d(external, unobserved)
     return {  # NaN for an empty set (correction_alignment)
         "observed_normal": correction_alignment(prediction, estimate, truth, observed, normals),

@@ -159,26 +159,33 @@ class Equilibrium:
 
 
 class NeoHookeanSolid:
-    """P1 compressible neo-Hookean solid on the rest mesh `mesh` (its fixed vertices stay put).
+    """P1 compressible neo-Hookean solid on the mesh `mesh` (its fixed vertices stay put where
+    `mesh` has them, and so do the invalid vertices of a cut mesh, which no element uses).
 
-    youngs_modulus [Pa] and poisson_ratio: scalars or per-element arrays (M,). Positions are
-    (N, 3) float64 arrays; force vectors are (3N,) in the order x0 y0 z0 x1 ...
+    youngs_modulus [Pa] and poisson_ratio: scalars or per-element arrays (M,). rest_vertices
+    (N, 3): the stress-free shape, `mesh.vertices` by default; another one pre-stresses the
+    tissue held at `mesh`'s fixed vertices (tissue under tension, which a cut lets retract).
+    Positions are (N, 3) float64 arrays; force vectors are (3N,) in the order x0 y0 z0 x1 ...
     """
 
-    def __init__(self, mesh: TetMesh, youngs_modulus, poisson_ratio):
+    def __init__(self, mesh: TetMesh, youngs_modulus, poisson_ratio, rest_vertices=None):
         self.mesh = mesh
-        self.rest_vertices = mesh.vertices
+        self.rest_vertices = mesh.vertices if rest_vertices is None else np.asarray(rest_vertices, dtype=np.float64)
+        if self.rest_vertices.shape != mesh.vertices.shape or not np.all(np.isfinite(self.rest_vertices)):
+            raise HyperelasticInputError(f"rest_vertices must be finite with shape {mesh.vertices.shape}")
         self.tetrahedra = mesh.tetrahedra
         self.mu, self.lam = lame_fields(youngs_modulus, poisson_ratio, mesh.tetrahedron_count)
-        self.rest_volumes = signed_volumes(mesh.vertices, mesh.tetrahedra)
-        fem_mesh = skfem.MeshTet(np.ascontiguousarray(mesh.vertices.T), np.ascontiguousarray(mesh.tetrahedra.T))
+        self.rest_volumes = signed_volumes(self.rest_vertices, mesh.tetrahedra)
+        if not np.all(self.rest_volumes > 0.0):
+            raise HyperelasticInputError("rest_vertices give an element a non-positive volume")
+        fem_mesh = skfem.MeshTet(np.ascontiguousarray(self.rest_vertices.T), np.ascontiguousarray(mesh.tetrahedra.T))
         # One quadrature point: P1 gradients are constant per element, so every integrand is.
         self._basis = skfem.Basis(fem_mesh, skfem.ElementVector(skfem.ElementTetP1()), intorder=1)
         material_basis = self._basis.with_element(skfem.ElementTetP0())
         self._mu_field = material_basis.interpolate(self.mu)
         self._lam_field = material_basis.interpolate(self.lam)
         self._unit_loads = np.stack([_unit_load(axis).assemble(self._basis) for axis in range(3)])  # (3, 3N)
-        corners = mesh.vertices[mesh.tetrahedra]
+        corners = self.rest_vertices[mesh.tetrahedra]
         mean_edge = float(np.linalg.norm(corners[:, 1:] - corners[:, :1], axis=2).mean())
         self.force_floor = ABSOLUTE_FORCE_TOLERANCE * float(self.mu.mean()) * mean_edge**2
         self._energy_rounding = ENERGY_ROUNDING * float(self.rest_volumes @ (self.mu + self.lam))
@@ -264,7 +271,7 @@ class NeoHookeanSolid:
 
     def equilibrium(self, start, prescribed_vertices=(), prescribed_positions=None,
                     body_force=(0.0, 0.0, 0.0)) -> Equilibrium:
-        """Static equilibrium from `start` (N, 3) with the mesh's fixed vertices at rest, the
+        """Static equilibrium from `start` (N, 3) with the mesh's fixed vertices where it has them, the
         `prescribed_vertices` (P,) at `prescribed_positions` (P, 3) and the body force density.
 
         Raises EquilibriumError if Newton does not converge in MAX_NEWTON_ITERATIONS.
@@ -318,7 +325,7 @@ class NeoHookeanSolid:
             raise HyperelasticInputError(f"prescribed_positions must be finite with shape ({prescribed.size}, 3), "
                                          f"got {positions.shape}")
         fixed = self.mesh.fixed_vertices
-        return np.concatenate([fixed, prescribed]), np.concatenate([self.rest_vertices[fixed], positions])
+        return np.concatenate([fixed, prescribed]), np.concatenate([self.mesh.vertices[fixed], positions])
 
     @staticmethod
     def _descent_direction(free_tangent, right_hand_side, free_gradient, lifting: bool) -> np.ndarray:
@@ -376,12 +383,27 @@ class StickySphereContact:
         self.substeps = int(substeps)
         self.tool_centre = self._checked_vector("tool_centre", tool_centre)
         self.body_force = self._checked_vector("body_force", body_force)
-        self.positions = solid.rest_vertices.copy()
+        self.positions = solid.mesh.vertices.copy()
         self.attached_vertices = np.zeros(0, dtype=np.int64)
         self._attached_offsets = np.zeros((0, 3))
+        self._movable = self._movable_of(solid)
+
+    @staticmethod
+    def _movable_of(solid: NeoHookeanSolid) -> np.ndarray:
         is_movable = np.ones(solid.vertex_count, dtype=bool)
         is_movable[solid.mesh.fixed_vertices] = False
-        self._movable = is_movable
+        return is_movable
+
+    def cut(self, solid: NeoHookeanSolid) -> None:
+        """Go on with `solid`, the same body after a cut (its mesh without the removed elements,
+        the vertices left without one held): the positions are kept, the attached vertices that
+        became invalid let go; the next `advance` finds the equilibrium the cut allows."""
+        if solid.vertex_count != self.solid.vertex_count:
+            raise HyperelasticInputError("a cut keeps the vertices: the solid must have as many")
+        keep = ~np.isin(self.attached_vertices, solid.mesh.fixed_vertices)
+        self.attached_vertices, self._attached_offsets = self.attached_vertices[keep], self._attached_offsets[keep]
+        self.solid = solid
+        self._movable = self._movable_of(solid)
 
     @staticmethod
     def _checked_vector(name: str, value) -> np.ndarray:

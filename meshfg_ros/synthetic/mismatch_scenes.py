@@ -207,19 +207,23 @@ def _simulate_truth(scene_mesh: _SceneMesh, loading: _Loading) -> list[np.ndarra
 
 
 def _assemble(name: str, seed: int, rng: np.random.Generator, scene_mesh: _SceneMesh, loading: _Loading,
-              nominal_youngs_modulus: float, summary: str) -> Scenario:
-    """Simulate the truth, capture a cloud per step and package the Scenario."""
+              nominal_youngs_modulus: float, summary: str, truths: list[np.ndarray] | None = None,
+              removed: list[np.ndarray] | None = None) -> Scenario:
+    """Simulate the truth (unless `truths` gives it), capture a cloud per step and package the
+    Scenario; `removed`: each step's element slots a cut has removed (core/topology.py), whose
+    surface the camera sees then."""
     mesh = scene_mesh.mesh
-    truths = _simulate_truth(scene_mesh, loading)
+    truths = _simulate_truth(scene_mesh, loading) if truths is None else truths
+    removed = [np.zeros(0, np.int64)] * len(truths) if removed is None else removed
     orientation = _tool_orientation(loading.approach)
     reported = [pose(centre + loading.calibration_error, orientation) for centre in loading.true_tool_centres]
     steps, leak_shares, counts = [], [], []
-    for k, truth in enumerate(truths, start=1):
+    for k, (truth, slots) in enumerate(zip(truths, removed), start=1):
         occluders = [loading.surroundings, *_tool_surfaces(loading.true_tool_centres[k], loading.approach,
                                                           loading.tool_radius)]
-        result = capture(loading.camera, truth, mesh.surface_triangles, occluders=occluders, rng=rng,
-                         options=loading.capture_options)
-        steps.append(ScenarioStep(_stamp(k), reported[k], result.points, result.labels, truth))
+        result = capture(loading.camera, truth, mesh.without_elements(slots).surface_triangles, occluders=occluders,
+                         rng=rng, options=loading.capture_options)
+        steps.append(ScenarioStep(_stamp(k), reported[k], result.points, result.labels, truth, slots))
         leak_shares.append(float(np.mean(result.labels > 0)))
         counts.append(len(result.points))
     nominal = SimulatorConfig(youngs_modulus=nominal_youngs_modulus, poisson_ratio=NOMINAL_POISSON_RATIO,

@@ -1,6 +1,6 @@
 """Synthetic scenes with ground truth: deforming cubes (paper Table I), airway push, liver push,
-and the four mismatch scenes of `meshfg_ros.synthetic.mismatch_scenes` (truth from an
-independent hyperelastic model).
+the five mismatch scenes of `meshfg_ros.synthetic.mismatch_scenes` (truth from an
+independent hyperelastic model) and the cutting scene of `meshfg_ros.synthetic.cut_scene`.
 
 A scenario is what a recording holds (initial mesh, tool poses, measured clouds, camera pose)
 plus the ground truth per step and the estimator's nominal model. The ground truth is
@@ -24,7 +24,9 @@ from meshfg_ros.evaluation.metrics import sample_surface
 from meshfg_ros.core.simulator import ElasticSimulator, SimulatorConfig
 
 MISMATCH_SCENARIOS = ("slab-inclusion", "dome-tilted", "liver-gravity", "kidney-drag", "flap-bend")
-SCENARIOS = ("cube-translate", "cube-shear-spd", "cube-shear-nonspd", "cao-push", "liver-push", *MISMATCH_SCENARIOS)
+CUT_SCENARIOS = ("sheet-cut",)  # meshfg_ros.synthetic.cut_scene
+SCENARIOS = ("cube-translate", "cube-shear-spd", "cube-shear-nonspd", "cao-push", "liver-push", *MISMATCH_SCENARIOS,
+             *CUT_SCENARIOS)
 STEP_PERIOD_NS = 1_000_000_000  # 1 Hz, as the paper's capture
 FIRST_STAMP_NS = 1_000_000_000
 LIVER_PATH_CANDIDATES = (
@@ -47,6 +49,8 @@ class ScenarioStep:
     points: np.ndarray         # (K, 3) measured cloud, world frame
     point_labels: np.ndarray   # (K,) 0 = target tissue, >0 = segmentation leak (occluder id)
     truth: np.ndarray          # (N, 3) ground-truth vertex positions
+    # slots of the initial mesh's elements a cut has removed by this step (TetMesh.without_elements)
+    removed_elements: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
 
 @dataclass(frozen=True)
@@ -84,6 +88,7 @@ def generate(name: str, seed: int = 0, steps: int | None = None) -> Scenario:
         "cao-push": lambda: _airway_push(seed, steps or 10),
         "liver-push": lambda: _liver_push(seed, steps or 10),
         **{name: (lambda name=name: _mismatch_scene(name, seed, steps or 10)) for name in MISMATCH_SCENARIOS},
+        "sheet-cut": lambda: _cut_scene(seed, steps or 10),
     }
     if name not in builders:
         raise ScenarioError(f"unknown scenario {name!r}; choose one of {', '.join(SCENARIOS)}")
@@ -95,6 +100,13 @@ def _mismatch_scene(name: str, seed: int, steps: int) -> Scenario:
     from meshfg_ros.synthetic.mismatch_scenes import build_scene
 
     return build_scene(name, seed, steps)
+
+
+def _cut_scene(seed: int, steps: int) -> Scenario:
+    """The cutting scene of meshfg_ros.synthetic.cut_scene (imported on use, as the mismatch scenes)."""
+    from meshfg_ros.synthetic.cut_scene import build_cut_scene
+
+    return build_cut_scene(seed, steps)
 
 
 def pose(position, quaternion=(0.0, 0.0, 0.0, 1.0)) -> np.ndarray:
