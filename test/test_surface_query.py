@@ -10,10 +10,12 @@ deviation against Monte Carlo draws from the covariance.
 """
 import subprocess
 import sys
+from pathlib import Path
 
 import igl
 import numpy as np
 import pytest
+import yaml
 
 from meshfg_ros.core.closest_point import InvalidGeometryError
 from meshfg_ros.core.frames import FrameLookupError, StampedTransform, TransformBuffer
@@ -22,6 +24,7 @@ from meshfg_ros.core.surface_query import SurfaceQuery
 from meshfg_ros.core.world_frame import WorldFrameInputs
 from meshfg_ros.io.messages import MeshState
 from meshfg_ros.io.recording import RecordingWriter
+from meshfg_ros.parameters import default_parameters, load_parameters
 from meshfg_ros.planner_client import RecordedSurface, SurfaceAnswer, SurfaceQueryError, clearance_positions
 from meshfg_ros.synthetic.meshing import cube_mesh, structured_box_mesh
 from meshfg_ros.synthetic.scenarios import liver_mesh
@@ -309,3 +312,9 @@ def test_the_newest_stamp_of_a_chain_is_its_oldest_newest_transform():
     np.testing.assert_array_equal(placer.matrix_to_world("world", None), np.eye(4))
     with pytest.raises(FrameLookupError, match="beyond the newest"):
         placer.matrix_to_world("tip", 250)
+
+
+def test_the_example_planners_parameters_file_sets_its_parameters_at_their_defaults():
+    document = yaml.safe_load((Path(__file__).resolve().parents[1] / "config" / "tool_clearance.yaml").read_text())
+    values = document["/**"]["ros__parameters"]
+    assert load_parameters(values, "tool_clearance_node") == default_parameters("tool_clearance_node") == values
