@@ -407,6 +407,12 @@ def _mesh_arguments(parser: argparse.ArgumentParser) -> None:
     info = actions.add_parser("info", help="size, units guess, element quality, fixed vertices and groups of a "
                                            "mesh file", description="What a mesh file holds, before using it.")
     info.add_argument("file", type=Path, help="tetrahedral mesh (.msh, .vtu, .vtk, ...)")
+    info.add_argument("--clouds", type=Path, metavar="BAG",
+                      help="a recording of the scene (its first clouds, world frame): which units make the mesh "
+                           "agree with them, as the estimator node checks them")
+    info.add_argument("--mesh-pose", type=float, nargs=7, default=[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
+                      metavar=("X", "Y", "Z", "QX", "QY", "QZ", "QW"),
+                      help="mesh_pose to place the mesh with for --clouds (default: identity)")
     info.set_defaults(mesh_run=run_mesh_info)
     export = actions.add_parser("export", help="write a recording's initial mesh to a mesh file",
                                 description="Write the first /meshfg/initial_mesh of a recording to a mesh file "
@@ -424,20 +430,21 @@ def run_mesh(args: argparse.Namespace) -> int:
 def run_mesh_info(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from meshfg_ros.core.patient_mesh import ORGAN_SIZE_RANGE_M, guess_units, read_patient_mesh
+    from meshfg_ros.core.patient_mesh import ORGAN_SIZE_RANGE_M, plausible_units, read_patient_mesh
     from meshfg_ros.synthetic.mismatch_scenes import radius_ratios
 
     read = read_patient_mesh(args.file)
     mesh = read.mesh
     sides = mesh.vertices.max(axis=0) - mesh.vertices.min(axis=0)
-    units = guess_units(float(sides.max()))
+    units = plausible_units(float(sides.max()))
     low, high = ORGAN_SIZE_RANGE_M
-    if units is None:
+    if not units:
         units_text = f"none of m, cm, mm makes the largest side ({sides.max():.3g}) an organ's {low:g}-{high:g} m"
     else:
-        unit, metres = units
-        units_text = (f"{unit}: the largest side is {sides.max() * metres:.3g} m at mesh_scale {metres:g} "
-                      f"(organs: {low:g}-{high:g} m)")
+        units_text = " or ".join(f"{unit}: the largest side is {sides.max() * metres:.3g} m at mesh_scale {metres:g}"
+                                 for unit, metres in units) + f" (organs: {low:g}-{high:g} m)"
+        if len(units) > 1:
+            units_text += "; only the clouds tell which (--clouds BAG, or the estimator's check of its first clouds)"
     quality = radius_ratios(mesh.vertices, mesh.tetrahedra)
     groups = ", ".join(f"{name} ({indices.size} vertices)" for name, indices in sorted(read.groups.items()))
     rows = [
@@ -446,6 +453,7 @@ def run_mesh_info(args: argparse.Namespace) -> int:
         ("bounding box", f"{sides[0]:.4g} x {sides[1]:.4g} x {sides[2]:.4g} (file units), "
                          f"diagonal {np.linalg.norm(sides):.4g}"),
         ("units (guess)", units_text),
+        *([("units (clouds)", _units_from_clouds(mesh, args.clouds, args.mesh_pose))] if args.clouds else []),
         ("element quality", f"radius ratio min {quality.min():.3f}, median {np.median(quality):.3f} "
                             "(1: regular tetrahedron, 0: flat)"),
         ("fixed vertices", f"{mesh.fixed_vertices.size} (point data 'fixed')"),
@@ -455,6 +463,33 @@ def run_mesh_info(args: argparse.Namespace) -> int:
     for label, text in rows:
         print(f"  {label + ':':<17}{text}")
     return 0
+
+
+def _units_from_clouds(mesh, bag: Path, mesh_pose: list[float], clouds: int = 3) -> str:
+    """Which units make `mesh` (file units) agree with the first `clouds` clouds of `bag`, as the
+    estimator node checks its first clouds (core/patient_mesh.py), and why the others do not."""
+    import itertools
+
+    from meshfg_ros.core.patient_mesh import UNITS, PatientMeshError, check_against_clouds, place_mesh
+    from meshfg_ros.io.messages import PointCloudRecord
+    from meshfg_ros.io.recording import RecordingReader
+    from meshfg_ros.topics import POINTS_TOPIC
+
+    with RecordingReader(bag) as reader:
+        reader.require(POINTS_TOPIC, PointCloudRecord)
+        first = list(itertools.islice(reader.records(POINTS_TOPIC, PointCloudRecord), clouds))
+    agree, disagree = [], []
+    for unit, metres in UNITS.items():
+        try:
+            check_against_clouds(place_mesh(mesh, metres, mesh_pose), [cloud.points for cloud in first],
+                                 scale_origin=mesh_pose[:3])
+            agree.append(f"{unit} (mesh_scale {metres:g})")
+        except PatientMeshError as error:
+            disagree.append(f"{unit}: {error}")
+    frames = sorted({cloud.frame_id for cloud in first})
+    verdict = (f"{' and '.join(agree)} {'agrees' if len(agree) == 1 else 'agree'}" if agree else "no unit agrees")
+    return (f"{verdict} with the first {len(first)} clouds of {bag} (frame {', '.join(frames)}); "
+            + "; ".join(disagree))
 
 
 def run_mesh_export(args: argparse.Namespace) -> int:

@@ -5,7 +5,7 @@ import pytest
 from offline_helpers import BAGS
 
 from meshfg_ros import cli
-from meshfg_ros.core.mesh import load_mesh
+from meshfg_ros.core.mesh import load_mesh, save_mesh
 from meshfg_ros.io.messages import MeshState
 from meshfg_ros.io.recording import RecordingReader
 from meshfg_ros.parameters import read_parameters_file
@@ -42,6 +42,27 @@ def test_mesh_info_of_the_sofa_liver(capsys):
     assert rows["units (guess)"].startswith("cm: the largest side is 0.0648 m at mesh_scale 0.01")
     assert rows["fixed vertices"] == "0 (point data 'fixed')"
     assert rows["groups"] == "none"
+
+
+def test_mesh_info_lets_the_clouds_decide_between_two_plausible_units(capsys, tmp_path):
+    """The bundled airway in millimetres (16.5 units across) is an organ's size in mm and in cm;
+    the recording's clouds agree with millimetres only, and say why centimetres do not fit."""
+    airway = load_inputs(BAGS / "cao-push").initial_mesh
+    path = tmp_path / "airway_mm.vtu"
+    save_mesh(airway.with_vertices(1e3 * airway.vertices), path)
+    code, out, _ = run(capsys, "mesh", "info", str(path))
+    rows = info_rows(out)
+    assert code == 0 and rows["units (guess)"].startswith("cm: the largest side is 0.165 m at mesh_scale 0.01 or mm: "
+                                                          "the largest side is 0.0165 m at mesh_scale 0.001")
+    assert rows["units (guess)"].endswith("only the clouds tell which (--clouds BAG, or the estimator's check of its "
+                                          "first clouds)")
+    assert "units (clouds)" not in rows
+    code, out, _ = run(capsys, "mesh", "info", str(path), "--clouds", str(BAGS / "cao-push"))
+    rows = info_rows(out)
+    assert code == 0 and rows["units (clouds)"].startswith("mm (mesh_scale 0.001) agrees with the first 3 clouds of ")
+    assert ("cm: the clouds do not overlap the mesh, but would with mesh_scale 0.1 times its value"
+            in rows["units (clouds)"])
+    assert "m: the mesh is ~1100x larger than the clouds" in rows["units (clouds)"]
 
 
 def test_mesh_info_quality_groups_and_fixed_vertices(capsys, tmp_path):

@@ -12,7 +12,7 @@ from meshfg_ros.core.patient_mesh import (
     Plane,
     check_against_clouds,
     check_simulatable,
-    guess_units,
+    plausible_units,
     prepare_mesh,
     read_patient_mesh,
 )
@@ -232,10 +232,52 @@ def test_unregistered_mesh_fails_saying_how_far_and_to_set_mesh_pose(tmp_path):
 
 
 def test_units_guess_from_organ_size():
-    assert guess_units(6.5) == ("cm", 0.01)  # the SOFA liver's 6.5 units
-    assert guess_units(190.0) == ("mm", 0.001)
-    assert guess_units(0.15) == ("m", 1.0)
-    assert guess_units(5000.0) is None
+    assert plausible_units(6.5) == [("cm", 0.01)]  # the SOFA liver's 6.5 units
+    assert plausible_units(190.0) == [("mm", 0.001)]
+    assert plausible_units(0.15) == [("m", 1.0)]
+    assert plausible_units(5000.0) == []
+    # the bundled airway in millimetres (16.5 units): an airway segment in mm, or a kidney in cm
+    assert plausible_units(16.5) == [("cm", 0.01), ("mm", 0.001)]
+
+
+def test_a_millimetre_mesh_read_as_centimetres_is_told_to_check_mesh_scale_not_mesh_pose(tmp_path):
+    """10x too large and away from the origin: within the size factor, but not overlapping the
+    clouds; at a tenth of the scale (about the mesh frame's origin, mesh_pose's position) it would."""
+    liver = load_mesh(LIVER_FILE)
+    pose = [0.02, -0.01, 0.0, 0.0, 0.0, 0.0, 1.0]
+    lifted = write_plain(tmp_path / "lifted.vtu", liver.vertices * 30.0 + [0.0, 0.0, 150.0], liver.tetrahedra)
+    cloud = top_view_cloud(load_mesh(lifted), metres_per_unit=0.001) + pose[:3]
+    as_centimetres = prepare_mesh(lifted, lowest_vertices(liver), scale=0.01, pose=pose)
+    with pytest.raises(PatientMeshError) as error:
+        check_against_clouds(as_centimetres, [cloud], scale_origin=pose[:3])
+    assert str(error.value).startswith("the clouds do not overlap the mesh, but would with mesh_scale 0.1 times its "
+                                       "value: is mesh_scale right for the mesh file's units?")
+    with pytest.raises(PatientMeshError, match="set mesh_pose"):  # without the origin: registration, as before
+        check_against_clouds(as_centimetres, [cloud])
+    check_against_clouds(prepare_mesh(lifted, lowest_vertices(liver), scale=0.001, pose=pose), [cloud],
+                         scale_origin=pose[:3])
+
+
+def test_a_fixed_box_or_plane_in_the_files_millimetres_fails_saying_what_it_would_select(tmp_path):
+    box = structured_box_mesh((100.0, 60.0, 40.0), (5, 3, 2))  # millimetres
+    path = write_plain(tmp_path / "mm.vtu", box.vertices + [0.0, 0.0, 50.0], box.tetrahedra)
+    bottom = np.flatnonzero(box.vertices[:, 2] == 0.0)
+    in_millimetres = Box((-1.0, -1.0, 49.0), (101.0, 61.0, 51.0))
+    with pytest.raises(PatientMeshError) as error:
+        prepare_mesh(path, FixedSelection(boxes=(in_millimetres,)), scale=0.001)
+    message = str(error.value)
+    assert "fixed_box selects no vertex of the mesh, which spans [0, 0, 0.05] to [0.1, 0.06, 0.09] m" in message
+    assert f"read in the mesh file's units it would select {bottom.size}" in message
+    assert message.endswith("e.g. [-0.001, -0.001, 0.049, 0.101, 0.061, 0.051]") and "\n" not in message
+    in_metres = prepare_mesh(path, FixedSelection(boxes=(Box((-0.001, -0.001, 0.049), (0.101, 0.061, 0.051)),)),
+                             scale=0.001)
+    np.testing.assert_array_equal(in_metres.fixed_vertices, bottom)
+    plane_in_millimetres = Plane((0.0, 0.0, 50.0), (0.0, 0.0, 1.0), 1.0)
+    with pytest.raises(PatientMeshError, match=rf"fixed_plane selects no vertex .* it would select {bottom.size}: "):
+        prepare_mesh(path, FixedSelection(planes=(plane_in_millimetres,)), scale=0.001)
+    everything = Box((-1e3, -1e3, -1e3), (1e3, 1e3, 1e3))
+    with pytest.raises(PatientMeshError, match=f"fixed_box selects all {box.vertex_count} vertices of the mesh"):
+        prepare_mesh(path, FixedSelection(indices=tuple(bottom), boxes=(everything,)), scale=0.001)
 
 
 def test_simulatable_check_names_inverted_elements_and_a_fully_fixed_mesh():

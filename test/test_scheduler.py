@@ -109,6 +109,23 @@ def test_predictions_wait_for_the_previous_estimate_and_a_covering_tool_pose(sce
     assert not np.allclose(later.positions, from_old_state.positions, atol=1e-7)
 
 
+def test_a_request_before_any_tool_pose_fails_after_the_tool_pose_timeout(scenario):
+    """A tool pose stream that never starts: each request is answered, after tool_pose_timeout,
+    with the reason, so that its cloud runs at once (degraded) and the node can publish why."""
+    simulation = prediction(scenario)
+    simulation.request(FIRST_STAMP_NS + S, now_s=0.0)
+    assert simulation.poll(now_s=0.1) == []
+    [answer] = simulation.poll(now_s=0.2)
+    assert answer.positions is None and answer.failure.startswith("no tool pose received yet")
+    assert simulation.tool_pose_unavailable == {"empty": 1}
+    # the stream starts: later requests are predicted as usual
+    simulation.add_tool_pose(FIRST_STAMP_NS + S, scenario.initial_tool_pose)
+    simulation.add_tool_pose(FIRST_STAMP_NS + 3 * S, scenario.initial_tool_pose)
+    simulation.request(FIRST_STAMP_NS + 2 * S, now_s=1.0)
+    [predicted] = simulation.poll(now_s=1.0)
+    assert predicted.positions is not None and np.isfinite(predicted.positions).all()
+
+
 def test_a_request_beyond_the_tool_pose_horizon_is_answered_with_the_reason(scenario):
     simulation = prediction(scenario)
     simulation.add_tool_pose(FIRST_STAMP_NS, scenario.initial_tool_pose)

@@ -10,14 +10,17 @@ Fixed vertices are the union of the file's `fixed` point data and a `FixedSelect
 indices (of the mesh as loaded: tetrahedra's vertices in file order), vertices within a distance
 of planes, vertices inside axis-aligned boxes (planes and boxes in the world frame, metres, after
 scale and pose), and the vertices of named groups of the file (gmsh physical groups, meshio cell
-and point sets).
+and point sets). A plane or box that selects no vertex, or every one, fails with the selection
+it would make read in the file's units (a box copied from the CT's millimetres).
 
 `check_simulatable` turns what would fail deep inside the simulator ("Cholesky failed: pivot
 ... not positive", a singular stiffness) into one line naming the cause: no fixed vertex, a
 connected part of the mesh held by fewer than three non-collinear fixed vertices, or elements
 that are flat or inverted. `check_against_clouds` compares the placed mesh with the first
 clouds (world frame): sizes orders of magnitude apart (a mesh in millimetres) or boxes that do
-not meet (a missing registration) fail in one line that says which parameter to set.
+not meet (a missing registration, or a units mix-up the other units' scales resolve) fail in
+one line that says which parameter to set. `plausible_units` lists the units that make a file's
+mesh an organ's size.
 """
 
 from __future__ import annotations
@@ -53,7 +56,7 @@ __all__ = [
     "UNITS",
     "check_against_clouds",
     "check_simulatable",
-    "guess_units",
+    "plausible_units",
     "place_mesh",
     "prepare_mesh",
     "read_patient_mesh",
@@ -61,9 +64,10 @@ __all__ = [
 ]
 
 # Candidate units of a mesh file, metres per unit, and the size range of the organs meshed
-# (largest bounding-box side: a kidney ~0.1 m, an adult liver ~0.2-0.3 m, a tumour ~0.02 m).
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}
-ORGAN_SIZE_RANGE_M = (0.02, 0.3)
+# (largest bounding-box side: a kidney ~0.1 m, an adult liver ~0.2-0.3 m, an airway segment or a
+# tumour ~0.01-0.02 m).
+ORGAN_SIZE_RANGE_M = (0.01, 0.3)
 # Mesh and clouds whose sizes (bounding-box diagonals) differ by more than this factor disagree
 # on units. A partial view shows a part of the organ, down to a few centimetres of a liver
 # (a factor ~10), and a wide one some background; a unit error is a factor of 100 or 1000.
@@ -247,12 +251,15 @@ def check_simulatable(mesh: TetMesh) -> None:
             "there or remove those parts")
 
 
-def check_against_clouds(mesh: TetMesh, clouds: Sequence[np.ndarray]) -> None:
+def check_against_clouds(mesh: TetMesh, clouds: Sequence[np.ndarray], scale_origin: Sequence[float] | None = None) -> None:
     """PatientMeshError when the placed mesh and the first clouds (points (K, 3), world frame)
     differ in size by more than SCALE_MISMATCH_FACTOR or their bounding boxes do not meet.
 
     Partial views pass: a cloud that sees one side of the organ lies inside the mesh's box and is
-    smaller, within the factor.
+    smaller, within the factor. scale_origin: the world point mesh_scale scales the mesh about
+    (mesh_pose's position) when the mesh comes from a scaled file; boxes that do not meet are then
+    tested at the other units' scales, and one that makes them meet is named (a millimetre mesh
+    read as centimetres is 10x too large and misplaced, within the size factor).
     """
     points = np.concatenate([np.asarray(cloud, dtype=np.float64).reshape(-1, 3) for cloud in clouds])
     points = points[np.isfinite(points).all(axis=1)]
@@ -260,24 +267,44 @@ def check_against_clouds(mesh: TetMesh, clouds: Sequence[np.ndarray]) -> None:
         raise PatientMeshError("no finite cloud points to compare the mesh with")
     mesh_low, mesh_high = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
     cloud_low, cloud_high = np.percentile(points, CLOUD_PERCENTILES, axis=0)
+    mismatch = _box_mismatch(mesh_low, mesh_high, cloud_low, cloud_high)
+    if mismatch is None:
+        return
+    if mismatch.startswith("the clouds do not overlap") and scale_origin is not None:
+        origin = np.asarray(scale_origin, dtype=np.float64)
+        for factor in _UNIT_FACTORS:
+            if _box_mismatch(origin + factor * (mesh_low - origin), origin + factor * (mesh_high - origin),
+                             cloud_low, cloud_high) is None:
+                raise PatientMeshError(
+                    f"the clouds do not overlap the mesh, but would with mesh_scale {factor:g} times its value: "
+                    "is mesh_scale right for the mesh file's units? (0.001 for millimetres, 0.01 for centimetres)")
+    raise PatientMeshError(mismatch)
+
+
+# The ratios between the units of UNITS (nearest first): the scale errors a units mix-up makes.
+_UNIT_FACTORS = (0.1, 10.0, 0.01, 100.0, 0.001, 1000.0)
+
+
+def _box_mismatch(mesh_low: np.ndarray, mesh_high: np.ndarray, cloud_low: np.ndarray,
+                  cloud_high: np.ndarray) -> str | None:
+    """Why the mesh's and the clouds' bounding boxes disagree (check_against_clouds), or None."""
     mesh_size = float(np.linalg.norm(mesh_high - mesh_low))
     cloud_size = float(np.linalg.norm(cloud_high - cloud_low))
     sizes = f"bounding-box diagonals {mesh_size:.3g} m and {cloud_size:.3g} m"
     if mesh_size > SCALE_MISMATCH_FACTOR * cloud_size:
         ratio = mesh_size / max(cloud_size, np.finfo(float).tiny)
-        raise PatientMeshError(f"the mesh is ~{_rounded(ratio)}x larger than the clouds ({sizes}): "
-                               f"{_unit_hint(ratio)}")
+        return f"the mesh is ~{_rounded(ratio)}x larger than the clouds ({sizes}): {_unit_hint(ratio)}"
     if cloud_size > SCALE_MISMATCH_FACTOR * mesh_size:
         ratio = cloud_size / mesh_size
-        raise PatientMeshError(f"the mesh is ~{_rounded(ratio)}x smaller than the clouds ({sizes}): "
-                               "is mesh_scale too small, or are the clouds not in metres?")
+        return (f"the mesh is ~{_rounded(ratio)}x smaller than the clouds ({sizes}): "
+                "is mesh_scale too small, or are the clouds not in metres?")
     gap = float(np.linalg.norm(np.maximum(0.0, np.maximum(cloud_low - mesh_high, mesh_low - cloud_high))))
     if gap > OVERLAP_TOLERANCE * mesh_size:
         offset = 0.5 * (cloud_low + cloud_high) - 0.5 * (mesh_low + mesh_high)
-        raise PatientMeshError(
-            f"the clouds do not overlap the mesh: their bounding boxes are {gap:.3g} m apart (clouds' centre "
-            f"minus mesh's: [{offset[0]:.3g}, {offset[1]:.3g}, {offset[2]:.3g}] m): set mesh_pose to the "
-            "registration of the mesh's frame to the world frame")
+        return (f"the clouds do not overlap the mesh: their bounding boxes are {gap:.3g} m apart (clouds' centre "
+                f"minus mesh's: [{offset[0]:.3g}, {offset[1]:.3g}, {offset[2]:.3g}] m): set mesh_pose to the "
+                "registration of the mesh's frame to the world frame")
+    return None
 
 
 def _rounded(ratio: float) -> str:
@@ -292,13 +319,14 @@ def _unit_hint(ratio: float) -> str:
     return f"set mesh_scale to the mesh file's metres per unit (about {1.0 / ratio:.2g})"
 
 
-def guess_units(largest_side: float) -> tuple[str, float] | None:
-    """(unit, metres per unit) of UNITS that makes a mesh's largest bounding-box side an organ's
-    size (ORGAN_SIZE_RANGE_M), the one nearest the range's middle (log scale); None if none does."""
+def plausible_units(largest_side: float) -> list[tuple[str, float]]:
+    """[(unit, metres per unit)] of UNITS that make a mesh's largest bounding-box side an organ's
+    size (ORGAN_SIZE_RANGE_M), nearest the range's middle (log scale) first; empty if none does.
+    Two of them fit a mesh of 3-30 file units: only the clouds tell which is right."""
     low, high = ORGAN_SIZE_RANGE_M
-    fitting = [(abs(np.log(largest_side * scale / np.sqrt(low * high))), unit, scale)
-               for unit, scale in UNITS.items() if low <= largest_side * scale <= high]
-    return min(fitting)[1:] if fitting else None
+    fitting = sorted((abs(np.log(largest_side * scale / np.sqrt(low * high))), unit, scale)
+                     for unit, scale in UNITS.items() if low <= largest_side * scale <= high)
+    return [(unit, scale) for _, unit, scale in fitting]
 
 
 def prepare_mesh(path: str | Path, fixed: FixedSelection = FixedSelection(), scale: float = 1.0,
@@ -310,10 +338,57 @@ def prepare_mesh(path: str | Path, fixed: FixedSelection = FixedSelection(), sca
     chosen = np.union1d(read.mesh.fixed_vertices, select_fixed(placed, read.groups, fixed))
     mesh = placed.with_fixed(chosen)
     try:
+        _check_regions(placed, fixed, scale, pose)
         check_simulatable(mesh)
     except PatientMeshError as error:
         raise PatientMeshError(f"{path}: {error}") from None
     return mesh
+
+
+def _check_regions(placed: TetMesh, selection: FixedSelection, scale: float = 1.0,
+                  pose: Sequence[float] = (0, 0, 0, 0, 0, 0, 1)) -> None:
+    """PatientMeshError for a fixed plane or box that selects no vertex or every vertex of the
+    placed mesh, saying whether it would select some read in the mesh file's units (planes and
+    boxes are in the world frame, metres, after mesh_scale and mesh_pose; a user copying them from
+    the CT's millimetres gets nothing, or everything)."""
+    regions = [("fixed_plane", plane, _plane_in_file_units(plane, scale, pose)) for plane in selection.planes]
+    regions += [("fixed_box", box, _box_in_file_units(box, scale, pose)) for box in selection.boxes]
+    count = placed.vertex_count
+    low, high = placed.vertices.min(axis=0), placed.vertices.max(axis=0)
+    for name, region, in_file_units in regions:
+        selected = int(np.count_nonzero(region.contains(placed.vertices)))
+        if 0 < selected < count:
+            continue
+        what = "no vertex" if selected == 0 else f"all {count} vertices"
+        message = (f"{name} selects {what} of the mesh, which spans [{low[0]:.4g}, {low[1]:.4g}, {low[2]:.4g}] to "
+                   f"[{high[0]:.4g}, {high[1]:.4g}, {high[2]:.4g}] m in the world frame")
+        in_file = int(np.count_nonzero(in_file_units.contains(placed.vertices)))
+        if 0 < in_file < count:
+            message += (f"; read in the mesh file's units it would select {in_file}: give it in the world frame, "
+                        f"metres (after mesh_scale and mesh_pose), e.g. {_region_values(in_file_units)}")
+        raise PatientMeshError(message)
+
+
+def _plane_in_file_units(plane: Plane, scale: float, pose: Sequence[float]) -> Plane:
+    """The plane whose values, read in the file's frame and units, are `plane`'s, in the world frame."""
+    matrix = pose_matrix(as_pose(pose))
+    point = transform_points(matrix, scale * np.asarray(plane.point, dtype=np.float64)[None])[0]
+    normal = matrix[:3, :3] @ np.asarray(plane.normal, dtype=np.float64)
+    return Plane(tuple(point), tuple(normal), scale * plane.distance)
+
+
+def _box_in_file_units(box: Box, scale: float, pose: Sequence[float]) -> Box:
+    """The world frame's axis-aligned bounds of the box whose values, read in the file's frame and
+    units, are `box`'s (its corners placed as the mesh's vertices are)."""
+    corners = np.array(np.meshgrid(*zip(box.minimum, box.maximum), indexing="ij")).reshape(3, -1).T
+    placed = transform_points(pose_matrix(as_pose(pose)), scale * corners)
+    return Box(tuple(placed.min(axis=0)), tuple(placed.max(axis=0)))
+
+
+def _region_values(region: Plane | Box) -> str:
+    values = ([*region.point, *region.normal, region.distance] if isinstance(region, Plane)
+              else [*region.minimum, *region.maximum])
+    return "[" + ", ".join(f"{value:.4g}" for value in values) + "]"
 
 
 def _connected_parts(mesh: TetMesh) -> tuple[int, np.ndarray]:

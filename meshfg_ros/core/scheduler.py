@@ -363,9 +363,13 @@ class EstimationScheduler:
     def __init__(self, mesh: TetMesh, config: EstimatorConfig, *,
                  clock_jump_threshold: float = DEFAULT_CLOCK_JUMP_THRESHOLD_S,
                  tool_pose_extrapolation: float = TOOL_POSE_HORIZON_S,
-                 timeouts: SchedulingTimeouts = SchedulingTimeouts()) -> None:
+                 timeouts: SchedulingTimeouts = SchedulingTimeouts(),
+                 scale_origin: np.ndarray | None = None) -> None:
+        """scale_origin: where mesh_scale scales a mesh read from a file (mesh_pose's position),
+        for the registration check's units hint; None for a mesh given in the world frame."""
         self.mesh = mesh
         self.timeouts = timeouts
+        self._scale_origin = scale_origin
         self.estimator = SlidingWindowEstimator(mesh, config)
         self.scene = check_initial_mesh(mesh.vertices)
         self._jump_ns = _jump_ns(clock_jump_threshold)
@@ -426,7 +430,7 @@ class EstimationScheduler:
         if len(near) < MIN_POINTS:
             return None
         try:
-            check_against_clouds(self.mesh, [near])
+            check_against_clouds(self.mesh, [near], self._scale_origin)
         except PatientMeshError as error:
             return Rejection("clouds_rejected_registration", f"cloud at {stamp_ns} ns rejected: {error}")
         self._registered = True
