@@ -28,6 +28,7 @@ setup(
             "meshfg = meshfg_ros.cli:main",
             "simulation_node = meshfg_ros.nodes.simulation_node:main",
             "estimator_node = meshfg_ros.nodes.estimator_node:main",
+            "sim_bridge_server = meshfg_ros.nodes.sim_bridge_server:main",
             "meshfg_stack = meshfg_ros.nodes.stack:main",
             "bag_player = meshfg_ros.nodes.bag_player:main",
             "tool_clearance_node = meshfg_ros.nodes.tool_clearance_node:main",

@@ -216,12 +216,25 @@ class EstimatorNodeConfig:
     prediction_timeout: float = setting(
         SchedulingTimeouts.prediction_timeout, "Seconds (wall time) a cloud waits for its simulator prediction before the step runs degraded "
         "without it.", range=(0.0, 60.0))
+    prediction_source: str = setting(
+        "simulation_node", "Where each cloud's prediction comes from: simulation_node (this project's, on "
+        "prediction_request / predicted_mesh) or sim_bridge (the XPBD tissue simulator's sim_bridge service "
+        "sim_bridge_service, called when the cloud is accepted; its state in frame sim/world is placed through /tf).",
+        choices=("simulation_node", "sim_bridge"))
+    sim_bridge_service: str = setting(
+        "/sim/factor_graph_state", "Name of the sim_bridge/srv/FactorGraphState service (prediction_source "
+        "sim_bridge).")
+    sim_bridge_stiffness: bool = setting(
+        True, "Ask the sim_bridge service for its stiffness matrix (compute_stiffness_matrix) and use it, made "
+        "positive definite, as the physics prior's information; false: the estimator's own FEM stiffness.")
     marker_std_max: float = setting(
         0.0, "Posterior std (metres) drawn in full red in the markers; 0: the largest std of each estimate.",
         range=(0.0, 10.0), dynamic=True)
 
     def __post_init__(self) -> None:
         _check_quaternion("camera_pose", self.camera_pose)
+        if not self.sim_bridge_service.strip():
+            raise ParameterError("sim_bridge_service must name a service, got an empty string")
 
 
 @dataclass(frozen=True)
@@ -306,6 +319,7 @@ class ToolClearanceConfig:
 NODE_CONFIGURATIONS: dict[str, tuple[type, ...]] = {
     "simulation_node": (SimulatorConfig, SimulationNodeConfig, SharedNodeConfig),
     "estimator_node": (EstimatorConfig, EstimatorNodeConfig, SharedNodeConfig),
+    "sim_bridge_server": (SimulatorConfig, SharedNodeConfig),
     "bag_player": (PlaybackConfig,),
     "tool_clearance_node": (ToolClearanceConfig,),
 }

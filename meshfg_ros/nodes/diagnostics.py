@@ -55,6 +55,17 @@ class EstimatorCounters(_Counters):
     tool_poses_ignored_far: int = 0
     inputs_held_before_mesh: int = 0    # clouds and tool poses kept until the mesh came
     inputs_dropped_before_mesh: int = 0  # the oldest of those, beyond what is kept (nodes/held_inputs.py)
+    # prediction_source sim_bridge (nodes/sim_bridge_client.py, core/external_prior.py): calls made,
+    # answers missing or refused (the step runs without a prediction), stiffness repaired or refused.
+    sim_bridge_calls: int = 0
+    sim_bridge_unavailable: int = 0
+    sim_bridge_busy: int = 0
+    sim_bridge_late: int = 0
+    sim_bridge_rejected_malformed: int = 0
+    sim_bridge_rejected_mesh: int = 0
+    sim_bridge_rejected_frame: int = 0
+    sim_bridge_stiffness_repaired: int = 0
+    sim_bridge_stiffness_rejected: int = 0
     steps: int = 0
     degraded_steps: int = 0
     failed_steps: int = 0
@@ -189,6 +200,10 @@ class EstimatorHealth:
         self._recent: deque[_StepOutcome] = deque(maxlen=HEALTH_WINDOW)
         self._failed_seen = 0
         self._rejected_seen = 0
+        self._stiffness_rejected_seen = 0
+        # What went wrong with the newest prediction the sim_bridge service did not give (the fix
+        # the degraded-steps warning names); "" with the simulation node.
+        self.prediction_problem = ""
 
     def record(self, degraded: bool, converged: bool, points_used: int, points_set_aside: int,
                noise_off_nominal: bool = False) -> None:
@@ -201,6 +216,8 @@ class EstimatorHealth:
         last_rejection: why the newest cloud set aside was (its log line)."""
         new_failures, self._failed_seen = counters.failed_steps - self._failed_seen, counters.failed_steps
         new_rejections, self._rejected_seen = counters.clouds_rejected - self._rejected_seen, counters.clouds_rejected
+        new_stiffness_rejections = counters.sim_bridge_stiffness_rejected - self._stiffness_rejected_seen
+        self._stiffness_rejected_seen = counters.sim_bridge_stiffness_rejected
         if waiting_for_mesh:
             if unanswered_s > self.stalled_after_s:
                 return ERROR, (f"clouds arrive for {unanswered_s:.0f} s but there is no mesh: set mesh_file "
@@ -215,6 +232,9 @@ class EstimatorHealth:
             return ERROR, f"no estimate for the clouds of the last {unanswered_s:.0f} s: {why}"
         if new_failures:
             return WARN, f"{new_failures} updates failed since the last report"
+        if new_stiffness_rejections:
+            return WARN, (f"{new_stiffness_rejections} of the simulator's stiffness matrices refused since the last "
+                          f"report (the estimator's own stiffness used): {self.prediction_problem}")
         if counters.queued_clouds > LAG_CLOUDS:
             return WARN, (f"lagging: {counters.queued_clouds} clouds wait (median latency "
                           f"{counters.median_latency_ms:.0f} ms); lower the cloud rate or max_iterations")
@@ -223,7 +243,7 @@ class EstimatorHealth:
             degraded = sum(step.degraded for step in recent)
             if degraded > MOSTLY * len(recent):
                 return WARN, (f"{degraded} of the last {len(recent)} steps ran without a simulator prediction: "
-                              "check tool_pose stamps and frames and the simulation node")
+                              + (self.prediction_problem or "check tool_pose stamps and frames and the simulation node"))
             used, set_aside = sum(step.points_used for step in recent), sum(step.points_set_aside for step in recent)
             if set_aside > MOSTLY * (used + set_aside):
                 return WARN, (f"{set_aside} of {used + set_aside} points of the last {len(recent)} clouds were set "

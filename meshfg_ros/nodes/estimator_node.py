@@ -5,7 +5,9 @@ Subscribes `points` (sensor_msgs/PointCloud2, any frame placed through /tf, sens
 unless points_reliable), `tool_pose` (geometry_msgs/PoseStamped, any frame and rate: points on
 the tool are segmentation leaks), `predicted_mesh` and `prediction_failed` (the simulation node's
 answers), `initial_mesh` (or parameter mesh_file), /tf and /tf_static. Each accepted cloud is
-announced on `prediction_request` (std_msgs/Header). Publishes the estimate, its status, markers
+announced on `prediction_request` (std_msgs/Header); with prediction_source sim_bridge it is
+asked of the XPBD simulator's sim_bridge service instead (nodes/sim_bridge_client.py), whose
+answer takes the same path to the estimator. Publishes the estimate, its status, markers
 and diagnostics (nodes/estimator_outputs.py), and answers planners' `surface_query`
 (nodes/planner_service.py). Updates run in their own thread, so a long solve
 does not make DDS drop input. Clouds and tool poses that arrive before the mesh are held until
@@ -48,6 +50,7 @@ from meshfg_ros.nodes.ros_conversions import PREDICTION_QOS, RCLPY_FACTORY, REQU
 from meshfg_ros.nodes.ros_conversions import InitialMeshSource, positions_from_msg
 from meshfg_ros.nodes.ros_parameters import declare_parameters
 from meshfg_ros.nodes.runtime import SolverThread, run_nodes
+from meshfg_ros.nodes.sim_bridge_client import SimBridgeClient
 from meshfg_ros.parameters import estimator_changes, estimator_config, world_frame_inputs
 
 RELIABLE_POINTS_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
@@ -71,9 +74,13 @@ class EstimatorNode(Node):
         self._held = HeldUntilMesh({POSE: DEFAULT_MAX_SAMPLES, CLOUD: MAX_QUEUED_CLOUDS})
         self._mesh = InitialMeshSource(self, self._frame, self._set_mesh, self._held.release)
         self._inputs = FrameInputs(self, world_frame_inputs(self.params), self._on_placed, self._on_unplaceable)
+        self._bridge = None if self.params["prediction_source"] != "sim_bridge" else SimBridgeClient(
+            self, self.params["sim_bridge_service"], self.params["sim_bridge_stiffness"], self._frame,
+            self._inputs.placer.transforms, self.params["prediction_timeout"], self._on_bridge_answer)
         self._planner_service = PlannerService(self, self._inputs.placer)
-        self.create_subscription(TetraMesh, "predicted_mesh", self._on_prediction, PREDICTION_QOS)
-        self.create_subscription(PredictionFailure, "prediction_failed", self._on_failure, PREDICTION_QOS)
+        if self._bridge is None:  # else nothing but the service predicts
+            self.create_subscription(TetraMesh, "predicted_mesh", self._on_prediction, PREDICTION_QOS)
+            self.create_subscription(PredictionFailure, "prediction_failed", self._on_failure, PREDICTION_QOS)
         self.create_subscription(PoseStamped, "tool_pose", self._on_tool_pose, STREAM_QOS)
         points_qos = RELIABLE_POINTS_QOS if self.params["points_reliable"] else qos_profile_sensor_data
         self.create_subscription(PointCloud2, "points", self._on_cloud, points_qos)
@@ -101,6 +108,8 @@ class EstimatorNode(Node):
             tool_pose_extrapolation=self.params["tool_pose_horizon"],
             timeouts=SchedulingTimeouts(prediction_timeout=self.params["prediction_timeout"]))
         self.outputs.set_mesh(state)
+        if self._bridge is not None:
+            self._bridge.set_mesh(mesh)
         with self._lock:
             self._scheduler = scheduler
         self.get_logger().info(f"sparse Cholesky BLAS: {blas.backend().name}, {blas.backend().threads} thread(s)")
@@ -139,7 +148,7 @@ class EstimatorNode(Node):
         if scheduler is None:
             return self._hold(item)
         if item.kind == CLOUD and cloud_queued(notes):
-            self._requests.publish(header_msg(item.stamp_ns, self._frame, RCLPY_FACTORY))
+            self._request_prediction(item.stamp_ns)
         self.outputs.note(notes)
         self._solver.wake()
 
@@ -176,6 +185,18 @@ class EstimatorNode(Node):
         self.outputs.note([rejection] if rejection else [])
         self._solver.wake()
 
+    def _request_prediction(self, stamp_ns: int) -> None:
+        """Ask the prediction source for the prediction of the cloud at `stamp_ns`."""
+        if self._bridge is None:
+            return self._requests.publish(header_msg(stamp_ns, self._frame, RCLPY_FACTORY))
+        self.outputs.count("sim_bridge_calls")
+        self._bridge.request(stamp_ns)
+
+    def _on_bridge_answer(self, answer: Prediction | None, notes: list[Rejection]) -> None:
+        self.outputs.note(notes)
+        if answer is not None:
+            self._take_answer(answer, "predictions_received" if answer.positions is not None else "predictions_failed")
+
     # ------------------------------------------------------------------ solver thread
     def _next_step(self) -> tuple | None:
         """(scheduler, the step it has ready) or None."""
@@ -190,6 +211,7 @@ class EstimatorNode(Node):
         except Exception as error:  # noqa: BLE001 - the solver thread must outlive any one failure
             outcome = StepOutcome(step, None, repr(error), "failed_steps")
         if not self._solver.stopping:  # after shutdown the node may be gone already
+            self.outputs.note(list(outcome.notes))
             self.outputs.step(step, outcome, start_s)
 
 

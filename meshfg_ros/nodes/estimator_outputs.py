@@ -44,6 +44,7 @@ class EstimatorOutputs:
         self._latencies: deque[float] = deque(maxlen=_LATENCY_HISTORY)
         self._unanswered_since_s: float | None = None
         self._last_rejection = ""
+        self._last_prediction_problem = ""  # the newest sim_bridge answer refused, and why
         self._markers_job: tuple | None = None
         # The mesh's state, its TetraMesh builder, surface edges and vertices given ellipsoids (markers).
         self._mesh: tuple[MeshState, MeshMessages, np.ndarray, np.ndarray] | None = None
@@ -80,6 +81,8 @@ class EstimatorOutputs:
                 self.counters.count(rejection.counter)
                 if rejection.counter in EstimatorCounters.CLOUD_REJECTIONS:  # what "every cloud is rejected" names
                     self._last_rejection = rejection.reason
+                if rejection.counter.startswith("sim_bridge_") and rejection.counter != "sim_bridge_stiffness_repaired":
+                    self._last_prediction_problem = rejection.reason
             self._node.get_logger().warning(rejection.reason, throttle_duration_sec=1.0)
         if rejections:
             self._wake.trigger()
@@ -115,6 +118,7 @@ class EstimatorOutputs:
             self.counters.queued_clouds = queued or 0
             counters, job, self._markers_job = replace(self.counters), self._markers_job, None
             since, last_rejection = self._unanswered_since_s, self._last_rejection
+            self.health.prediction_problem = self._last_prediction_problem
         unanswered_s = 0.0 if since is None else time.monotonic() - since
         level, message = self.health.assess(counters, queued is None, unanswered_s, last_rejection)
         self._diagnostics.publish(diagnostic_array(f"{self._node.get_fully_qualified_name()}: estimation", level,

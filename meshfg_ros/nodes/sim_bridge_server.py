@@ -1,0 +1,161 @@
+"""sim_bridge_server: this project's elastic simulator behind the XPBD simulator's sim_bridge
+service, to try and test the estimator's prediction_source sim_bridge without the C++ simulator.
+
+Like the authors' simulator it runs on its own, driven by the tool: each `tool_pose`
+(geometry_msgs/PoseStamped in its world_frame; others are ignored and counted) moves its state
+(core.simulator.ElasticSimulator, the simulation node's model and parameters, from the initial
+mesh of mesh_file or `initial_mesh`), and the service `/sim/factor_graph_state`
+(sim_bridge/srv/FactorGraphState; remap it with -r) answers with its current state in
+world_frame (run it with -p world_frame:=sim/world for the authors' frame) and, when asked,
+the corotational FEM stiffness at that state as a full symmetric COO matrix in float32 with the
+fixed vertices' dofs at FIXED_DOF_STIFFNESS on the diagonal, as the authors' bridge sends them.
+Every slot is valid: this simulator does not cut.
+
+`factor_graph_state_response` builds an answer from arrays; `SimBridgeService` serves answers
+from any function of the request (the tests serve scripted states with it).
+"""
+
+from __future__ import annotations
+
+import array
+import sys
+from collections.abc import Callable
+
+import numpy as np
+import scipy.sparse
+from geometry_msgs.msg import PoseStamped
+from rclpy.node import Node
+from sim_bridge.srv import FactorGraphState
+
+from meshfg_ros.core.fem import ElasticModel
+from meshfg_ros.core.mesh import TetMesh
+from meshfg_ros.core.simulator import ElasticSimulator
+from meshfg_ros.io.messages import MessageValidationError, header_msg, pose_from_msg
+from meshfg_ros.nodes.ros_conversions import RCLPY_FACTORY, STREAM_QOS, InitialMeshSource
+from meshfg_ros.nodes.ros_parameters import declare_parameters
+from meshfg_ros.nodes.runtime import run_nodes
+from meshfg_ros.parameters import simulator_config
+
+__all__ = ["FIXED_DOF_STIFFNESS", "SERVICE", "SimBridgeServer", "SimBridgeService", "factor_graph_state_response"]
+
+SERVICE = "/sim/factor_graph_state"
+FIXED_DOF_STIFFNESS = 1e9  # N/m on the diagonal of a held dof, as the authors' bridge writes it
+_MAX_STEP_S = 0.1  # a pause in the tool poses is not simulated as one long step
+_TYPECODES = {np.dtype(np.float64): "d", np.dtype(np.float32): "f", np.dtype(np.int32): "i"}
+
+
+def _sequence(values, dtype) -> array.array:
+    """A primitive sequence field's value (array.array) of `values` as `dtype`."""
+    dtype = np.dtype(dtype)
+    return array.array(_TYPECODES[dtype], np.ascontiguousarray(values, dtype=dtype).tobytes())
+
+
+def factor_graph_state_response(positions: np.ndarray, mesh: TetMesh, frame_id: str, stamp_ns: int,
+                                stiffness: scipy.sparse.spmatrix | None = None) -> FactorGraphState.Response:
+    """The service's answer: `positions` (N, 3) of `mesh`'s vertices (every slot valid), its
+    surface triangles and elements, and `stiffness` (3N, 3N) as float32 COO with the fixed
+    vertices' rows and columns cleared and FIXED_DOF_STIFFNESS on their diagonal."""
+    header = header_msg(stamp_ns, frame_id, RCLPY_FACTORY)
+    response = FactorGraphState.Response()
+    state = response.fg_state.sim_mesh
+    response.fg_state.header = state.header = state.vertices.header = header
+    state.faces.header = state.elements.header = header
+    state.vertices.size = mesh.vertex_count
+    state.vertices.data = _sequence(positions, np.float64)
+    state.faces.size = len(mesh.surface_triangles)
+    state.faces.data = _sequence(mesh.surface_triangles, np.int32)
+    state.elements.size = len(mesh.tetrahedra)
+    state.elements.data = _sequence(mesh.tetrahedra, np.int32)
+    if stiffness is not None:
+        matrix = scipy.sparse.coo_matrix(stiffness)
+        held = np.zeros(matrix.shape[0], dtype=bool)
+        held[(3 * np.asarray(mesh.fixed_vertices)[:, None] + np.arange(3)).reshape(-1)] = True
+        keep = ~(held[matrix.row] | held[matrix.col])
+        dofs = np.flatnonzero(held)
+        rows = np.concatenate([matrix.row[keep], dofs])
+        cols = np.concatenate([matrix.col[keep], dofs])
+        values = np.concatenate([matrix.data[keep], np.full(dofs.size, FIXED_DOF_STIFFNESS)])
+        out = response.fg_state.sim_stiffness_mat
+        out.header = header
+        out.rows, out.cols = matrix.shape
+        out.row_indices = _sequence(rows, np.int32)
+        out.col_indices = _sequence(cols, np.int32)
+        out.values = _sequence(values, np.float32)
+    response.updated_last_mesh = state
+    return response
+
+
+class SimBridgeService:
+    """The service on `node`, answering each request with `answer(request)` (a Response)."""
+
+    def __init__(self, node: Node, answer: Callable[[FactorGraphState.Request], FactorGraphState.Response],
+                 name: str = SERVICE) -> None:
+        self._answer = answer
+        self.calls = 0
+        node.create_service(FactorGraphState, name, self._serve)
+
+    def _serve(self, request, response):
+        self.calls += 1
+        return self._answer(request)
+
+
+class SimBridgeServer(Node):
+    """The project's simulator behind the sim_bridge service (module docstring)."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__("sim_bridge_server", **kwargs)
+        self.params = declare_parameters(self, "sim_bridge_server")
+        self._frame = self.params["world_frame"]
+        self._simulator: ElasticSimulator | None = None
+        self._model: ElasticModel | None = None
+        self._mesh: TetMesh | None = None
+        self._state: np.ndarray | None = None
+        self._last_stamp_ns: int | None = None
+        self.tool_poses_ignored = 0
+        self._mesh_source = InitialMeshSource(self, self._frame, self._set_mesh)
+        self.create_subscription(PoseStamped, "tool_pose", self._on_tool_pose, STREAM_QOS)
+        self.service = SimBridgeService(self, self._respond)
+        self._mesh_source.load_file(self.params)
+
+    def _set_mesh(self, mesh: TetMesh, state) -> None:
+        config = simulator_config(self.params)
+        self._simulator = ElasticSimulator(mesh, config)
+        self._model = ElasticModel(mesh.vertices, mesh.tetrahedra, config.youngs_modulus, config.poisson_ratio)
+        self._mesh, self._state, self._last_stamp_ns = mesh, mesh.vertices.copy(), None
+
+    def _on_tool_pose(self, msg: PoseStamped) -> None:
+        try:
+            record = pose_from_msg(msg)
+        except (MessageValidationError, ValueError):
+            record = None
+        if record is None or record.frame_id.strip("/") != self._frame.strip("/") or self._simulator is None:
+            self.tool_poses_ignored += 1
+            self.get_logger().warning(f"tool pose ignored: malformed, not in {self._frame}, or no mesh yet",
+                                      throttle_duration_sec=1.0)
+            return
+        if self._last_stamp_ns is None or record.stamp_ns <= self._last_stamp_ns:
+            self._simulator.reset(record.pose)
+            self._last_stamp_ns = record.stamp_ns
+            return
+        dt = min((record.stamp_ns - self._last_stamp_ns) * 1e-9, _MAX_STEP_S)
+        try:
+            self._state = self._simulator.predict(self._state, record.pose, dt)
+        except Exception as error:  # noqa: BLE001 - a failed step keeps the last state, as a simulator would
+            self.get_logger().warning(f"simulation step failed, state kept: {error}", throttle_duration_sec=1.0)
+        self._last_stamp_ns = record.stamp_ns
+
+    def _respond(self, request) -> FactorGraphState.Response:
+        if self._mesh is None:
+            return FactorGraphState.Response()  # no mesh yet: an empty answer, which a client refuses
+        stiffness = self._model.stiffness(self._state, kind="corotational") if request.compute_stiffness_matrix else None
+        return factor_graph_state_response(self._state, self._mesh, self._frame, self.get_clock().now().nanoseconds,
+                                           stiffness)
+
+
+def main(args=None) -> int:
+    """Console script `sim_bridge_server` (accepts --ros-args)."""
+    return run_nodes("sim_bridge_server", [SimBridgeServer], args=args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

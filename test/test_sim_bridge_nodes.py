@@ -1,0 +1,292 @@
+"""The estimator node with prediction_source sim_bridge over real DDS: a scripted sim_bridge service
+in the test process (nodes/sim_bridge_server.SimBridgeService) answers in frame sim/world, which
+/tf_static places in the world; the node's estimates equal those of the same predictions and
+stiffness given in-process; a service that is missing, slow or answers badly is counted and
+named in /diagnostics, and the steps run degraded, never on a poisoned window; the
+sim_bridge_server executable answers with the project's simulator driven by tool poses."""
+import time
+from collections import deque
+
+import numpy as np
+import pytest
+import scipy.sparse
+from scipy.spatial.transform import Rotation
+from sim_bridge.srv import FactorGraphState
+from test_nodes import (  # noqa: F401 - probe and processes are fixtures
+    FACTORY,
+    KEEP,
+    S,
+    SIDE,
+    EstimatorProbe,
+    Process,
+    assert_clean_exit,
+    call_service,
+    cloud_msg,
+    mesh_msg,
+    probe,
+    processes,
+    pushed_cube,
+    ros_args,
+    spin_until,
+    tool_pose_msg,
+    top_points,
+)
+from tf2_msgs.msg import TFMessage
+
+from meshfg_ros.core.external_prior import FIXED_DIAGONAL, bridge_state
+from meshfg_ros.core.fem import ElasticModel
+from meshfg_ros.core.frames import StampedTransform
+from meshfg_ros.core.mesh import save_mesh
+from meshfg_ros.core.scheduler import EstimationScheduler, Prediction, SchedulingTimeouts
+from meshfg_ros.core.world_frame import CLOUD, FramedInput
+from meshfg_ros.io.messages import PoseRecord, pose_to_msg
+from meshfg_ros.io.tf_messages import TF_STATIC_TOPIC, transforms_to_tf_message
+from meshfg_ros.nodes.frame_inputs import TF_STATIC_QOS
+from meshfg_ros.nodes.sim_bridge_client import answer_from_msg
+from meshfg_ros.nodes.sim_bridge_server import FIXED_DOF_STIFFNESS, SimBridgeService, factor_graph_state_response
+from meshfg_ros.parameters import estimator_config, load_parameters, world_frame_inputs
+
+pytestmark = pytest.mark.slow  # node processes over DDS
+
+SIM_TRANSLATION = np.array([0.01, -0.02, 0.003])
+SIM_ROTATION = Rotation.from_euler("z", 30, degrees=True)
+
+
+def sim_to_world() -> np.ndarray:
+    matrix = np.eye(4)
+    matrix[:3, :3], matrix[:3, 3] = SIM_ROTATION.as_matrix(), SIM_TRANSLATION
+    return matrix
+
+
+def in_sim_frame(world_positions):
+    return SIM_ROTATION.inv().apply(world_positions - SIM_TRANSLATION)
+
+
+def publish_sim_frame(probe):
+    publisher = probe.create_publisher(TFMessage, TF_STATIC_TOPIC, TF_STATIC_QOS)
+    publisher.publish(transforms_to_tf_message(
+        [StampedTransform("world", "sim/world", 0, SIM_TRANSLATION, SIM_ROTATION.as_quat())], FACTORY))
+    return publisher
+
+
+def pressed(mesh, step):
+    """The cube pressed down by 0.6 mm per step at its top, more towards x = SIDE."""
+    positions = mesh.vertices.copy()
+    height = positions[:, 2] / SIDE
+    positions[:, 2] -= 6e-4 * step * height * (0.5 + positions[:, 0] / SIDE)
+    return positions
+
+
+def response_for(mesh, model, world_positions, stamp_ns):
+    sim_positions = in_sim_frame(world_positions)
+    return factor_graph_state_response(sim_positions, mesh, "sim/world", stamp_ns,
+                                       model.stiffness(sim_positions, kind="corotational"))
+
+
+class ScriptedService:
+    """The sim_bridge service of the test process: answers its calls with the queued answers."""
+
+    def __init__(self, probe, name):
+        self.answers = deque()
+        self.service = SimBridgeService(probe, self._answer, name)
+
+    def _answer(self, request):
+        assert request.compute_stiffness_matrix and not request.update_last_mesh
+        answer = self.answers.popleft()
+        return answer() if callable(answer) else answer
+
+
+def start_node(probe, processes, tmp_path, namespace, *parameters):
+    node = Process(tmp_path, "estimator_node", *ros_args(
+        namespace, "prediction_source:=sim_bridge", f"sim_bridge_service:={namespace}/sim/factor_graph_state",
+        "points_reliable:=true", *parameters))
+    processes.append(node)
+    io = EstimatorProbe(probe, namespace)
+    assert spin_until(probe, lambda: io.cloud.get_subscription_count() == 1
+                      and probe.count_clients(f"{namespace}/sim/factor_graph_state") == 1)
+    io.wait_for(clouds_received=0)
+    return node, io
+
+
+def estimate_at(io, stamp_ns):
+    for message in io.estimates:
+        if message.header.stamp.sec * S + message.header.stamp.nanosec == stamp_ns:
+            return message
+    raise AssertionError(f"no estimate at {stamp_ns}")
+
+
+def test_estimates_from_the_service_equal_those_of_the_same_predictions_in_process(probe, processes, tmp_path):
+    mesh = pushed_cube()
+    model = ElasticModel(mesh.vertices, mesh.tetrahedra, 3000.0, 0.45)
+    namespace = "/sb_same"
+    overrides = ["window_size:=3", "prediction_timeout:=20.0", "update_time_budget:=60.0"]
+    service = ScriptedService(probe, f"{namespace}/sim/factor_graph_state")
+    publish_sim_frame(probe)
+    node, io = start_node(probe, processes, tmp_path, namespace, *overrides)
+    io.mesh.publish(mesh_msg(mesh))
+    time.sleep(1.0)  # the node's client matches the service's reply writer (call_service's docstring)
+    steps = 5
+    clouds = []
+    for step in range(1, steps + 1):
+        points = top_points(seed=step)
+        points[:, 2] -= 6e-4 * step * (0.5 + points[:, 0] / SIDE)
+        clouds.append(points)
+        service.answers.append(response_for(mesh, model, pressed(mesh, step), step * S))
+        io.send(cloud_msg(points, step * S), steps=step)
+    counters = io.wait_for(sim_bridge_calls=steps, predictions_received=steps, degraded_steps=0)
+    assert counters["sim_bridge_stiffness_rejected"] == "0"
+
+    # The same predictions and stiffness, in-process, through the scheduler the node runs.
+    params = load_parameters({"window_size": 3, "prediction_timeout": 20.0, "update_time_budget": 60.0,
+                              "points_reliable": True, "prediction_source": "sim_bridge"}, "estimator_node")
+    scheduler = EstimationScheduler(mesh, estimator_config(params),
+                                    timeouts=SchedulingTimeouts(prediction_timeout=20.0))
+    placer = world_frame_inputs(params)
+    for step, points in enumerate(clouds, start=1):
+        placed, _ = placer.add(FramedInput(CLOUD, step * S, "world", points), 0.0)
+        scheduler.add_cloud(step * S, placed[0].data, 0.0, placed[0].viewpoint)
+        response = response_for(mesh, model, pressed(mesh, step), step * S)
+        positions, stiffness = bridge_state(answer_from_msg(response.fg_state, True), mesh.vertex_count,
+                                            mesh.tetrahedra, sim_to_world())
+        np.testing.assert_allclose(positions, pressed(mesh, step), atol=1e-12)
+        scheduler.add_prediction(Prediction(step * S, positions, stiffness=stiffness))
+        outcome = scheduler.run(scheduler.next_step(0.0, flush=True))
+        live = estimate_at(io, step * S)
+        assert not live.degraded
+        np.testing.assert_allclose(np.asarray(live.positions).reshape(-1, 3), outcome.result.positions,
+                                   rtol=0, atol=1e-8)
+    moved = np.abs(outcome.result.positions - mesh.vertices).max()
+    assert moved > 1e-3  # the estimates followed the press
+    assert_clean_exit(node, node.interrupt())
+
+
+def test_a_service_that_fails_is_counted_named_and_runs_degraded(probe, processes, tmp_path):
+    mesh = pushed_cube()
+    model = ElasticModel(mesh.vertices, mesh.tetrahedra, 3000.0, 0.45)
+    namespace = "/sb_bad"
+    service = ScriptedService(probe, f"{namespace}/sim/factor_graph_state")
+    publish_sim_frame(probe)
+    node, io = start_node(probe, processes, tmp_path, namespace, "window_size:=3", "prediction_timeout:=1.0",
+                          "camera_pose:=[0.025, 0.025, 0.3, 0.0, 0.0, 0.0, 1.0]")  # above the cube
+    io.mesh.publish(mesh_msg(mesh))
+    time.sleep(1.0)
+
+    def good(step):
+        return response_for(mesh, model, pressed(mesh, step), step * S)
+
+    def with_nan(step):
+        response = good(step)
+        values = np.asarray(response.fg_state.sim_mesh.vertices.data)
+        values[7] = np.nan
+        response.fg_state.sim_mesh.vertices.data = values.tolist()
+        return response
+
+    def too_few_vertices(step):
+        return factor_graph_state_response(in_sim_frame(pressed(mesh, step))[:-4], mesh, "sim/world", step * S)
+
+    def indefinite(step):
+        stiffness = model.stiffness(None, kind="linear")
+        shift = 0.5 * stiffness.diagonal().mean()
+        return factor_graph_state_response(in_sim_frame(pressed(mesh, step)), mesh, "sim/world", step * S,
+                                           stiffness - shift * scipy.sparse.identity(stiffness.shape[0]))
+
+    def other_mesh(step):
+        response = good(step)
+        elements = np.asarray(response.fg_state.sim_mesh.elements.data).reshape(-1, 4)
+        elements[0] = [0, 1, 2, mesh.vertex_count - 1]
+        response.fg_state.sim_mesh.elements.data = elements.reshape(-1).tolist()
+        return response
+
+    def slow(step):
+        time.sleep(1.6)
+        return good(step)
+
+    def stiffness_of_another_size(step):
+        response = good(step)
+        matrix = response.fg_state.sim_stiffness_mat
+        matrix.rows = matrix.cols = 9
+        matrix.row_indices, matrix.col_indices, matrix.values = [0, 4, 8], [0, 4, 8], [1.0, 1.0, 1.0]
+        return response
+
+    script = [(good, False), (with_nan, True), (too_few_vertices, True), (indefinite, False), (other_mesh, True),
+              (slow, True), (stiffness_of_another_size, True), (good, False)]
+    expected = {}
+    counter_of = {with_nan: "sim_bridge_rejected_malformed", too_few_vertices: "sim_bridge_rejected_mesh",
+                  indefinite: "sim_bridge_stiffness_rejected", other_mesh: "sim_bridge_rejected_mesh",
+                  slow: "sim_bridge_late", stiffness_of_another_size: "sim_bridge_rejected_malformed"}
+    for step, (answer, degraded) in enumerate(script, start=1):
+        service.answers.append(lambda answer=answer, step=step: answer(step))
+        if answer in counter_of:
+            expected[counter_of[answer]] = expected.get(counter_of[answer], 0) + 1
+        points = top_points(seed=step)
+        points[:, 2] -= 6e-4 * step * (0.5 + points[:, 0] / SIDE)
+        io.send(cloud_msg(points, step * S), steps=step, **expected)
+        estimate = estimate_at(io, step * S)
+        assert estimate.degraded == degraded, (step, answer.__name__)
+        assert np.isfinite(np.asarray(estimate.positions)).all()
+    counters = io.wait_for(sim_bridge_calls=len(script), degraded_steps=5, failed_steps=0, **expected)
+    assert counters["sim_bridge_unavailable"] == "0"
+    # The last good answer is used as given: the window was not poisoned by the bad ones.
+    np.testing.assert_allclose(np.asarray(estimate_at(io, 8 * S).positions).reshape(-1, 3)[mesh.fixed_vertices],
+                               mesh.vertices[mesh.fixed_vertices], atol=1e-12)
+    assert np.abs(np.asarray(estimate_at(io, 8 * S).positions).reshape(-1, 3) - pressed(mesh, 8)).max() < 2e-3
+    messages = [message for message, _ in io.diagnostics]
+    assert any("stiffness matrices refused" in message and "indefinite" in message for message in messages), messages
+    assert any("ran without a simulator prediction: sim_bridge answer" in message for message in messages), messages
+    assert_clean_exit(node, node.interrupt())
+
+
+def test_a_missing_service_is_named_in_the_diagnostics(probe, processes, tmp_path):
+    mesh = pushed_cube()
+    namespace = "/sb_none"
+    node = Process(tmp_path, "estimator_node", *ros_args(
+        namespace, "prediction_source:=sim_bridge", "sim_bridge_service:=/nobody/sim/factor_graph_state",
+        "points_reliable:=true", "window_size:=3"))
+    processes.append(node)
+    io = EstimatorProbe(probe, namespace)
+    assert spin_until(probe, lambda: io.cloud.get_subscription_count() == 1)
+    io.wait_for(clouds_received=0)
+    io.mesh.publish(mesh_msg(mesh))
+    for step in range(1, 4):
+        io.send(cloud_msg(top_points(seed=step), step * S), steps=step, sim_bridge_unavailable=step,
+                degraded_steps=step)
+    assert spin_until(probe, lambda: "no sim_bridge service /nobody/sim/factor_graph_state: start the simulator's "
+                      "sim_bridge node" in io.diagnostics[-1][0]), io.diagnostics[-1]
+    assert_clean_exit(node, node.interrupt())
+
+
+def test_the_server_executable_answers_with_the_simulator_driven_by_the_tool(probe, processes, tmp_path):
+    mesh = pushed_cube()
+    path = tmp_path / "cube.vtu"
+    save_mesh(mesh, path)
+    server = Process(tmp_path, "sim_bridge_server", *ros_args(
+        "/sb_server", f"mesh_file:={path}", "world_frame:=sim/world", "fixed_box:=[-1.0, -1.0, -0.001, 1.0, 1.0, 0.001]"))
+    processes.append(server)
+    tool = probe.create_publisher(type(tool_pose_msg([0, 0, 0], 0)), "/sb_server/tool_pose", KEEP)
+    client = probe.create_client(FactorGraphState, "/sim/factor_graph_state")
+    assert spin_until(probe, lambda: tool.get_subscription_count() == 1)
+    top_vertex = int(np.argmin(np.linalg.norm(mesh.vertices - [SIDE / 3, SIDE / 3, SIDE], axis=1)))
+    centre = mesh.vertices[top_vertex] + [0.0, 0.0, 0.005]  # the tool sphere (radius 5 mm) on a top vertex
+    for step in range(0, 6):
+        tool.publish(pose_to_msg(PoseRecord(step * S // 10, "sim/world",
+                                            [*(centre - [0, 0, 0.001 * step]), 0.0, 0.0, 0.0, 1.0]), FACTORY))
+        spin_until(probe, lambda: False, timeout_s=0.2)
+    response = call_service(probe, client, FactorGraphState.Request(compute_stiffness_matrix=True))
+    state = response.fg_state
+    assert state.sim_mesh.header.frame_id == "sim/world"
+    positions = np.asarray(state.sim_mesh.vertices.data).reshape(-1, 3)
+    assert positions.shape == mesh.vertices.shape and state.sim_mesh.vertices.size == mesh.vertex_count
+    assert positions[top_vertex, 2] < SIDE - 0.002, server.output()  # pressed by the tool (5 mm travel)
+    np.testing.assert_array_equal(np.sort(np.asarray(state.sim_mesh.elements.data).reshape(-1, 4), axis=1),
+                                  np.sort(mesh.tetrahedra, axis=1))
+    matrix = state.sim_stiffness_mat
+    assert (matrix.rows, matrix.cols) == (3 * mesh.vertex_count,) * 2
+    stiffness = scipy.sparse.coo_matrix((np.asarray(matrix.values, dtype=np.float64),
+                                         (np.asarray(matrix.row_indices), np.asarray(matrix.col_indices))),
+                                        shape=(matrix.rows, matrix.cols)).toarray()
+    np.testing.assert_allclose(stiffness, stiffness.T, rtol=0, atol=1e-6 * np.abs(stiffness).max())
+    fixed_dofs = (3 * mesh.fixed_vertices[:, None] + np.arange(3)).reshape(-1)
+    assert np.all(np.diag(stiffness)[fixed_dofs] == FIXED_DOF_STIFFNESS) and FIXED_DOF_STIFFNESS >= FIXED_DIAGONAL
+    free = np.setdiff1d(np.arange(3 * mesh.vertex_count), fixed_dofs)
+    assert np.diag(stiffness)[free].max() < FIXED_DIAGONAL
+    assert_clean_exit(server, server.interrupt())
