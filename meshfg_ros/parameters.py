@@ -273,6 +273,10 @@ class SharedNodeConfig:
         DEFAULT_EXTRAPOLATION_HORIZON_S, "Seconds past the newest tool pose within which the pose at a cloud's stamp is extrapolated "
         "(tool poses are interpolated at each cloud's stamp); beyond it the step has no tool pose.",
         range=(0.0, 10.0))
+    tool_pose_reliable: bool = setting(
+        True, "Subscribe to tool_pose with reliable QoS (depth 10), which every pose published reliably reaches "
+        "and a best-effort publisher does not match; false: best effort (depth 100), which matches any publisher, "
+        "for robot drivers that publish poses best effort (a pose the transport loses is interpolated over).")
 
     def __post_init__(self) -> None:
         if len(self.fixed_plane) not in (0, 7):

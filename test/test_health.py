@@ -2,7 +2,7 @@
 from most of their points, with a prediction, converged and in time; otherwise the reason."""
 from diagnostic_msgs.msg import DiagnosticStatus
 
-from meshfg_ros.nodes.diagnostics import HEALTH_WINDOW, EstimatorCounters, EstimatorHealth
+from meshfg_ros.nodes.diagnostics import HEALTH_WINDOW, EstimatorCounters, EstimatorHealth, with_setup_problems
 
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
 
@@ -79,3 +79,36 @@ def test_new_failures_and_rejections_warn_once_per_report():
     counters.clouds_rejected_frame = 3
     assert health.assess(counters, False, 0.0) == (WARN, "3 clouds rejected since the last report")
     assert health.assess(counters, False, 0.0) == (OK, "estimating")
+    counters.clouds_rejected_frame = 4
+    assert health.assess(counters, False, 0.0, "cloud rejected: no transform") == (
+        WARN, "1 clouds rejected since the last report; the last: cloud rejected: no transform")
+
+
+def test_clouds_rejected_before_any_estimate_keep_a_warning_with_the_last_reason():
+    health = EstimatorHealth(stalled_after_s=12.0)
+    counters = EstimatorCounters(clouds_received=2, clouds_rejected_registration=2)
+    reason = "cloud at 1 ns rejected: the clouds do not overlap the mesh, but would with mesh_scale 0.1 times its value"
+    for _ in range(3):  # every report until the stall's ERROR, not only the first after a rejection
+        assert health.assess(counters, False, 2.0, reason) == (WARN, f"no estimate yet: 2 clouds rejected; the last: "
+                                                                     f"{reason}")
+
+
+def test_clouds_seen_from_implausible_angles_warn_to_check_camera_frame():
+    health = EstimatorHealth(stalled_after_s=2.0)
+    counters = healthy_steps(health, HEALTH_WINDOW // 2)
+    for _ in range(HEALTH_WINDOW // 2):  # half is not most
+        health.record(degraded=False, converged=True, points_used=900, points_set_aside=100, view_implausible=True)
+    assert health.assess(counters, False, 0.0) == (OK, "estimating")
+    health.record(degraded=False, converged=True, points_used=900, points_set_aside=100, view_implausible=True)
+    level, message = health.assess(counters, False, 0.0)
+    assert level == WARN and message.startswith(f"in {HEALTH_WINDOW // 2 + 1} of the last {HEALTH_WINDOW} clouds more "
+                                                "than 5 % of the points face away from camera_frame's origin")
+    assert "check camera_frame and its transform on /tf (or camera_pose)" in message
+
+
+def test_wiring_problems_come_first():
+    assert with_setup_problems(OK, "estimating", ["tool_pose from /driver never arrives: ...", "x"], []) == (
+        ERROR, "tool_pose from /driver never arrives: ... (and 1 more such publishers)")
+    assert with_setup_problems(WARN, "lagging", [], ["parameters file f sets nothing"]) == (
+        WARN, "parameters file f sets nothing")
+    assert with_setup_problems(WARN, "lagging", [], []) == (WARN, "lagging")

@@ -188,10 +188,13 @@ def test_a_millimetre_mesh_is_caught_at_the_first_cloud_and_mesh_scale_fixes_it(
     for stamp in (1 * S, 2 * S):
         unscaled.cloud.publish(cloud_msg(top_points(seed=stamp // S), stamp))
     unscaled.wait_for(clouds_rejected_registration=2, steps=0)
-    # no estimate for longer than prediction_timeout + 2 x update_time_budget + 1 s: an ERROR with the reason
-    assert spin_until(probe, lambda: unscaled.diagnostics and "set mesh_scale 0.001" in unscaled.diagnostics[-1][0],
+    # at once a WARN with the reason; after prediction_timeout + 2 x update_time_budget + 1 s
+    # without an estimate, an ERROR with it
+    assert unscaled.diagnostics[-1][0].startswith("no estimate yet: 2 clouds rejected; the last: ")
+    assert unscaled.diagnostics[-1][0].endswith("set mesh_scale 0.001")
+    assert spin_until(probe, lambda: unscaled.diagnostics[-1][0].startswith("no estimate for the clouds of the last"),
                       timeout_s=30.0), unscaled.diagnostics[-1:]
-    assert unscaled.diagnostics[-1][0].startswith("no estimate for the clouds of the last")
+    assert unscaled.diagnostics[-1][0].endswith("set mesh_scale 0.001")
     scaled.send(cloud_msg(top_points(), 1 * S), steps=1, clouds_rejected_registration=0)
     estimate = np.asarray(scaled.estimates[-1].positions).reshape(-1, 3)
     # In metres: the fixed vertices where the scaled file puts them (but for rounding), and the

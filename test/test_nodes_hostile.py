@@ -41,7 +41,9 @@ from meshfg_ros.io.messages import MeshState, PoseRecord, header_msg, pose_to_ms
 @pytest.mark.slow
 def test_estimator_node_counts_input_set_aside_and_bad_stamps(probe, processes, tmp_path):
     mesh = pushed_cube()
-    node = Process(tmp_path, "estimator_node", *ros_args("/hostile", "prediction_timeout:=0.3", "window_size:=3"))
+    # the camera above the measured top face (at the default origin, below it, the node warns of the camera)
+    node = Process(tmp_path, "estimator_node", *ros_args("/hostile", "prediction_timeout:=0.3", "window_size:=3",
+                                                         "camera_pose:=[0.025, 0.025, 0.15, 1.0, 0.0, 0.0, 0.0]"))
     processes.append(node)
     io = EstimatorProbe(probe, "/hostile")
     tool = probe.create_publisher(PoseStamped, "/hostile/tool_pose", KEEP)

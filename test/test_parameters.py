@@ -199,7 +199,7 @@ def test_each_node_declares_the_parameters_of_the_configurations_it_reads():
     assert simulation & estimator == {"youngs_modulus", "poisson_ratio", "tool_radius", "tool_mode", "world_frame",
                                       "mesh_file", "clock_jump_threshold", "mesh_scale", "mesh_pose", "fixed_vertices",
                                       "fixed_plane", "fixed_box", "fixed_groups", "transform_timeout",
-                                      "tool_pose_horizon"}
+                                      "tool_pose_horizon", "tool_pose_reliable"}
     assert simulation | estimator == {parameter.name for parameter in PARAMETERS}
     assert [parameter.name for parameter in node_parameters("bag_player")] == [
         "rate", "wait_for_subscribers", "subscribers", "clock_frequency", "delay", "loop"]

@@ -18,6 +18,7 @@ from typing import NamedTuple
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
+from meshfg_ros.core.camera_check import GRAZING_LIMIT_DEGREES, IMPLAUSIBLE_SHARE
 from meshfg_ros.core.input_checks import rejections_in
 from meshfg_ros.core.weights import NOISE_BOUNDS
 from meshfg_ros.io.messages import RclpyMessageFactory, header_msg
@@ -72,6 +73,7 @@ class EstimatorCounters(_Counters):
     nonfinite_estimates: int = 0
     unconverged_steps: int = 0
     steps_noise_off_nominal: int = 0    # the cloud spread beyond NOISE_BOUNDS x measurement_sigma about the estimate
+    steps_view_implausible: int = 0     # over IMPLAUSIBLE_SHARE of the cloud at angles camera_frame cannot see
     points_used: int = 0
     points_set_aside: int = 0           # on the tool, far, non-finite or gated out
     queued_clouds: int = 0              # waiting for a prediction or the solver
@@ -177,6 +179,19 @@ def diagnostic_array(
     return DiagnosticArray(header=header_msg(stamp_ns, "", _RCLPY), status=[status])
 
 
+def with_setup_problems(level: bytes, message: str, unmatched_publishers: list[str],
+                        setup_warnings: list[str]) -> tuple[bytes, str]:
+    """A node's (level, message) with what its wiring says first: an input publisher whose QoS
+    cannot match (ERROR: nothing it sends arrives; nodes/publisher_qos.py), then a set-up warning
+    (a parameters file that sets nothing: WARN), else the node's own."""
+    if unmatched_publishers:
+        more = len(unmatched_publishers) - 1
+        return ERROR, unmatched_publishers[0] + (f" (and {more} more such publishers)" if more else "")
+    if setup_warnings:
+        return WARN, setup_warnings[0]
+    return level, message
+
+
 # Health thresholds: over the last HEALTH_WINDOW steps.
 HEALTH_WINDOW = 10
 MOSTLY = 0.5              # "most": more than this share
@@ -190,6 +205,7 @@ class _StepOutcome(NamedTuple):
     points_used: int
     points_set_aside: int
     noise_off_nominal: bool
+    view_implausible: bool
 
 
 class EstimatorHealth:
@@ -206,9 +222,11 @@ class EstimatorHealth:
         self.prediction_problem = ""
 
     def record(self, degraded: bool, converged: bool, points_used: int, points_set_aside: int,
-               noise_off_nominal: bool = False) -> None:
-        """One step's outcome."""
-        self._recent.append(_StepOutcome(degraded, converged, points_used, points_set_aside, noise_off_nominal))
+               noise_off_nominal: bool = False, view_implausible: bool = False) -> None:
+        """One step's outcome (view_implausible: more than IMPLAUSIBLE_SHARE of its cloud at angles
+        no camera at camera_frame's origin sees, core/camera_check.py)."""
+        self._recent.append(_StepOutcome(degraded, converged, points_used, points_set_aside, noise_off_nominal,
+                                         view_implausible))
 
     def assess(self, counters: EstimatorCounters, waiting_for_mesh: bool, unanswered_s: float,
                last_rejection: str = "") -> tuple[bytes, str]:
@@ -230,6 +248,9 @@ class EstimatorHealth:
             else:
                 why = "the solver is stuck or every update fails"
             return ERROR, f"no estimate for the clouds of the last {unanswered_s:.0f} s: {why}"
+        if counters.steps == 0 and counters.clouds_rejected:
+            return WARN, (f"no estimate yet: {counters.clouds_rejected} clouds rejected"
+                          + (f"; the last: {last_rejection}" if last_rejection else ""))
         if new_failures:
             return WARN, f"{new_failures} updates failed since the last report"
         if new_stiffness_rejections:
@@ -256,8 +277,15 @@ class EstimatorHealth:
                 return WARN, (f"in {off_nominal} of the last {len(recent)} updates the cloud spread more than "
                               f"{NOISE_BOUNDS:g}x above or below measurement_sigma about the estimate: check it and "
                               "its units")
+            implausible = sum(step.view_implausible for step in recent)
+            if implausible > MOSTLY * len(recent):
+                return WARN, (f"in {implausible} of the last {len(recent)} clouds more than {100 * IMPLAUSIBLE_SHARE:g} % "
+                              "of the points face away from camera_frame's origin or meet its rays beyond "
+                              f"{GRAZING_LIMIT_DEGREES:g} degrees: it is not the depth camera's optical centre; check "
+                              "camera_frame and its transform on /tf (or camera_pose)")
         if new_rejections:
-            return WARN, f"{new_rejections} clouds rejected since the last report"
+            the_last = f"; the last: {last_rejection}" if last_rejection else ""
+            return WARN, f"{new_rejections} clouds rejected since the last report{the_last}"
         if counters.steps == 0:
             return OK, "waiting for clouds"
         return OK, "estimating"

@@ -21,6 +21,7 @@ import threading
 import time
 from dataclasses import replace
 
+import numpy as np
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
@@ -43,11 +44,12 @@ from meshfg_ros.core.world_frame import CLOUD, POSE, FramedInput, Unplaceable
 from meshfg_ros.io.messages import MessageValidationError, header_msg, pose_from_msg, stamp_ns_from_msg
 from meshfg_ros.io.pointcloud import PointCloudError, cloud_record_from_msg
 from meshfg_ros.nodes.estimator_outputs import EstimatorOutputs
-from meshfg_ros.nodes.frame_inputs import FrameInputs
+from meshfg_ros.nodes.frame_inputs import TF_QOS, TF_STATIC_QOS, FrameInputs
 from meshfg_ros.nodes.held_inputs import HeldUntilMesh
 from meshfg_ros.nodes.planner_service import PlannerService
-from meshfg_ros.nodes.ros_conversions import PREDICTION_QOS, RCLPY_FACTORY, REQUEST_QOS, STREAM_QOS
-from meshfg_ros.nodes.ros_conversions import InitialMeshSource, positions_from_msg
+from meshfg_ros.nodes.publisher_qos import TOPIC_TABLE_FIX, IncompatiblePublishers
+from meshfg_ros.nodes.ros_conversions import LATCHED_QOS, PREDICTION_QOS, RCLPY_FACTORY, REQUEST_QOS, TOOL_POSE_QOS_FIX
+from meshfg_ros.nodes.ros_conversions import InitialMeshSource, positions_from_msg, tool_pose_qos
 from meshfg_ros.nodes.ros_parameters import declare_parameters
 from meshfg_ros.nodes.runtime import SolverThread, run_nodes
 from meshfg_ros.nodes.sim_bridge_client import SimBridgeClient
@@ -81,9 +83,17 @@ class EstimatorNode(Node):
         if self._bridge is None:  # else nothing but the service predicts
             self.create_subscription(TetraMesh, "predicted_mesh", self._on_prediction, PREDICTION_QOS)
             self.create_subscription(PredictionFailure, "prediction_failed", self._on_failure, PREDICTION_QOS)
-        self.create_subscription(PoseStamped, "tool_pose", self._on_tool_pose, STREAM_QOS)
+        self.create_subscription(PoseStamped, "tool_pose", self._on_tool_pose, tool_pose_qos(self.params))
         points_qos = RELIABLE_POINTS_QOS if self.params["points_reliable"] else qos_profile_sensor_data
         self.create_subscription(PointCloud2, "points", self._on_cloud, points_qos)
+        self.setup_warnings = self.outputs.setup_warnings  # what run_nodes found wrong in the set-up
+        self._input_qos = IncompatiblePublishers(self)
+        self._input_qos.watch("points", points_qos, "publish it reliable, or set points_reliable:=false")
+        self._input_qos.watch("tool_pose", tool_pose_qos(self.params), TOOL_POSE_QOS_FIX)
+        for topic, qos in (("predicted_mesh", PREDICTION_QOS), ("prediction_failed", PREDICTION_QOS),
+                           ("initial_mesh", LATCHED_QOS), ("/tf", TF_QOS), ("/tf_static", TF_STATIC_QOS)):
+            self._input_qos.watch(topic, qos, TOPIC_TABLE_FIX)
+        self.outputs.unmatched_publishers = self._input_qos.find
         self._mesh.load_file(self.params)
         self._solver = SolverThread(self._next_step, self._run, self.get_logger())
 
@@ -106,7 +116,8 @@ class EstimatorNode(Node):
         scheduler = EstimationScheduler(
             mesh, estimator_config(self.params), clock_jump_threshold=self.params["clock_jump_threshold"],
             tool_pose_extrapolation=self.params["tool_pose_horizon"],
-            timeouts=SchedulingTimeouts(prediction_timeout=self.params["prediction_timeout"]))
+            timeouts=SchedulingTimeouts(prediction_timeout=self.params["prediction_timeout"]),
+            scale_origin=np.asarray(self.params["mesh_pose"][:3]) if self._mesh.from_file else None)
         self.outputs.set_mesh(state)
         if self._bridge is not None:
             self._bridge.set_mesh(mesh)

@@ -21,13 +21,15 @@ from rclpy.node import Node
 from visualization_msgs.msg import MarkerArray
 
 from meshfg_msgs.msg import EstimatorStatus, TetraMesh
+from meshfg_ros.core.camera_check import IMPLAUSIBLE_SHARE, implausible_view
 from meshfg_ros.core.scheduler import CloudStep, Rejection, StepOutcome
 from meshfg_ros.io.messages import MeshState, status_record, status_to_msg
 from meshfg_ros.markers import mesh_markers, spread_surface_sample, surface_edges
-from meshfg_ros.nodes.diagnostics import EstimatorCounters, EstimatorHealth, diagnostic_array
+from meshfg_ros.nodes.diagnostics import EstimatorCounters, EstimatorHealth, diagnostic_array, with_setup_problems
 from meshfg_ros.nodes.ros_conversions import LATCHED_QOS, RCLPY_FACTORY, STREAM_QOS, MeshMessages
 
 _LATENCY_HISTORY = 100
+MIN_VIEW_POINTS = 30  # a cloud with fewer points near the surface says nothing of the camera
 _REPORT_PERIOD_S = 1.0
 
 
@@ -45,6 +47,10 @@ class EstimatorOutputs:
         self._unanswered_since_s: float | None = None
         self._last_rejection = ""
         self._last_prediction_problem = ""  # the newest sim_bridge answer refused, and why
+        # The node's wiring, which the diagnostics put first: input publishers whose QoS cannot
+        # match (nodes/publisher_qos.py) and what run_nodes found wrong in the set-up.
+        self.unmatched_publishers: Callable[[], list[str]] = list
+        self.setup_warnings: list[str] = []
         self._markers_job: tuple | None = None
         # The mesh's state, its TetraMesh builder, surface edges and vertices given ellipsoids (markers).
         self._mesh: tuple[MeshState, MeshMessages, np.ndarray, np.ndarray] | None = None
@@ -100,16 +106,28 @@ class EstimatorOutputs:
                                                  result.position_std, result.degraded, result.position_covariance))
         self._statuses.publish(status_to_msg(status_record(result, self._frame), RCLPY_FACTORY))
         done = time.monotonic()
+        view_implausible = self._view_implausible(step, result)
         with self._lock:
             self._latencies.append(1e3 * (done - step.arrival_s))
             self.counters.record_step(result, 1e3 * (start_s - step.arrival_s), 1e3 * (done - publish_start),
                                       list(self._latencies))
             self.health.record(result.degraded, result.converged, result.num_points, result.num_points_rejected,
-                               result.noise_off_nominal)
+                               result.noise_off_nominal, view_implausible)
+            self.counters.steps_view_implausible += int(view_implausible)
             self._unanswered_since_s = None
             self._markers_job = (result.positions, result.position_std, result.position_covariance, step.points,
                                  step.stamp_ns)
         self._wake.trigger()
+
+    def _view_implausible(self, step: CloudStep, result) -> bool:
+        """Whether more than IMPLAUSIBLE_SHARE of the step's cloud lies at angles no camera at its
+        viewpoint sees (core/camera_check.py); after the estimate is out, so it adds no latency."""
+        if step.viewpoint is None or step.points is None:
+            return False
+        state = self._mesh[0]
+        implausible, considered = implausible_view(result.positions, state.surface_triangles, step.points,
+                                                   step.viewpoint, result.measurement_sigma)
+        return considered >= MIN_VIEW_POINTS and implausible > IMPLAUSIBLE_SHARE * considered
 
     def report(self) -> None:
         """Diagnostics (after each step and periodically) and markers of the newest estimate."""
@@ -120,7 +138,9 @@ class EstimatorOutputs:
             since, last_rejection = self._unanswered_since_s, self._last_rejection
             self.health.prediction_problem = self._last_prediction_problem
         unanswered_s = 0.0 if since is None else time.monotonic() - since
-        level, message = self.health.assess(counters, queued is None, unanswered_s, last_rejection)
+        level, message = with_setup_problems(*self.health.assess(counters, queued is None, unanswered_s,
+                                                                 last_rejection),
+                                             self.unmatched_publishers(), self.setup_warnings)
         self._diagnostics.publish(diagnostic_array(f"{self._node.get_fully_qualified_name()}: estimation", level,
                                                    message, counters, self._node.get_clock().now().nanoseconds))
         if job is not None and self._markers.get_subscription_count() > 0:

@@ -164,6 +164,7 @@ class InitialMeshSource:
     def __init__(self, node: Node, frame: str, on_mesh, on_installed=None) -> None:
         self._node, self._frame, self._on_mesh, self._on_installed = node, frame, on_mesh, on_installed
         self._state: MeshState | None = None
+        self.from_file = False  # whether the mesh being installed or in place is mesh_file's
         node.create_subscription(RCLPY_FACTORY.message_class(TETRA_MESH), "initial_mesh", self._on_message,
                                  LATCHED_QOS)
 
@@ -172,6 +173,7 @@ class InitialMeshSource:
         if not params["mesh_file"]:
             return
         mesh = load_mesh_file(params)  # ParameterError: the node stops at start-up
+        self.from_file = True
         try:
             self._install(MeshState(0, self._frame, 0, mesh.vertices, mesh.tetrahedra, mesh.surface_triangles,
                                     mesh.fixed_vertices), mesh)
@@ -191,9 +193,11 @@ class InitialMeshSource:
             return
         if self._state is not None and same_mesh(self._state, state):
             return  # the latched message again (e.g. a reconnection)
+        from_file, self.from_file = self.from_file, False
         try:
             self._install(state, state.tet_mesh())
         except ValueError as error:
+            self.from_file = from_file
             logger.error(f"initial_mesh rejected: {error}")
             return
         self._installed()
@@ -209,4 +213,4 @@ class InitialMeshSource:
         if restart:
             self._node.get_logger().warning("new initial mesh: restarting from it")
         self._node.get_logger().info(f"initial mesh: {mesh.vertex_count} vertices, {mesh.tetrahedron_count} "
-                                     "tetrahedra")
+                                     f"tetrahedra, {mesh.fixed_vertices.size} fixed vertices")

@@ -4,13 +4,16 @@ Ctrl-C / SIGINT / SIGTERM, and one-line errors for bad arguments and parameters.
 from __future__ import annotations
 
 import gc
+import os
 import re
 import signal
 import threading
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 import rclpy
+import yaml
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation
@@ -88,7 +91,7 @@ def run_nodes(program: str, node_factories: Sequence[Callable[[], Node]], args=N
     argv = sys.argv if args is None else list(args)
     try:
         if help_requested(argv):
-            print(_USAGE.format(program=program), parameters_help(node_names or (program,)), sep="\n\n")
+            _print_help(program, node_names or (program,))
             return 0
         blas.configure()  # before a node loads cvxopt: CHOLMOD binds to the BLAS chosen for this CPU
         init_without_signal_handlers(argv)
@@ -103,6 +106,10 @@ def run_nodes(program: str, node_factories: Sequence[Callable[[], Node]], args=N
     try:
         for factory in node_factories:
             nodes.append(factory())
+        for warning in unmatched_parameter_files(argv, [node.get_fully_qualified_name() for node in nodes]):
+            for node in nodes:
+                node.get_logger().warning(warning)
+                node.setup_warnings.append(warning)
         executor = SingleThreadedExecutor()
         for node in nodes:
             executor.add_node(node)
@@ -125,6 +132,65 @@ def run_nodes(program: str, node_factories: Sequence[Callable[[], Node]], args=N
         for number, handler in previous_handlers.items():
             signal.signal(number, handler)
     return 0
+
+
+def _print_help(program: str, node_names: Sequence[str]) -> None:
+    """The usage and the parameters on stdout; a reader that stops early (`--help | head`) ends it
+    quietly: stdout goes to /dev/null, so that the flush at exit raises no BrokenPipeError either
+    (the recipe of Python's signal module documentation)."""
+    try:
+        print(_USAGE.format(program=program), parameters_help(node_names), sep="\n\n", flush=True)
+    except BrokenPipeError:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+
+
+def unmatched_parameter_files(argv: Sequence[str], node_names: Sequence[str]) -> list[str]:
+    """A warning for each --params-file of the ROS arguments none of whose node names matches any
+    of `node_names` (fully qualified): rcl applies such a file to no node, silently. Node names
+    match as rcl matches them: a leading '/' implied, '*' one token, '**' any number of them, and
+    namespaces nested as keys."""
+    warnings = []
+    for path in _parameter_files(argv):
+        try:
+            document = yaml.safe_load(Path(path).read_text())
+        except (OSError, yaml.YAMLError):
+            continue  # rcl has read it already, or stopped the program
+        keys = _node_keys(document) if isinstance(document, dict) else []
+        if keys and not any(_node_key_matches(key, name) for key in keys for name in node_names):
+            warnings.append(f"parameters file {path} sets nothing: its node names ({', '.join(keys)}) match none of "
+                            f"this program's nodes ({', '.join(node_names)}); name them so, or use /** for every node")
+    return warnings
+
+
+def _parameter_files(argv: Sequence[str]) -> list[str]:
+    """The --params-file arguments within --ros-args ... [--]."""
+    files, in_ros_args = [], False
+    for argument, following in zip(argv, [*argv[1:], None]):
+        if argument == "--ros-args":
+            in_ros_args = True
+        elif argument == "--":
+            in_ros_args = False
+        elif in_ros_args and argument == "--params-file" and following is not None:
+            files.append(following)
+    return files
+
+
+def _node_keys(document: dict, namespace: str = "") -> list[str]:
+    """The node names of a parameters file: keys holding ros__parameters, below namespace keys."""
+    keys = []
+    for key, value in document.items():
+        if not isinstance(value, dict):
+            continue
+        name = f"{namespace}/{str(key).strip('/')}"
+        keys += [name] if "ros__parameters" in value else _node_keys(value, name)
+    return keys
+
+
+def _node_key_matches(key: str, node_name: str) -> bool:
+    pattern = "".join(".*" if token == "**" else "[^/]*" if token == "*" else re.escape(token)
+                      for token in re.split(r"(\*\*|\*)", key))
+    return re.fullmatch(pattern.replace("/.*", "(/.*)?", 1) if key.startswith("/**") else pattern,
+                        node_name) is not None
 
 
 class SolverThread:

@@ -34,8 +34,9 @@ from meshfg_ros.core.tool_poses import DEFAULT_MAX_SAMPLES
 from meshfg_ros.core.world_frame import POSE, FramedInput, Unplaceable
 from meshfg_ros.io.messages import (MessageValidationError, header_msg, pose_from_msg, stamp_ns_from_msg,
                                     vector_msg)
-from meshfg_ros.nodes.diagnostics import SimulatorCounters, diagnostic_array, waiting_for_mesh_message
-from meshfg_ros.nodes.frame_inputs import FrameInputs
+from meshfg_ros.nodes.diagnostics import (SimulatorCounters, diagnostic_array, waiting_for_mesh_message,
+                                          with_setup_problems)
+from meshfg_ros.nodes.frame_inputs import TF_QOS, TF_STATIC_QOS, FrameInputs
 from meshfg_ros.nodes.held_inputs import HeldUntilMesh
 from meshfg_ros.nodes.ros_conversions import (
     LATCHED_QOS,
@@ -43,11 +44,14 @@ from meshfg_ros.nodes.ros_conversions import (
     RCLPY_FACTORY,
     REQUEST_QOS,
     STREAM_QOS,
+    TOOL_POSE_QOS_FIX,
     InitialMeshSource,
     MeshMessages,
     position_std_from_msg,
     positions_from_msg,
+    tool_pose_qos,
 )
+from meshfg_ros.nodes.publisher_qos import TOPIC_TABLE_FIX, IncompatiblePublishers
 from meshfg_ros.nodes.ros_parameters import declare_parameters
 from meshfg_ros.nodes.runtime import run_nodes
 from meshfg_ros.parameters import simulator_config, world_frame_inputs
@@ -80,8 +84,14 @@ class SimulationNode(Node):
         self._mesh = InitialMeshSource(self, self._frame, self._set_mesh, self._held.release)
         self._inputs = FrameInputs(self, world_frame_inputs(self.params), self._on_placed, self._on_unplaceable)
         self.create_subscription(TetraMesh, "estimated_mesh", self._on_estimate, LATCHED_QOS)
-        self.create_subscription(PoseStamped, "tool_pose", self._on_tool_pose, STREAM_QOS)
+        self.create_subscription(PoseStamped, "tool_pose", self._on_tool_pose, tool_pose_qos(self.params))
         self.create_subscription(Header, "prediction_request", self._on_request, REQUEST_QOS)
+        self.setup_warnings: list[str] = []  # what run_nodes found wrong in the set-up (a parameters file)
+        self._input_qos = IncompatiblePublishers(self)
+        self._input_qos.watch("tool_pose", tool_pose_qos(self.params), TOOL_POSE_QOS_FIX)
+        for topic, qos in (("estimated_mesh", LATCHED_QOS), ("prediction_request", REQUEST_QOS),
+                           ("initial_mesh", LATCHED_QOS), ("/tf", TF_QOS), ("/tf_static", TF_STATIC_QOS)):
+            self._input_qos.watch(topic, qos, TOPIC_TABLE_FIX)
         steady = Clock(clock_type=ClockType.STEADY_TIME)  # waits on wall time, also with use_sim_time
         self.create_timer(_POLL_PERIOD_S, self._answer, clock=steady)
         self.create_timer(_DIAGNOSTICS_PERIOD_S, self._publish_diagnostics, clock=steady)
@@ -206,6 +216,11 @@ class SimulationNode(Node):
         level, message = DiagnosticStatus.OK, "predicting"
         if self._scheduler is None:
             level, message = DiagnosticStatus.WARN, waiting_for_mesh_message(counters)
+        elif counters.requests and not counters.tool_poses_received:
+            level, message = DiagnosticStatus.WARN, (
+                f"{counters.requests} prediction requests but no tool pose received: every step runs without a "
+                "prediction; publish tool_pose (geometry_msgs/PoseStamped) in this node's namespace, with a QoS "
+                "it matches")
         elif new_rejections:
             level, message = DiagnosticStatus.WARN, f"{new_rejections} tool poses rejected since the last report"
         elif new_ignored:
@@ -216,6 +231,7 @@ class SimulationNode(Node):
                                                      "last report: the model is not learnt from them")
         elif self._last_failure is not None:
             level, message = DiagnosticStatus.WARN, f"the last prediction failed: {self._last_failure}"
+        level, message = with_setup_problems(level, message, self._input_qos.find(), self.setup_warnings)
         self._diagnostics_publisher.publish(diagnostic_array(
             f"{self.get_fully_qualified_name()}: simulation", level, message, counters,
             self.get_clock().now().nanoseconds))
