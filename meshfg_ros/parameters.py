@@ -191,6 +191,12 @@ class SimulationNodeConfig:
     estimate_timeout: float = setting(
         SchedulingTimeouts.estimate_timeout, "Seconds (wall time) a prediction request waits for the estimate of the previous request before it "
         "is predicted from the newest state the node has.", range=(0.0, 60.0))
+    blade_half_extents: tuple[float, ...] = setting(
+        (0.0, 0.0, 0.0), "Half extents [x, y, z] in metres of the tool's blade, a box in the tool frame about "
+        "blade_offset: at each tool pose the elements reaching into it, and the pieces that leaves hanging, are "
+        "cut away (core/topology.py); zeros: the tool does not cut.", range=(0.0, 1.0), length=3)
+    blade_offset: tuple[float, ...] = setting(
+        (0.0, 0.0, 0.0), "Centre [x, y, z] of the blade box in the tool frame, metres.", range=(-1.0, 1.0), length=3)
     tool_pose_timeout: float = setting(
         SchedulingTimeouts.tool_pose_timeout, "Seconds (wall time) a prediction request waits for a tool pose stamped at or after its cloud; "
         "then the pose is extrapolated within tool_pose_horizon, or the step runs without a prediction.",

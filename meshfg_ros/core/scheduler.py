@@ -178,6 +178,11 @@ class PredictionScheduler:
             self.poisson_ratio.reset()
 
     @property
+    def state(self) -> np.ndarray:
+        """The state (N, 3) the next prediction starts from: the newest estimate, or the initial mesh."""
+        return self._state
+
+    @property
     def state_stamp_ns(self) -> int | None:
         """Stamp of the estimate the next prediction starts from (None: the initial mesh)."""
         return self._state_ns

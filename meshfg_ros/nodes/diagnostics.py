@@ -127,6 +127,8 @@ class SimulatorCounters(_Counters):
     predictions_failed: int = 0
     estimates_ignored: int = 0          # wrong vertex count, not finite, or far outside the scene
     estimate_std_ignored: int = 0       # an estimate's position_std malformed (count, NaN, < 0): not learnt from
+    elements_removed: int = 0           # element slots cut away so far (blade or remove_elements; core/topology.py)
+    cuts_rejected: int = 0              # remove_elements requests or blade cuts the simulator could not take
     inputs_held_before_mesh: int = 0    # tool poses, requests and estimates kept until the mesh came
     inputs_dropped_before_mesh: int = 0  # the oldest of those, beyond what is kept (nodes/held_inputs.py)
     last_prediction_ms: float = float("nan")

@@ -184,7 +184,10 @@ class EstimatorNode(Node):
         if positions is None:
             self.outputs.note([Rejection("predictions_rejected", f"predicted_mesh at {stamp_ns} ns is malformed or "
                                          "not finite: the step runs without it")])
-        self._take_answer(Prediction(stamp_ns, positions, "" if positions is not None else "malformed or not finite"))
+        # The simulator's topology: after a cut, the element slots it removed (the estimator follows them).
+        removed = np.asarray(getattr(msg, "removed_elements", ()), dtype=np.int64)
+        self._take_answer(Prediction(stamp_ns, positions, "" if positions is not None else "malformed or not finite",
+                                     removed_elements=removed if removed.size else None))
 
     def _on_failure(self, msg: PredictionFailure) -> None:
         self._take_answer(Prediction(stamp_ns_from_msg(msg.header.stamp), None, msg.reason), "predictions_failed")
@@ -223,7 +226,7 @@ class EstimatorNode(Node):
             outcome = StepOutcome(step, None, repr(error), "failed_steps")
         if not self._solver.stopping:  # after shutdown the node may be gone already
             self.outputs.note(list(outcome.notes))
-            self.outputs.step(step, outcome, start_s)
+            self.outputs.step(step, outcome, start_s, scheduler.estimator.mesh)
 
 
 def main(args=None) -> int:

@@ -22,6 +22,7 @@ from visualization_msgs.msg import MarkerArray
 
 from meshfg_msgs.msg import EstimatorStatus, TetraMesh
 from meshfg_ros.core.camera_check import IMPLAUSIBLE_SHARE, implausible_view
+from meshfg_ros.core.mesh import TetMesh
 from meshfg_ros.core.scheduler import CloudStep, Rejection, StepOutcome
 from meshfg_ros.io.messages import MeshState, status_record, status_to_msg
 from meshfg_ros.markers import mesh_markers, spread_surface_sample, surface_edges
@@ -64,11 +65,14 @@ class EstimatorOutputs:
     def set_mesh(self, state: MeshState) -> None:
         """The topology of the estimates to come. Clouds that came before it (held until now)
         are awaited from now on: the stall test does not count the wait for the mesh."""
-        self._mesh = (state, MeshMessages(state), surface_edges(state.surface_triangles),
-                      spread_surface_sample(state.positions, state.surface_triangles, state.fixed_vertices))
+        self._set_topology(state)
         with self._lock:
             if self._unanswered_since_s is not None:
                 self._unanswered_since_s = time.monotonic()
+
+    def _set_topology(self, state: MeshState) -> None:
+        self._mesh = (state, MeshMessages(state), surface_edges(state.surface_triangles),
+                      spread_surface_sample(state.positions, state.surface_triangles, state.fixed_vertices))
 
     def cloud_received(self, arrival_s: float, dropped_nonfinite: int = 0) -> None:
         with self._lock:
@@ -93,13 +97,20 @@ class EstimatorOutputs:
         if rejections:
             self._wake.trigger()
 
-    def step(self, step: CloudStep, outcome: StepOutcome, start_s: float) -> None:
-        """Publish a step's estimate and status (solver thread), or log and count its failure."""
+    def step(self, step: CloudStep, outcome: StepOutcome, start_s: float, mesh: TetMesh | None = None) -> None:
+        """Publish a step's estimate and status (solver thread), or log and count its failure.
+        `mesh`: the estimator's after the step; after a cut the estimate is published (and drawn)
+        on its topology: the remaining elements and surface, the removed elements and invalid
+        vertices listed."""
         result = outcome.result
         if result is None:
             self._node.get_logger().error(f"update at {step.stamp_ns} ns: {outcome.error}")
             self.count(outcome.counter)
             return self._wake.trigger()
+        if mesh is not None and not np.array_equal(mesh.removed_elements, self._mesh[0].removed_elements):
+            self._set_topology(MeshState.of_mesh(mesh, step.stamp_ns, self._frame, 0))
+            self._node.get_logger().info(f"following a cut: {mesh.removed_elements.size} elements removed, "
+                                         f"{mesh.invalid_vertices.size} vertices invalid")
         _, messages, _, _ = self._mesh
         publish_start = time.monotonic()
         self._estimates.publish(messages.message(step.stamp_ns, self._frame, result.step, result.positions,

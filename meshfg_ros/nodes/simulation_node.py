@@ -3,11 +3,15 @@
 Subscribes `tool_pose` (geometry_msgs/PoseStamped, any rate, any frame placed through /tf and
 /tf_static), `prediction_request`
 (std_msgs/Header: the stamp of each cloud the estimator accepted), `estimated_mesh` and
-`initial_mesh` (meshfg_msgs/TetraMesh; or parameter mesh_file). For each request it publishes
+`initial_mesh` (meshfg_msgs/TetraMesh; or parameter mesh_file) and `remove_elements`
+(std_msgs/UInt32MultiArray: element slots to cut away, core/topology.py; the tool's blade, when
+blade_half_extents is set, cuts too, at each tool pose). For each request it publishes
 `predicted_mesh` (TetraMesh at the cloud's stamp: the simulator moved from the estimate of the
 previous request to the tool pose interpolated at the cloud's stamp), or `prediction_failed`
 (meshfg_msgs/PredictionFailure, same stamp, with the reason) so that the estimator runs that step
-at once without one. After each estimate it takes it publishes `body_acceleration`
+at once without one. A predicted_mesh is on the simulator's topology: after a cut its tetrahedra
+and surface are the remaining ones and it lists removed_elements and invalid_vertices, which the
+estimator follows. After each estimate it takes it publishes `body_acceleration`
 (geometry_msgs/Vector3Stamped at the estimate's stamp, m/s^2): the unmodelled body load learnt so
 far (core/body_load.py; not published with estimate_body_load off). The Poisson ratio the
 predictions use (core/poisson_ratio.py) is in the diagnostics. The waits and the stamp rule
@@ -22,17 +26,23 @@ import sys
 import time
 from collections import Counter
 
+import numpy as np
+
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped, Vector3Stamped
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from std_msgs.msg import Header
+from scipy.spatial.transform import Rotation
+from std_msgs.msg import Header, UInt32MultiArray
 
 from meshfg_msgs.msg import PredictionFailure, TetraMesh
 from meshfg_ros.core.scheduler import MAX_QUEUED_CLOUDS, PredictionScheduler, SchedulingTimeouts
+from meshfg_ros.core.noise import NotPositiveDefiniteError
+from meshfg_ros.core.mesh import InvalidMeshError
 from meshfg_ros.core.tool_poses import DEFAULT_MAX_SAMPLES
+from meshfg_ros.core.topology import cut_elements
 from meshfg_ros.core.world_frame import POSE, FramedInput, Unplaceable
-from meshfg_ros.io.messages import (MessageValidationError, header_msg, pose_from_msg, stamp_ns_from_msg,
+from meshfg_ros.io.messages import (MeshState, MessageValidationError, header_msg, pose_from_msg, stamp_ns_from_msg,
                                     vector_msg)
 from meshfg_ros.nodes.diagnostics import (SimulatorCounters, diagnostic_array, waiting_for_mesh_message,
                                           with_setup_problems)
@@ -76,7 +86,7 @@ class SimulationNode(Node):
         self._std_ignored_at_last_report = 0
         self._unavailable_earlier: Counter[str] = Counter()  # of the schedulers of earlier meshes
         self._held = HeldUntilMesh({"tool pose": DEFAULT_MAX_SAMPLES, "estimated_mesh": MAX_QUEUED_CLOUDS,
-                                    "prediction request": MAX_QUEUED_CLOUDS})
+                                    "prediction request": MAX_QUEUED_CLOUDS, "remove_elements": MAX_QUEUED_CLOUDS})
         self._publisher = self.create_publisher(TetraMesh, "predicted_mesh", PREDICTION_QOS)
         self._failure_publisher = self.create_publisher(PredictionFailure, "prediction_failed", PREDICTION_QOS)
         self._load_publisher = self.create_publisher(Vector3Stamped, "body_acceleration", PREDICTION_QOS)
@@ -86,6 +96,7 @@ class SimulationNode(Node):
         self.create_subscription(TetraMesh, "estimated_mesh", self._on_estimate, LATCHED_QOS)
         self.create_subscription(PoseStamped, "tool_pose", self._on_tool_pose, tool_pose_qos(self.params))
         self.create_subscription(Header, "prediction_request", self._on_request, REQUEST_QOS)
+        self.create_subscription(UInt32MultiArray, "remove_elements", self._on_remove_elements, REQUEST_QOS)
         self.setup_warnings: list[str] = []  # what run_nodes found wrong in the set-up (a parameters file)
         self._input_qos = IncompatiblePublishers(self)
         self._input_qos.watch("tool_pose", tool_pose_qos(self.params), TOOL_POSE_QOS_FIX)
@@ -153,10 +164,43 @@ class SimulationNode(Node):
         rejection = self._scheduler.add_tool_pose(item.stamp_ns, item.data)
         if rejection is not None:
             return self._count(rejection.counter, rejection.reason)
+        self._cut_with_blade(item.data)
         if self._scheduler.restarted:
             self.counters.clock_jumps_back += 1
             self.get_logger().warning("tool_pose stamp jumped back: restarting from the initial mesh")
         self._answer()
+
+    def _cut_with_blade(self, pose) -> None:
+        """Cut away what the blade box (blade_half_extents about blade_offset, in the tool frame at
+        `pose`) reaches at the state the next prediction starts from."""
+        half_extents = np.asarray(self.params["blade_half_extents"], dtype=np.float64)
+        if not half_extents.any():
+            return
+        rotation = Rotation.from_quat(pose[3:]).as_matrix()
+        centre = pose[:3] + rotation @ np.asarray(self.params["blade_offset"], dtype=np.float64)
+        mesh = self._scheduler.mesh.with_vertices(self._scheduler.state)
+        self._remove_elements(cut_elements(mesh, centre, half_extents, rotation), "the blade")
+
+    def _on_remove_elements(self, msg: UInt32MultiArray) -> None:
+        if self._scheduler is None:
+            return self._hold("remove_elements", self._on_remove_elements, msg)
+        self._remove_elements(np.asarray(msg.data, dtype=np.int64), "remove_elements")
+
+    def _remove_elements(self, slots: np.ndarray, source: str) -> None:
+        """Cut the element slots away from the next prediction on; the predictions carry the cut
+        mesh's topology. A cut the simulator cannot take (a slot out of range, every element, a
+        piece left with rigid modes) is counted and changes nothing."""
+        removed_before = self._scheduler.mesh.removed_elements.size
+        try:
+            changed = self._scheduler.remove_elements(slots)
+        except (InvalidMeshError, NotPositiveDefiniteError) as error:
+            return self._count("cuts_rejected", f"cut from {source} rejected: {error}")
+        if changed:
+            mesh = self._scheduler.mesh
+            self.counters.elements_removed = int(mesh.removed_elements.size)
+            self._messages = MeshMessages(MeshState.of_mesh(mesh, 0, self._frame, 0))
+            self.get_logger().info(f"cut ({source}): {mesh.removed_elements.size - removed_before} elements removed, "
+                                   f"{mesh.tetrahedron_count} left, {mesh.invalid_vertices.size} vertices invalid")
 
     def _on_unplaceable(self, unplaceable: Unplaceable) -> None:
         self._count("tool_poses_rejected_frame", f"tool_pose rejected: {unplaceable.reason}")
