@@ -322,9 +322,14 @@ def run_accuracy(args: argparse.Namespace) -> int:
 def _bench_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", type=Path, help="write the figures as JSON (never overwritten)")
     parser.add_argument("--plot", type=Path, help="write a PNG of latencies vs targets and baselines")
-    parser.add_argument("--sections", nargs="+", default=["core", "estimator", "baselines", "live"],
-                        choices=("core", "estimator", "baselines", "live"), help="what to measure (default: all)")
+    sections = ("core", "estimator", "loaded", "baselines", "live", "organ_live")
+    parser.add_argument("--sections", nargs="+", default=list(sections), choices=sections,
+                        help="what to measure (default: all; loaded: the estimator with one busy process per core; "
+                             "organ_live: the live pipeline at organ scale, idle and loaded)")
     parser.add_argument("--bag", type=Path, help="recording for the live section (default: bundled cao-push)")
+    parser.add_argument("--organ-bag", type=Path,
+                        help="organ-scale recording for organ_live (default: the organ-slab scene, synthesized "
+                             "once into build/bench/)")
     parser.add_argument("--runs", type=_positive_integer, default=1,
                         help="measure this many times in a row and say in how many runs each target held "
                              "(default 1)")
@@ -340,7 +345,10 @@ def run_bench(args: argparse.Namespace) -> int:
     for number in range(1, args.runs + 1):
         if args.runs > 1:
             print(f"bench: run {number} of {args.runs}", file=sys.stderr)
-        results.append(bench.run_bench(tuple(args.sections), bag))
+        organ_bag = None
+        if "organ_live" in args.sections:
+            organ_bag = args.organ_bag if args.organ_bag is not None else bench.organ_recording()
+        results.append(bench.run_bench(tuple(args.sections), bag, organ_bag=organ_bag))
         heading = f"Run {number} of {args.runs}:\n" if args.runs > 1 else ""
         print(("\n" if number > 1 else "") + heading + bench.format_report(results[-1]), flush=True)
     if args.runs == 1:

@@ -9,7 +9,15 @@ TAG = "[Some CPU 9000, 2 cores; BLAS bundled x1]"
 def estimator_row(vertices: int) -> dict:
     return {"machine": ON, "vertices": vertices, "points": 2000, "window_size": 10, "median_ms": 20.0, "p95_ms": 25.0,
             "latencies_ms": [20.0, 25.0], "iterations": 1.0, "linear_solve_ms": 7.0, "rmse_mm": 0.25,
-            "prediction_rmse_mm": 0.49, "measurement_sigma_m": 1e-3, "converged_share": 1.0}
+            "prediction_rmse_mm": 0.49, "measurement_sigma_m": 1e-3, "converged_share": 1.0,
+            "stage_ms": {"association": 3.0, "linearisation": 9.0, "linear_solves": 7.0, "covariance": 2.0},
+            "stages": {"vertices": vertices, "prediction": 40.0, "learning": 5.0, "messaging": 1.0}}
+
+
+def live_row(latency_max: float, degraded: int = 0, steps: int = 10) -> dict:
+    return {"rate": 1.0, "latency_ms_median": 170.0, "latency_ms_p95": 250.0, "latency_ms_max": latency_max,
+            "steps": steps, "expected_steps": 10, "solve_time_ms_median": 130.0, "overhead_ms_median": 50.0,
+            "degraded_steps": degraded}
 
 
 def comparison() -> dict:
@@ -25,15 +33,32 @@ def test_every_figure_line_names_the_cpu_and_the_blas():
         "paper_scale": estimator_row(512),
         "organ_scale": estimator_row(10648),
         "baselines": {"machine": ON, **comparison(), "paper_scale": comparison()},
-        "live": {"machine": ON, "rate": 1.0, "latency_ms_median": 170.0, "latency_ms_p95": 250.0, "steps": 10,
-                 "solve_time_ms_median": 130.0, "overhead_ms_median": 50.0, "degraded_steps": 1},
+        "loaded": {"machine": ON, "busy_processes": 2, "paper_scale": {**estimator_row(512), "p95_ms": 50.0},
+                   "organ_scale": {**estimator_row(10648), "p95_ms": 90.0}},
+        "live": {"machine": ON, **live_row(300.0)},
+        "organ_live": {"machine": ON, "recording": "/cache/organ-slab-seed5", "idle": live_row(900.0),
+                       "loaded": {"busy_processes": 2, **live_row(2500.0, degraded=1, steps=6)}},
     }
     lines = format_report(result).splitlines()
     assert lines[0] == ("CPU: Some CPU 9000, 2 cores; sparse Cholesky BLAS: bundled, 1 thread(s) "
                         "(chosen for SomeVendor)")
     figures = [line for line in lines[1:] if not line.startswith(("Core (ms):", "Baselines ("))]  # not headings
-    assert len(figures) == 8  # liver, two estimator scales, meshfg and scipy twice, live
+    # liver, two estimator scales with their stage budgets, both loaded, meshfg and scipy twice, live
+    # and organ-scale live idle and loaded
+    assert len(figures) == 14
     assert all(line.endswith(TAG) for line in figures), [line for line in figures if not line.endswith(TAG)]
+    budget = next(line for line in figures if "stage budget per cloud at 512 vertices" in line)
+    # prediction 40 + update stages 21 + messaging 1 = 62 ms to the estimate, learning 5 after it
+    assert "prediction 40, association 3, linearisation 9, linear solves 7, covariance 2, messaging 1" in budget
+    assert "cloud to estimate 62 ms, then learning 5 before the next prediction: loop 67 ms" in budget
+    assert any("paper_scale: median 20.0 ms, p95 50.0 ms = 2.00x idle" in line for line in figures)
+    assert any("6 of 10 clouds estimated" in line and "max 2500 ms" in line for line in figures)
+    rows = {row["figure"]: row for row in tally([result])}
+    assert rows["organ-scale p95 loaded / idle"]["values"] == [3.6] and rows["organ-scale p95 loaded / idle"][
+        "met_runs"] == 0
+    assert rows["paper-scale p95 loaded / idle"]["met_runs"] == 1
+    assert rows["organ-scale live latency max, idle"]["met_runs"] == 1
+    assert rows["organ-scale live latency max, loaded"]["met_runs"] == 0  # late, degraded and clouds skipped
 
 
 def test_machine_is_what_the_blas_configuration_reports():
@@ -66,7 +91,7 @@ def test_runs_are_tallied_per_target_in_its_own_direction():
                 "organ_scale": {**estimator_row(10648), "p95_ms": organ_p95},
                 "baselines": {"machine": ON, **small, "paper_scale": comparison()}}
 
-    runs = [run(29.0, 1100.0, 9.5), run(31.0, 900.0, 10.0), run(30.0, 950.0, 12.0)]
+    runs = [run(29.0, 550.0, 9.5), run(31.0, 450.0, 10.0), run(30.0, 480.0, 12.0)]
     rows = {row["figure"]: row for row in tally(runs)}
     assert rows["paper-scale update p95"]["values"] == [29.0, 31.0, 30.0]
     assert rows["paper-scale update p95"]["met_runs"] == 2

@@ -132,6 +132,7 @@ from meshfg_ros.core.weights import MIN_POINTS, PRIOR_NOISE_RATIO, MeasurementNo
 
 __all__ = [
     "FACTOR_CONFIGURATIONS",
+    "STAGES",
     "LINEAR_SOLVERS",
     "ROBUST_KERNELS",
     "EstimatorConfig",
@@ -324,6 +325,13 @@ class StepResult:
     simulation_sigma: float = 0.0    # m, the simulation sigma the prior's weight corresponds to (estimated)
     linear_solve_ms: list = field(default_factory=list)  # wall time of each linear solve of the update's LM runs
     noise_off_nominal: bool = False  # the points' spread is beyond the noise estimate's bounds (NOISE_OFF_NOMINAL)
+    stage_ms: dict = field(default_factory=dict)  # wall time of the update's stages (STAGES), ms
+
+
+# The stages of an update, in order, as StepResult.stage_ms names them: checking the input,
+# associating the points with the predicted surface and building the new state's factors;
+# LM's linearisations, cost evaluations and step tests; its linear solves; the covariance.
+STAGES = ("association", "linearisation", "linear_solves", "covariance")
 
 
 @dataclass
@@ -346,6 +354,7 @@ class PendingStep:
     # (vertices, Association of `points` on their surface): the innovation test's, which the
     # measurement factor's gate reuses when the vertices are the prediction's.
     association: tuple | None = None
+    prepare_ms: float = 0.0  # wall time of `prepare` (the "association" stage)
     # The share of the correction published (core/persistence.py): 1 when the optimum is published.
     published_share: float = 1.0
     # (3N, 3N) csr on the model's stiffness pattern [N/m]: an external simulator's stiffness used
@@ -659,6 +668,7 @@ class SlidingWindowEstimator:
         for factor in graph.factors:
             if isinstance(factor, PhysicsPriorFactor):
                 factor.invalidate_information()
+        pending.prepare_ms = 1e3 * (time.perf_counter() - start)
         return pending
 
     def _outside_tool(self, points, tool_pose, pending: PendingStep):
@@ -768,6 +778,7 @@ class SlidingWindowEstimator:
         most MAX_REWEIGHT_ROUNDS times: typically the first update, from the nominal sigma)."""
         graph = self.graph
         messages = pending.messages
+        optimise_start = time.perf_counter()
         result = self._optimise(messages)
         iterations, accepted, rounds = result["iterations"], result["accepted_steps"], 0
         solve_times = list(result["solve_times_ms"])
@@ -798,8 +809,13 @@ class SlidingWindowEstimator:
         self._keep_persistent_correction(pending)
         positions = graph.states[pending.key].copy()
         self.last_estimate = positions
+        covariance_start = time.perf_counter()
         covariance = self._position_covariance(pending, messages)
         std = np.sqrt(np.clip(np.einsum("vii->v", covariance) / 3.0, 0.0, None))
+        optimisation_ms = 1e3 * (covariance_start - optimise_start)
+        stage_ms = {"association": pending.prepare_ms, "linearisation": optimisation_ms - sum(solve_times),
+                    "linear_solves": float(sum(solve_times)),
+                    "covariance": 1e3 * (time.perf_counter() - covariance_start)}
         return StepResult(
             step=pending.key, stamp_ns=pending.stamp_ns, positions=positions, position_std=std,
             position_covariance=covariance,
@@ -810,7 +826,7 @@ class SlidingWindowEstimator:
             message="; ".join(messages), cost_history=result["cost_history"],
             accepted_steps=accepted, measurement_sigma=self.noise.sigma,
             simulation_sigma=self.simulation_sigma, linear_solve_ms=solve_times,
-            noise_off_nominal=noise_off_nominal,
+            noise_off_nominal=noise_off_nominal, stage_ms=stage_ms,
         )
 
     def _keep_persistent_correction(self, pending: PendingStep) -> None:
