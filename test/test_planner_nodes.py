@@ -1,10 +1,11 @@
 """The planner interface over real DDS: the estimator node's `surface_query` service and the
 example planner `tool_clearance_node`, as separate processes (see test_nodes.py's helpers).
 
-The estimate they answer on is published by the test on the estimator node's `estimated_mesh`
+Most estimates they answer on are published by the test on the estimator node's `estimated_mesh`
 (a deformed cube with a per-vertex covariance), so the expected answers are known: distances
 from a brute-force point-to-mesh distance, signs from the winding number, the rest from the
-core (core/surface_query.py) on the estimate as the message carries it.
+core (core/surface_query.py) on the estimate as the message carries it. One test has the node
+estimate clouds and checks that the service answers on its newest estimate.
 """
 import time
 
@@ -27,13 +28,18 @@ from test_nodes import (  # noqa: F401 - probe and processes are fixtures
     KEEP,
     LATCHED,
     S,
+    EstimatorProbe,
     Process,
     assert_clean_exit,
     call_service,
+    cloud_msg,
+    mesh_msg,
     probe,
     processes,
+    pushed_cube,
     ros_args,
     spin_until,
+    top_points,
 )
 from test_surface_query import exact_distances
 
@@ -148,6 +154,37 @@ def test_estimator_node_answers_surface_queries_in_any_frame_on_the_newest_estim
     assert spin_until(probe, lambda: reports and reports[-1][2]["queries_refused_frame"] == "1"
                       and reports[-1][2]["queries_refused_points"] == "2", timeout_s=10.0), reports[-1:]
     assert int(reports[-1][2]["queries_answered"]) >= 2
+    assert_clean_exit(node, node.interrupt())
+
+
+def test_the_service_answers_on_the_estimators_own_newest_estimate(probe, processes, tmp_path):
+    namespace = "/planner_own"
+    node = Process(tmp_path, "estimator_node", *ros_args(namespace, "prediction_timeout:=0.3", "window_size:=3"))
+    processes.append(node)
+    io = EstimatorProbe(probe, namespace)
+    client = probe.create_client(SurfaceQueryService, f"{namespace}/surface_query")
+    assert spin_until(probe, lambda: io.cloud.get_subscription_count() == 1
+                      and io.status_subscription.get_publisher_count() == 1)
+    io.wait_for(clouds_received=0)
+    io.mesh.publish(mesh_msg(pushed_cube()))
+    points = np.random.default_rng(4).uniform(-0.01, 0.06, size=(200, 3))
+    for stamp_s in (1, 2):  # no simulator here: degraded steps, each with its estimate and covariance
+        io.send(cloud_msg(top_points(seed=stamp_s), stamp_s * S), steps=stamp_s)
+        assert spin_until(probe, lambda: io.estimates and stamp_ns_from_msg(io.estimates[-1].header.stamp) == stamp_s * S)
+        estimate = mesh_state_from_msg(io.estimates[-1])
+        assert estimate.position_covariance.size
+        deadline = time.monotonic() + 10.0
+        while (stamp_ns_from_msg((answer := call_service(probe, client, request(points))).header.stamp) != stamp_s * S
+               and time.monotonic() < deadline):  # the node's own subscription may take the estimate a moment later
+            spin_until(probe, lambda: False, timeout_s=0.1)
+        assert answer.success and (stamp_ns_from_msg(answer.header.stamp), answer.estimate_step) == (
+            stamp_s * S, estimate.step), answer.message
+        np.testing.assert_allclose(np.abs(answer.signed_distances),
+                                   exact_distances(points, estimate.positions, estimate.surface_triangles),
+                                   rtol=0.0, atol=1e-9)
+        expected = SurfaceQuery(estimate.positions, estimate.surface_triangles,
+                                estimate.position_covariance).query(points)
+        np.testing.assert_allclose(answer.distance_std, expected.distance_std, rtol=1e-12)
     assert_clean_exit(node, node.interrupt())
 
 
