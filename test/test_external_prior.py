@@ -57,8 +57,8 @@ def test_positions_and_stiffness_are_moved_into_the_world_frame(mesh, model):
     to_world = np.eye(4)
     to_world[:3, :3], to_world[:3, 3] = rotation, [0.1, -0.2, 0.3]
     stiffness = model.stiffness(None, kind="linear")
-    positions, external = bridge_state(answer_of(mesh, stiffness=coo(stiffness)), mesh.vertex_count,
-                                       mesh.tetrahedra, to_world)
+    positions, external, removed = bridge_state(answer_of(mesh, stiffness=coo(stiffness)), mesh, to_world)
+    assert removed is None
     np.testing.assert_allclose(positions, mesh.vertices @ rotation.T + [0.1, -0.2, 0.3], atol=1e-12)
     blocks = scipy.sparse.kron(scipy.sparse.identity(mesh.vertex_count), rotation).toarray()
     sent = stiffness.toarray().astype(np.float32).astype(np.float64)
@@ -69,8 +69,11 @@ def test_positions_and_stiffness_are_moved_into_the_world_frame(mesh, model):
 
 @pytest.mark.parametrize("changes, counter, words", [
     ({"positions": np.zeros(3 * 10)}, "sim_bridge_rejected_mesh", "10 vertex slots"),
-    ({"invalid_elements": np.array([3], np.int32)}, "sim_bridge_rejected_mesh", "removed 0 vertices and 1 elements"),
-    ({"elements": np.arange(8)}, "sim_bridge_rejected_mesh", "not those of the initial mesh"),
+    ({"invalid_elements": np.array([3, 999], np.int32)}, "sim_bridge_rejected_malformed", "outside"),
+    ({"invalid_vertices": np.array([3], np.int32)}, "sim_bridge_rejected_malformed", "vertex size 64"),
+    ({"elements": np.arange(8)}, "sim_bridge_rejected_mesh", "2 element slots, the initial mesh 162"),
+    ({"elements": np.concatenate([[0, 1, 2, 63], np.zeros(4 * 161, int)])}, "sim_bridge_rejected_mesh",
+     "not those of the initial mesh"),
     ({"stiffness": (np.array([0]), np.array([0]), np.array([1.0]), (3, 3))}, "sim_bridge_rejected_malformed",
      "expected"),
     ({"stiffness": (np.array([0, 1]), np.array([0]), np.array([1.0]), None)}, "sim_bridge_rejected_malformed",
@@ -81,21 +84,40 @@ def test_answers_that_do_not_fit_are_refused_with_the_reason(mesh, changes, coun
         size = 3 * mesh.vertex_count
         changes["stiffness"] = (*changes["stiffness"][:3], (size, size))
     with pytest.raises(ExternalPriorError, match=words) as error:
-        bridge_state(answer_of(mesh, **changes), mesh.vertex_count, mesh.tetrahedra, np.eye(4))
+        bridge_state(answer_of(mesh, **changes), mesh, np.eye(4))
     assert error.value.counter == counter
+
+
+def test_a_cut_comes_as_the_mesh_own_element_slots_and_removed_vertices_are_held(mesh):
+    # The simulator's slots in another order than the mesh's: slot k of the answer is mesh slot order[k].
+    order = np.random.default_rng(5).permutation(len(mesh.tetrahedra))
+    corner = 0  # a corner vertex of the cube: removing its elements leaves it without one
+    around = np.flatnonzero((mesh.tetrahedra == corner).any(axis=1))
+    theirs = np.flatnonzero(np.isin(order, around))
+    positions = mesh.vertices.copy()
+    positions[corner] = np.nan  # a removed vertex's slot may hold anything
+    answer = answer_of(mesh, positions, elements=mesh.tetrahedra[order].reshape(-1), invalid_elements=theirs,
+                       invalid_vertices=np.array([corner]), valid_vertex_count=mesh.vertex_count - 1)
+    world, _, removed = bridge_state(answer, mesh, np.eye(4))
+    np.testing.assert_array_equal(removed, np.sort(around))
+    assert np.isfinite(world).all() and np.array_equal(world[corner], mesh.vertices[corner])
+    cut = mesh.without_elements(removed)
+    assert corner in cut.invalid_vertices and len(cut.tetrahedra) == len(mesh.tetrahedra) - len(around)
+    still_used = answer_of(mesh, positions, invalid_vertices=np.array([corner]), valid_vertex_count=mesh.vertex_count - 1)
+    with pytest.raises(ExternalPriorError, match="remaining elements use"):
+        bridge_state(still_used, mesh, np.eye(4))
 
 
 def test_non_finite_answers_are_refused(mesh, model):
     positions = mesh.vertices.copy()
     positions[4, 1] = np.nan
     with pytest.raises(ExternalPriorError) as error:
-        bridge_state(answer_of(mesh, positions), mesh.vertex_count, mesh.tetrahedra, np.eye(4))
+        bridge_state(answer_of(mesh, positions), mesh, np.eye(4))
     assert error.value.counter == "sim_bridge_rejected_malformed"
     rows, cols, values, shape = coo(model.stiffness(None, kind="linear"))
     values[7] = np.inf
     with pytest.raises(ExternalPriorError, match="not all finite"):
-        bridge_state(answer_of(mesh, stiffness=(rows, cols, values, shape)), mesh.vertex_count, mesh.tetrahedra,
-                     np.eye(4))
+        bridge_state(answer_of(mesh, stiffness=(rows, cols, values, shape)), mesh, np.eye(4))
 
 
 def test_information_is_symmetric_definite_on_the_pattern_with_held_dofs_cleared(mesh, model):
@@ -175,3 +197,33 @@ def test_the_estimator_given_its_own_stiffness_estimates_as_with_its_model(mesh,
     softer_top.data[np.isin(rows // 3, top) & np.isin(template.indices // 3, top)] *= 0.05
     other = _run(mesh, lambda step: softer_top)
     assert np.abs(other - own).max() > 1e-5
+
+
+def test_a_cut_and_the_simulators_stiffness_reach_the_estimator_through_the_scheduler(mesh):
+    from meshfg_ros.core.scheduler import EstimationScheduler, Prediction
+
+    corner = int(np.flatnonzero(np.all(np.isclose(mesh.vertices, [SIDE, SIDE, SIDE]), axis=1))[0])
+    around = np.flatnonzero((mesh.tetrahedra == corner).any(axis=1))
+    keep = np.setdiff1d(np.arange(len(mesh.tetrahedra)), around)
+    scheduler = EstimationScheduler(mesh, EstimatorConfig(window_size=3))
+    rng = np.random.default_rng(2)
+    for step in (1, 2, 3):
+        cut = step >= 2
+        positions = mesh.vertices.copy()
+        positions[:, 2] -= 4e-4 * step * positions[:, 2] / SIDE
+        elements = mesh.tetrahedra[keep] if cut else mesh.tetrahedra
+        stiffness = ElasticModel(mesh.vertices, elements, 3000.0, 0.45).stiffness(positions, kind="corotational")
+        answer = answer_of(mesh, positions, stiffness=coo(stiffness), invalid_elements=around if cut else np.zeros(0),
+                           invalid_vertices=np.array([corner] if cut else [], dtype=np.int64),
+                           valid_vertex_count=mesh.vertex_count - int(cut))
+        world, external, removed = bridge_state(answer, mesh, np.eye(4))
+        points = np.column_stack([rng.uniform(0.005, SIDE - 0.005, (300, 2)),
+                                  SIDE - 4e-4 * step + rng.normal(scale=5e-4, size=300)])
+        scheduler.add_cloud(step * 100_000_000, points)
+        scheduler.add_prediction(Prediction(step * 100_000_000, world, stiffness=external, removed_elements=removed))
+        outcome = scheduler.run(scheduler.next_step(0.0, flush=True))
+        assert outcome.result is not None and not outcome.result.degraded, outcome.error
+        assert not [note for note in outcome.notes if note.counter == "sim_bridge_stiffness_rejected"], outcome.notes
+    assert len(scheduler.estimator.mesh.tetrahedra) == len(keep) and corner in scheduler.estimator.mesh.invalid_vertices
+    valid = np.setdiff1d(np.arange(mesh.vertex_count), [corner])
+    assert np.abs(outcome.result.positions[valid] - world[valid]).max() < 2e-3

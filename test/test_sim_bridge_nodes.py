@@ -146,8 +146,8 @@ def test_estimates_from_the_service_equal_those_of_the_same_predictions_in_proce
         placed, _ = placer.add(FramedInput(CLOUD, step * S, "world", points), 0.0)
         scheduler.add_cloud(step * S, placed[0].data, 0.0, placed[0].viewpoint)
         response = response_for(mesh, model, pressed(mesh, step), step * S)
-        positions, stiffness = bridge_state(answer_from_msg(response.fg_state, True), mesh.vertex_count,
-                                            mesh.tetrahedra, sim_to_world())
+        positions, stiffness, removed = bridge_state(answer_from_msg(response.fg_state, True), mesh, sim_to_world())
+        assert removed is None
         np.testing.assert_allclose(positions, pressed(mesh, step), atol=1e-12)
         scheduler.add_prediction(Prediction(step * S, positions, stiffness=stiffness))
         outcome = scheduler.run(scheduler.next_step(0.0, flush=True))

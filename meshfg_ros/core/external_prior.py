@@ -9,7 +9,9 @@ simulator holds carry FIXED_DIAGONAL-sized entries (it writes 1e9) on the diagon
 
 `bridge_state` checks an answer against the estimator's mesh (slot counts, finite values, the
 same elements) and moves it into the world frame: positions (N, 3) and, when given, the
-stiffness as an `ExternalStiffness` (COO, rotated: K_world = B K B^T with B = diag(R, ..., R)).
+stiffness as an `ExternalStiffness` (COO, rotated: K_world = B K B^T with B = diag(R, ..., R)),
+with the element slots the simulator removed (a cut) as slots of the mesh's own elements, which
+the estimator follows (SlidingWindowEstimator.remove_elements, core/topology.py).
 Each failure is an `ExternalPriorError` with the diagnostics counter it counts in.
 
 `ExternalStiffness.information(template, free_dofs)` makes the prior's information of it, on the
@@ -42,6 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse
 
+from meshfg_ros.core.mesh import TetMesh
 from meshfg_ros.core.noise import NotPositiveDefiniteError
 from meshfg_ros.core.sparse_cholesky import SparseCholesky
 
@@ -165,47 +168,75 @@ def _definite_shift(matrix: scipy.sparse.csr_matrix, free_dofs: np.ndarray, mean
     return None
 
 
-def bridge_state(answer: BridgeAnswer, vertex_count: int, tetrahedra: np.ndarray,
-                 to_world: np.ndarray) -> tuple[np.ndarray, ExternalStiffness | None]:
-    """Positions (N, 3) in the world frame and the stiffness (or None) of a sim_bridge answer for
-    a mesh of `vertex_count` vertices and `tetrahedra` (M, 4), the simulator's vertex order;
-    `to_world` (4, 4): the simulator frame's points into the world frame. ExternalPriorError
-    with the counter "sim_bridge_rejected_malformed" (sizes, non-finite values) or
-    "sim_bridge_rejected_mesh" (another mesh, removed vertices or elements)."""
-    positions = np.asarray(answer.positions, dtype=np.float64)
-    if positions.size % 3 or positions.size // 3 != vertex_count:
+def bridge_state(answer: BridgeAnswer, mesh: TetMesh, to_world: np.ndarray
+                 ) -> tuple[np.ndarray, ExternalStiffness | None, np.ndarray | None]:
+    """(positions (N, 3) in the world frame, the stiffness or None, the removed element slots
+    or None) of a sim_bridge answer for `mesh` (the estimator's initial mesh, before any cut, in
+    the simulator's vertex order); `to_world` (4, 4): the simulator frame's points into the world
+    frame. The removed slots are those of `mesh.all_tetrahedra` (core/topology.py), the
+    simulator's element slots matched to them once by their vertices; a removed vertex's slot is
+    given its initial position (the estimator holds it). ExternalPriorError with the counter
+    "sim_bridge_rejected_malformed" (sizes, indices, non-finite values) or
+    "sim_bridge_rejected_mesh" (another mesh, or slots added: refinement is not followed)."""
+    positions = np.array(answer.positions, dtype=np.float64)
+    if positions.size % 3 or positions.size // 3 != mesh.vertex_count:
         raise ExternalPriorError("sim_bridge_rejected_mesh", (
-            f"the simulator's mesh has {positions.size / 3:g} vertex slots, the initial mesh {vertex_count}: "
-            "set mesh_file to the simulator's mesh, in its vertex order"))
+            f"the simulator's mesh has {positions.size / 3:g} vertex slots, the initial mesh {mesh.vertex_count}: "
+            "set mesh_file to the simulator's mesh, in its vertex order (refined meshes are not followed)"))
     positions = positions.reshape(-1, 3)
-    if not np.isfinite(positions).all():
+    invalid_vertices = _slots(answer.invalid_vertices, mesh.vertex_count, "vertex")
+    valid = np.ones(mesh.vertex_count, dtype=bool)
+    valid[invalid_vertices] = False
+    if answer.valid_vertex_count != np.count_nonzero(valid):
+        raise ExternalPriorError("sim_bridge_rejected_malformed", (
+            f"the simulator's vertex size {answer.valid_vertex_count} is not its {mesh.vertex_count} slots less "
+            f"the {invalid_vertices.size} invalid ones"))
+    if not np.isfinite(positions[valid]).all():
         raise ExternalPriorError("sim_bridge_rejected_malformed", "the simulator's positions are not all finite")
-    removed = np.asarray(answer.invalid_vertices).size + np.asarray(answer.invalid_elements).size
-    if removed or answer.valid_vertex_count != vertex_count:
-        raise ExternalPriorError("sim_bridge_rejected_mesh", (
-            f"the simulator removed {np.asarray(answer.invalid_vertices).size} vertices and "
-            f"{np.asarray(answer.invalid_elements).size} elements (size {answer.valid_vertex_count} of "
-            f"{vertex_count}): this estimator does not follow topology changes"))
-    elements = np.asarray(answer.elements, dtype=np.int64)
-    if elements.size and not _same_elements(elements, tetrahedra):
-        raise ExternalPriorError("sim_bridge_rejected_mesh", (
-            f"the simulator's {elements.size / 4:g} elements are not those of the initial mesh "
-            f"({len(tetrahedra)}): set mesh_file to the simulator's mesh, in its vertex order"))
+    positions[~valid] = mesh.vertices[~valid]
+    slots_of_ours = _element_slots(np.asarray(answer.elements, dtype=np.int64), mesh.all_tetrahedra)
+    invalid_elements = _slots(answer.invalid_elements, len(mesh.all_tetrahedra), "element")
+    removed = np.sort(slots_of_ours[invalid_elements]) if invalid_elements.size else None
+    remaining = np.ones(len(mesh.all_tetrahedra), dtype=bool)
+    remaining[slots_of_ours[invalid_elements]] = False
+    if not valid[mesh.all_tetrahedra[remaining]].all():
+        raise ExternalPriorError("sim_bridge_rejected_malformed", "the simulator lists as invalid vertices that its "
+                                 "remaining elements use")
     rotation, translation = to_world[:3, :3], to_world[:3, 3]
     world = positions @ rotation.T + translation
     if answer.stiffness is None:
-        return world, None
-    return world, _rotated_stiffness(answer.stiffness, vertex_count, rotation)
+        return world, None, removed
+    return world, _rotated_stiffness(answer.stiffness, mesh.vertex_count, rotation), removed
 
 
-def _same_elements(elements: np.ndarray, tetrahedra: np.ndarray) -> bool:
-    """Whether flat element indices (4E,) list the same tetrahedra as (M, 4), in any order of
-    elements and of corners (a mesh file's tetrahedra may be reoriented)."""
+def _slots(indices, count: int, kind: str) -> np.ndarray:
+    """Unique slot indices, or ExternalPriorError for one outside [0, count)."""
+    indices = np.unique(np.asarray(indices, dtype=np.int64))
+    if indices.size and (indices[0] < 0 or indices[-1] >= count):
+        raise ExternalPriorError("sim_bridge_rejected_malformed", f"an invalid {kind} index outside the simulator's "
+                                 f"{count} {kind} slots")
+    return indices
+
+
+def _element_slots(elements: np.ndarray, tetrahedra: np.ndarray) -> np.ndarray:
+    """For each of the simulator's element slots (flat indices, 4 per slot) the slot of the same
+    tetrahedron in `tetrahedra` (M, 4), in any order of slots and of corners (a mesh file's
+    tetrahedra may be reoriented); ExternalPriorError("sim_bridge_rejected_mesh") when they are
+    not the same tetrahedra."""
     if elements.size % 4 or elements.size // 4 != len(tetrahedra):
-        return False
+        raise ExternalPriorError("sim_bridge_rejected_mesh", (
+            f"the simulator has {elements.size / 4:g} element slots, the initial mesh {len(tetrahedra)}: set "
+            "mesh_file to the simulator's mesh, in its vertex order (refined meshes are not followed)"))
     ours = np.sort(np.asarray(tetrahedra, dtype=np.int64), axis=1)
     theirs = np.sort(elements.reshape(-1, 4), axis=1)
-    return np.array_equal(ours[np.lexsort(ours.T[::-1])], theirs[np.lexsort(theirs.T[::-1])])
+    our_order, their_order = np.lexsort(ours.T[::-1]), np.lexsort(theirs.T[::-1])
+    if not np.array_equal(ours[our_order], theirs[their_order]):
+        raise ExternalPriorError("sim_bridge_rejected_mesh", (
+            f"the simulator's {len(theirs)} elements are not those of the initial mesh: set mesh_file to the "
+            "simulator's mesh, in its vertex order"))
+    slots = np.empty(len(theirs), dtype=np.int64)
+    slots[their_order] = our_order
+    return slots
 
 
 def _rotated_stiffness(stiffness, vertex_count: int, rotation: np.ndarray) -> ExternalStiffness:

@@ -9,12 +9,17 @@ false), and turns the answer into a core.scheduler.Prediction for the cloud's st
 message's arrays (`answer_from_msg`) are checked against the estimator's mesh and moved from the
 simulator's frame (its header's frame_id, `sim/world` when empty) into world_frame through /tf
 (core/external_prior.bridge_state); the stiffness is made the prior's information in the solver
-thread (core/scheduler.py). Whatever goes wrong is a failed Prediction (the step runs degraded
+thread (core/scheduler.py). Elements the simulator removed (its ElementsList's invalid_indices:
+a cut) go with the prediction as removed element slots, which the estimator follows from that
+step on (SlidingWindowEstimator.remove_elements). The client reads the removals from each
+answer's own mesh and never asks for update_last_mesh: with removals only, the current
+invalid_indices say the whole topology; a refined or coarsened mesh (other slot counts) is
+refused. Whatever goes wrong is a failed Prediction (the step runs degraded
 on the previous estimate at once) and a Rejection with its counter, saying what to fix:
 the service not there (sim_bridge_unavailable), MAX_IN_FLIGHT calls unanswered
 (sim_bridge_busy), an answer later than prediction_timeout (sim_bridge_late: the call is
-dropped), wrong sizes or non-finite values (sim_bridge_rejected_malformed), another mesh or a
-cut (sim_bridge_rejected_mesh), a frame /tf cannot place (sim_bridge_rejected_frame).
+dropped), wrong sizes, indices or non-finite values (sim_bridge_rejected_malformed), another
+or a refined mesh (sim_bridge_rejected_mesh), a frame /tf cannot place (sim_bridge_rejected_frame).
 """
 
 from __future__ import annotations
@@ -113,8 +118,8 @@ class SimBridgeClient:
             frame = response.fg_state.sim_mesh.header.frame_id or SIM_FRAME
             to_world = (np.eye(4) if frame.strip("/") == self._world.strip("/")
                         else self._transforms.lookup(self._world, frame, stamp_ns))
-            positions, stiffness = bridge_state(answer_from_msg(response.fg_state, self._with_stiffness),
-                                                self._mesh.vertex_count, self._mesh.tetrahedra, to_world)
+            positions, stiffness, removed = bridge_state(answer_from_msg(response.fg_state, self._with_stiffness),
+                                                         self._mesh, to_world)
         except ExternalPriorError as error:
             return self._fail(stamp_ns, error.counter, f"sim_bridge answer for the cloud at {stamp_ns} ns: {error}")
         except FrameLookupError as error:
@@ -122,7 +127,7 @@ class SimBridgeClient:
                 f"cannot place the simulator's frame in {self._world}: {error}; publish its transform on /tf_static"))
         except Exception as error:  # noqa: BLE001 - no answer, however odd, may stop the node
             return self._fail(stamp_ns, "sim_bridge_rejected_malformed", f"sim_bridge answer unusable: {error!r}")
-        self._on_answer(Prediction(stamp_ns, positions, stiffness=stiffness), [])
+        self._on_answer(Prediction(stamp_ns, positions, stiffness=stiffness, removed_elements=removed), [])
 
     def _fail(self, stamp_ns: int, counter: str, reason: str) -> None:
         self._on_answer(Prediction(stamp_ns, None, reason), [Rejection(counter, reason)])
