@@ -14,6 +14,8 @@ import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped, TransformStamped
+from rcl_interfaces.srv import SetParameters
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from scipy.spatial.transform import Rotation
 from tf2_msgs.msg import TFMessage
@@ -240,6 +242,14 @@ def test_tool_clearance_node_keeps_the_tip_k_std_from_the_tissue(probe, processe
     np.testing.assert_allclose(after.signed_distance[0], required, rtol=0.0, atol=1e-9)
     np.testing.assert_allclose(moved, tip + (required + 0.001) * top.normal[0], rtol=0.0, atol=1e-9)
     assert (pose.header.frame_id, pose.pose.orientation.x, pose.pose.orientation.w) == ("world", 0.6, 0.8)
+    # clearance_sigmas set while the node runs applies to the next pose.
+    setter = probe.create_client(SetParameters, f"{namespace}/tool_clearance_node/set_parameters")
+    result = call_service(probe, setter, SetParameters.Request(
+        parameters=[Parameter("clearance_sigmas", value=5.0).to_parameter_msg()])).results[0]
+    assert result.successful, result.reason
+    pose = safe_pose_for(desired(tip, 4 * S))
+    after = surface.query([[pose.pose.position.x, pose.pose.position.y, pose.pose.position.z]])
+    np.testing.assert_allclose(after.signed_distance[0], 5.0 * after.distance_std[0], rtol=0.0, atol=1e-9)
     # Far from the tissue: passed on as desired.
     far = safe_pose_for(desired((0.02, 0.02, 0.1), 3 * S))
     assert (far.pose.position.x, far.pose.position.y, far.pose.position.z) == (0.02, 0.02, 0.1)
