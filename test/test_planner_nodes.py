@@ -144,6 +144,15 @@ def test_estimator_node_answers_surface_queries_in_any_frame_on_the_newest_estim
                                atol=1e-12)
     np.testing.assert_allclose(in_planner.distance_std, expected.distance_std, rtol=1e-12)
 
+    # A malformed estimate is not taken: the queries go on on the previous one.
+    malformed = estimate_msg()
+    malformed.header.stamp.sec, malformed.positions = 9, malformed.positions[:-1]
+    probe.create_publisher(type(estimate), f"{namespace}/estimated_mesh", LATCHED).publish(malformed)
+    assert spin_until(probe, lambda: reports and reports[-1][2]["estimates_unreadable"] == "1", timeout_s=10.0)
+    again = call_service(probe, client, request(points[:5]))
+    assert stamp_ns_from_msg(again.header.stamp) == ESTIMATE_STAMP_NS
+    np.testing.assert_allclose(again.signed_distances, signed[:5], rtol=0.0, atol=1e-15)
+
     # A frame /tf does not know and a non-finite point: refused with the reason; the node goes on.
     unknown = call_service(probe, client, request(points[:2], "nowhere"))
     assert not unknown.success and "unknown frame 'nowhere'" in unknown.message

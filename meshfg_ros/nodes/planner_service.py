@@ -39,12 +39,12 @@ SURFACE_QUERY_SERVICE = "surface_query"
 _REPORT_PERIOD_S = 1.0
 
 
-def points_from_flat(values, name: str = "points") -> np.ndarray:
+def points_from_flat(values) -> np.ndarray:
     """(K, 3) float64 of a flat x0 y0 z0 x1 ... array; MessageValidationError for a length that
     is not a multiple of 3."""
     flat = np.asarray(values, dtype=np.float64)
     if flat.size % 3:
-        raise MessageValidationError(f"{name} has {flat.size} values, not a multiple of 3 (x y z per point)")
+        raise MessageValidationError(f"points has {flat.size} values, not a multiple of 3 (x y z per point)")
     return flat.reshape(-1, 3)
 
 
