@@ -30,18 +30,22 @@ API; how a sub-step moves the tissue is a strategy chosen by SimulatorConfig.sol
 lambda' and kappa make both energies linearise to linear elasticity with the Lame parameters
 (mu, lambda) of (E, nu): core.fem's linear K0 is their small-strain Hessian. Gauss-Seidel is
 sequential, so vertices (vbd) or elements (xpbd) are coloured at set-up and each colour is one
-vectorised batch. Runs are bit-reproducible (fixed order, no threads, no randomness).
+batch (vbd: a compiled loop, xpbd: numpy passes). Runs are bit-reproducible (fixed order, no
+threads, no randomness).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
+import numba
 import numpy as np
 import scipy.sparse
+from numba.types import boolean, float64, int64
 from scipy.spatial.transform import Rotation, Slerp
 
 from meshfg_ros.core.fem import ElasticModel
+from meshfg_ros.core.kernel_types import read_only, writable
 from meshfg_ros.core.sparse_cholesky import SparseCholesky
 from meshfg_ros.core.mesh import TetMesh, name_elements, signed_volumes
 from meshfg_ros.core.pose_history import InvalidPoseError, as_pose
@@ -85,6 +89,11 @@ _CORNER_FROM_EDGES = np.array([[-1.0, -1.0, -1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0
 _DIAGONAL = np.arange(3)
 # vbd: one move may shrink an element's volume at most to this fraction of its current value.
 _MIN_VOLUME_FRACTION_PER_MOVE = 0.1
+_TINY = np.finfo(float).tiny
+_NO_ROWS = np.zeros(0, dtype=np.int64)
+# RestFactor keeps forward-substituted unit columns of at most this many bytes, the oldest
+# dropped first (a vertex's three take 0.7 MB at organ scale, 10,648 vertices).
+_UNIT_HALVES_BYTES = 64 * 2**20
 # vbd: vertices within this factor of the tool radius touch the tool.
 _CONTACT_BAND = 1.0 + 1e-4
 # stick contact: a prediction that leaves an element below this fraction of its rest volume
@@ -244,21 +253,19 @@ def colour_vertices(vertices: np.ndarray, edges: np.ndarray, vertex_count: int) 
 
 @dataclass
 class _VertexColour:
-    """vbd: one colour of vertices and the (vertex, tetrahedron) incidences of its vertices.
-
-    Per-incidence arrays are element-major (incidence index last): numpy's inner loops run long.
-    """
+    """vbd: one colour of vertices and the (vertex, tetrahedron) incidences of its vertices,
+    sorted by vertex, incidence-major and C-contiguous (the compiled sweep reads each
+    incidence's data together)."""
 
     vertices: np.ndarray  # (n,) vertex indices, sorted
-    segment_starts: np.ndarray  # (n,) first incidence of each vertex (incidences sorted by vertex)
-    incidence_vertex: np.ndarray  # (P,) position in `vertices` of each incidence's vertex
-    corners: np.ndarray  # (4, P) vertex indices of the incident tetrahedron
-    rest_inverse: np.ndarray  # (3, 3, P) Dm^-1 of the incident tetrahedron
-    shape_gradient: np.ndarray  # (3, P) g: gradient of the vertex's shape function
-    volume_gradient: np.ndarray  # (3, P) V g
+    segment_bounds: np.ndarray  # (n + 1,) the incidences of vertex i are segment_bounds[i]:segment_bounds[i + 1]
+    corners: np.ndarray  # (P, 4) vertex indices of the incident tetrahedron
+    rest_inverse: np.ndarray  # (P, 3, 3) Dm^-1 of the incident tetrahedron
+    shape_gradient: np.ndarray  # (P, 3) g: gradient of the vertex's shape function
+    volume_gradient: np.ndarray  # (P, 3) V g
     volumetric_stiffness: np.ndarray  # (P,) lambda' V
     shear_diagonal: np.ndarray  # (n,) sum of mu V |g|^2: the isotropic part of the Hessian
-    gravity_force: np.ndarray  # (3, n) lumped mass times gravity
+    gravity_force: np.ndarray  # (n, 3) lumped mass times gravity
 
 
 @dataclass
@@ -283,10 +290,153 @@ def _cofactor_em(matrices: np.ndarray) -> np.ndarray:
     return cofactor
 
 
-def _deformation_em(state: np.ndarray, corners: np.ndarray, rest_inverse: np.ndarray) -> np.ndarray:
-    """Deformation gradients F = Ds Dm^-1 (3, 3, K) of the tetrahedra `corners` (4, K) at `state`."""
-    positions = state.T[:, corners]  # (3, 4, K)
-    return np.einsum("akm,kjm->ajm", positions[:, 1:] - positions[:, :1], rest_inverse)
+@numba.njit(inline="always")
+def _deformation(state, corners, rest_inverse, p):
+    """F = Ds Dm^-1 (row-major 9-tuple) of the tetrahedron corners[p] (4,) at `state` (N, 3),
+    Dm^-1 rest_inverse[p] (3, 3); Ds's columns are the edges from corner 0."""
+    i0, i1, i2, i3 = corners[p, 0], corners[p, 1], corners[p, 2], corners[p, 3]
+    ux, uy, uz = state[i1, 0] - state[i0, 0], state[i1, 1] - state[i0, 1], state[i1, 2] - state[i0, 2]
+    vx, vy, vz = state[i2, 0] - state[i0, 0], state[i2, 1] - state[i0, 1], state[i2, 2] - state[i0, 2]
+    wx, wy, wz = state[i3, 0] - state[i0, 0], state[i3, 1] - state[i0, 1], state[i3, 2] - state[i0, 2]
+    r00, r01, r02 = rest_inverse[p, 0, 0], rest_inverse[p, 0, 1], rest_inverse[p, 0, 2]
+    r10, r11, r12 = rest_inverse[p, 1, 0], rest_inverse[p, 1, 1], rest_inverse[p, 1, 2]
+    r20, r21, r22 = rest_inverse[p, 2, 0], rest_inverse[p, 2, 1], rest_inverse[p, 2, 2]
+    return (ux * r00 + vx * r10 + wx * r20, ux * r01 + vx * r11 + wx * r21, ux * r02 + vx * r12 + wx * r22,
+            uy * r00 + vy * r10 + wy * r20, uy * r01 + vy * r11 + wy * r21, uy * r02 + vy * r12 + wy * r22,
+            uz * r00 + vz * r10 + wz * r20, uz * r01 + vz * r11 + wz * r21, uz * r02 + vz * r12 + wz * r22)
+
+
+@numba.njit(inline="always")
+def _cofactor(f00, f01, f02, f10, f11, f12, f20, f21, f22):
+    """cof(F) = det(F) F^-T (row-major 9-tuple): its columns are f1 x f2, f2 x f0, f0 x f1 for
+    F's columns f0, f1, f2."""
+    return (f11 * f22 - f21 * f12, f12 * f20 - f22 * f10, f10 * f21 - f20 * f11,
+            f21 * f02 - f01 * f22, f22 * f00 - f02 * f20, f20 * f01 - f00 * f21,
+            f01 * f12 - f11 * f02, f02 * f10 - f12 * f00, f00 * f11 - f10 * f01)
+
+
+@numba.njit((writable(float64, 2), read_only(int64, 1), read_only(int64, 1), read_only(int64, 2),
+             read_only(float64, 3), read_only(float64, 2), read_only(float64, 2), read_only(float64, 1),
+             read_only(float64, 1), read_only(float64, 2), read_only(boolean, 1), float64, float64, float64,
+             read_only(float64, 1), float64, boolean), cache=True, boundscheck=False)
+def _sweep_colour(state, vertices, segment_bounds, corners, rest_inverse, shape_gradient, volume_gradient,
+                  volumetric_stiffness, shear_diagonal, gravity_force, held, shear_modulus, volumetric_modulus,
+                  rest_volume_ratio, tool_centre, tool_radius, push):
+    """vbd's sweep over one colour's vertices, in place (VertexBlockDescent._vertex_sweep): per
+    vertex, the exact minimiser of its quadratic energy over its incidences p (from
+    segment_bounds[i] to segment_bounds[i + 1]) from F, cof F and J of each incident element; pushed out of
+    the tool sphere (`push`); kept where it is when `held`; the move shortened so that no
+    incident J drops below _MIN_VOLUME_FRACTION_PER_MOVE of its value. Vertices of a colour
+    share no element, so moving them one after the other is moving them together.
+
+    Compiled (numba): as numpy passes over the colour's incidences (einsum contractions, the
+    cofactors, reduceat sums) the sweeps took half of a prediction's time at organ scale. Not
+    bounds-checked, unlike the package's other kernels (checks made it 2x slower): its indices
+    are the rest mesh's elements, which TetMesh keeps within its vertices, and `state` and
+    `held` have a row per vertex (ElasticSimulator.predict checks the state's shape)."""
+    slopes = np.empty((corners.shape[0], 3))  # dJ/dx = cof(F) g of each incidence
+    ratios = np.empty(corners.shape[0])  # J
+    for i in range(vertices.size):
+        vertex = vertices[i]
+        if held[vertex]:
+            continue
+        h00 = h01 = h02 = h11 = h12 = h22 = 0.0  # sum of lambda' V (cof F g)(cof F g)^T
+        g0 = g1 = g2 = 0.0  # sum of V P g
+        for p in range(segment_bounds[i], segment_bounds[i + 1]):
+            f00, f01, f02, f10, f11, f12, f20, f21, f22 = _deformation(state, corners, rest_inverse, p)
+            c00, c01, c02, c10, c11, c12, c20, c21, c22 = _cofactor(f00, f01, f02, f10, f11, f12, f20, f21, f22)
+            ratio = f00 * c00 + f10 * c10 + f20 * c20
+            pressure = volumetric_modulus * (ratio - rest_volume_ratio)
+            b0, b1, b2 = volume_gradient[p, 0], volume_gradient[p, 1], volume_gradient[p, 2]
+            g0 += (shear_modulus * f00 + pressure * c00) * b0 + (shear_modulus * f01 + pressure * c01) * b1 + (
+                shear_modulus * f02 + pressure * c02) * b2
+            g1 += (shear_modulus * f10 + pressure * c10) * b0 + (shear_modulus * f11 + pressure * c11) * b1 + (
+                shear_modulus * f12 + pressure * c12) * b2
+            g2 += (shear_modulus * f20 + pressure * c20) * b0 + (shear_modulus * f21 + pressure * c21) * b1 + (
+                shear_modulus * f22 + pressure * c22) * b2
+            a0, a1, a2 = shape_gradient[p, 0], shape_gradient[p, 1], shape_gradient[p, 2]
+            s0 = c00 * a0 + c01 * a1 + c02 * a2
+            s1 = c10 * a0 + c11 * a1 + c12 * a2
+            s2 = c20 * a0 + c21 * a1 + c22 * a2
+            k = volumetric_stiffness[p]
+            h00 += k * s0 * s0
+            h01 += k * s0 * s1
+            h02 += k * s0 * s2
+            h11 += k * s1 * s1
+            h12 += k * s1 * s2
+            h22 += k * s2 * s2
+            slopes[p, 0], slopes[p, 1], slopes[p, 2] = s0, s1, s2
+            ratios[p] = ratio
+        h00 += shear_diagonal[i]
+        h11 += shear_diagonal[i]
+        h22 += shear_diagonal[i]
+        force0 = gravity_force[i, 0] - g0
+        force1 = gravity_force[i, 1] - g1
+        force2 = gravity_force[i, 2] - g2
+        # The Hessian is symmetric positive definite: its inverse is its adjugate (cofactor) over det.
+        a00, a01, a02, a10, a11, a12, a20, a21, a22 = _cofactor(h00, h01, h02, h01, h11, h12, h02, h12, h22)
+        determinant = h00 * a00 + h01 * a10 + h02 * a20
+        x0, x1, x2 = state[vertex, 0], state[vertex, 1], state[vertex, 2]
+        t0 = x0 + (a00 * force0 + a01 * force1 + a02 * force2) / determinant
+        t1 = x1 + (a10 * force0 + a11 * force1 + a12 * force2) / determinant
+        t2 = x2 + (a20 * force0 + a21 * force1 + a22 * force2) / determinant
+        if push:  # _outside_tool
+            o0, o1, o2 = t0 - tool_centre[0], t1 - tool_centre[1], t2 - tool_centre[2]
+            distance = np.sqrt(o0 * o0 + o1 * o1 + o2 * o2)
+            if distance < tool_radius:
+                scale = tool_radius / max(distance, _TINY)
+                t0, t1, t2 = tool_centre[0] + scale * o0, tool_centre[1] + scale * o1, tool_centre[2] + scale * o2
+        m0, m1, m2 = t0 - x0, t1 - x1, t2 - x2
+        # J is affine along a vertex move: keep every incident J above a fraction of its value.
+        scale = 1.0
+        for p in range(segment_bounds[i], segment_bounds[i + 1]):
+            slope = slopes[p, 0] * m0 + slopes[p, 1] * m1 + slopes[p, 2] * m2
+            if slope < 0.0 and ratios[p] > 0.0:
+                scale = min(scale, (1.0 - _MIN_VOLUME_FRACTION_PER_MOVE) * ratios[p] / -slope)
+        state[vertex, 0] = x0 + scale * m0
+        state[vertex, 1] = x1 + scale * m1
+        state[vertex, 2] = x2 + scale * m2
+
+
+@numba.njit((read_only(float64, 2), read_only(int64, 2), read_only(float64, 3), read_only(float64, 3),
+             read_only(float64, 1), float64, float64, float64, writable(float64, 1), writable(float64, 2)),
+            cache=True, boundscheck=False)
+def _elastic_energy(state, tetrahedra, rest_inverse, corner_volume_gradient, volumes, shear_modulus,
+                    volumetric_modulus, rest_volume_ratio, volume_ratios, forces):
+    """The elastic energy of `state` (N, 3), sum of V (mu/2 (I_C - 3) + lambda'/2 (J - gamma)^2);
+    each element's J into volume_ratios (M,), and, unless `forces` has no rows, the elastic
+    forces -dE/dx (N, 3) added into it (corner k of element e: -V P g_k, corner_volume_gradient
+    (M, 4, 3) holding V g_k, P = mu F + lambda' (J - gamma) cof F).
+
+    Compiled (numba): as numpy passes (F, cof F, their contractions, a bincount per axis) the
+    energies and forces of the global steps took a sixth of a prediction at organ scale. Not
+    bounds-checked, as `_sweep_colour` (checks made it 3x slower)."""
+    energy = 0.0
+    with_forces = forces.shape[0] > 0
+    for e in range(tetrahedra.shape[0]):
+        f00, f01, f02, f10, f11, f12, f20, f21, f22 = _deformation(state, tetrahedra, rest_inverse, e)
+        c00, c01, c02, c10, c11, c12, c20, c21, c22 = _cofactor(f00, f01, f02, f10, f11, f12, f20, f21, f22)
+        ratio = f00 * c00 + f10 * c10 + f20 * c20
+        volume_ratios[e] = ratio
+        frobenius_squared = (f00 * f00 + f01 * f01 + f02 * f02 + f10 * f10 + f11 * f11 + f12 * f12
+                             + f20 * f20 + f21 * f21 + f22 * f22)
+        change = ratio - rest_volume_ratio
+        energy += volumes[e] * (0.5 * shear_modulus * (frobenius_squared - 3.0)
+                                + 0.5 * volumetric_modulus * change * change)
+        if with_forces:
+            pressure = volumetric_modulus * change
+            mu = shear_modulus
+            p00, p01, p02 = mu * f00 + pressure * c00, mu * f01 + pressure * c01, mu * f02 + pressure * c02
+            p10, p11, p12 = mu * f10 + pressure * c10, mu * f11 + pressure * c11, mu * f12 + pressure * c12
+            p20, p21, p22 = mu * f20 + pressure * c20, mu * f21 + pressure * c21, mu * f22 + pressure * c22
+            for k in range(4):
+                b0, b1, b2 = (corner_volume_gradient[e, k, 0], corner_volume_gradient[e, k, 1],
+                              corner_volume_gradient[e, k, 2])
+                corner = tetrahedra[e, k]
+                forces[corner, 0] -= p00 * b0 + p01 * b1 + p02 * b2
+                forces[corner, 1] -= p10 * b0 + p11 * b1 + p12 * b2
+                forces[corner, 2] -= p20 * b0 + p21 * b1 + p22 * b2
+    return energy
 
 
 def _as_pose(tool_pose) -> np.ndarray:
@@ -344,25 +494,57 @@ def rest_stiffness(body: _Body) -> scipy.sparse.csr_matrix:
     return stiffness
 
 
-def rest_stiffness_factor(body: _Body) -> SparseCholesky:
-    """Sparse Cholesky factor of K0 on the movable dofs."""
-    return SparseCholesky(rest_stiffness(body), node_size=3)
+class RestFactor:
+    """The Cholesky factor of K0 on the movable dofs (`rest_stiffness`), and its solves with some
+    movable vertices held or sliding on the tool.
 
+    A constrained solve is a Schur complement on the factor: with K0 = P^T L L^T P, the
+    constraint columns E and W = L^-1 P E, the solution of K0 x = f held to E^T x = 0 is
+    x = P^T L^-T (z - W (W^T W)^-1 W^T z), z = L^-1 P f (W^T W = E^T K0^-1 E): one forward and
+    one back substitution, as an unconstrained solve. A held vertex's constraints are its three
+    unit columns and a sliding vertex's is its normal there, so W is made of the forward
+    substitutions of the three unit columns of each such vertex, which are kept until the next
+    refactor: a vertex in contact costs three half-solves once, instead of a full solve per
+    constraint column at every global step (cvxopt's CHOLMOD solves one column at a time).
+    """
 
-def _constrained(solution: np.ndarray, constraints: np.ndarray, responses: np.ndarray) -> np.ndarray:
-    """K0^-1 f held to E^T x = 0, from the free solution x = K0^-1 f, the constraint columns E
-    and their responses K0^-1 E: x - K0^-1 E (E^T K0^-1 E)^-1 E^T x (a Schur complement on the
-    factor)."""
-    return solution - responses @ np.linalg.solve(constraints.T @ responses, constraints.T @ solution)
+    def __init__(self, stiffness: scipy.sparse.csr_matrix):
+        self.cholesky = SparseCholesky(stiffness, node_size=3)
+        self._unit_halves: dict[int, np.ndarray] = {}  # movable row -> L^-1 P of its unit columns (3 n, 3)
 
+    def refactor(self, data: np.ndarray) -> None:
+        """Numeric factorisation at K0's values `data` (its csr pattern unchanged)."""
+        self.cholesky.refactor(data)
+        self._unit_halves.clear()
 
-def _unit_columns(movable_count: int, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The dofs (3 k,) of the movable vertices at `rows` (k,) of the movable set, and the columns
-    E (3 n, 3 k) that pick them: constraints that hold those vertices in a K0 solve."""
-    dofs = (3 * rows[:, None] + _DIAGONAL).reshape(-1)
-    columns = np.zeros((3 * movable_count, dofs.size))
-    columns[dofs, np.arange(dofs.size)] = 1.0
-    return dofs, columns
+    def solve(self, forces: np.ndarray, held_rows: np.ndarray = _NO_ROWS, sliding_rows: np.ndarray = _NO_ROWS,
+              normals: np.ndarray | None = None) -> np.ndarray:
+        """K0^-1 forces for forces (3 n,) or (3 n, k), the movable vertices at `held_rows` (of
+        the movable set) held and those at `sliding_rows` not moving along their `normals` (s, 3)."""
+        half = self.cholesky.forward_solve(forces)
+        constraints = self._constraint_halves(held_rows, sliding_rows, normals)
+        if constraints.shape[1]:
+            half = half - constraints @ np.linalg.solve(constraints.T @ constraints, constraints.T @ half)
+        return self.cholesky.back_solve(half)
+
+    def _constraint_halves(self, held_rows, sliding_rows, normals) -> np.ndarray:
+        """W = L^-1 P E (3 n, 3 h + s): the held vertices' unit columns, then the sliding ones' normals."""
+        rows = np.concatenate([held_rows, sliding_rows]).astype(np.int64)
+        missing = [int(row) for row in np.unique(rows) if int(row) not in self._unit_halves]
+        if missing:
+            dofs = (3 * np.asarray(missing)[:, None] + _DIAGONAL).reshape(-1)
+            units = np.zeros((self.cholesky.size, dofs.size))
+            units[dofs, np.arange(dofs.size)] = 1.0
+            halves = self.cholesky.forward_solve(units)
+            for k, row in enumerate(missing):
+                self._unit_halves[row] = np.ascontiguousarray(halves[:, 3 * k:3 * k + 3])
+        columns = [self._unit_halves[int(row)] for row in held_rows]
+        if sliding_rows.size:
+            columns.append(np.stack([self._unit_halves[int(row)] @ normal
+                                     for row, normal in zip(sliding_rows, normals)], axis=1))
+        while len(self._unit_halves) * 3 * self.cholesky.size * 8 > _UNIT_HALVES_BYTES:
+            del self._unit_halves[next(iter(self._unit_halves))]  # the oldest
+        return np.concatenate(columns, axis=1) if columns else np.zeros((self.cholesky.size, 0))
 
 
 # ---------------------------------------------------------------------- solver strategies
@@ -377,7 +559,7 @@ class SimulatorSolver:
     simulator's: a strategy moves only `movable_vertices`.
     """
 
-    rest_stiffness: SparseCholesky | None = None  # K0 on the movable dofs, where the strategy factors it
+    rest_stiffness: RestFactor | None = None  # K0's factor on the movable dofs, where the strategy factors it
 
     def begin(self, state: np.ndarray) -> None:
         """Start a prediction from `state` (N, 3)."""
@@ -410,20 +592,18 @@ class VertexBlockDescent(SimulatorSolver):
         self._volumetric_modulus = config.lame_lambda + config.shear_modulus  # lambda'
         self._rest_volume_ratio = 1.0 + config.shear_modulus / self._volumetric_modulus  # gamma
         self._volumes = volumes
-        self._corners_em = np.ascontiguousarray(tets.T)
-        self._rest_inverse_em = np.ascontiguousarray(body.rest_inverse.transpose(1, 2, 0))
-        self._corner_volume_gradient_em = np.ascontiguousarray(
-            (volumes[:, None, None] * body.corner_gradient).transpose(1, 2, 0)
-        )
+        self._tetrahedra = np.ascontiguousarray(tets, dtype=np.int64)
+        self._rest_inverse = np.ascontiguousarray(body.rest_inverse)
+        self._corner_volume_gradient = np.ascontiguousarray(volumes[:, None, None] * body.corner_gradient)
         self._vertex_mass = body.vertex_mass
         self._gravity_force = body.vertex_mass[:, None] * body.gravity
         self._colours = self._vertex_colours(tets, volumes, body.rest_inverse, body.corner_gradient)
-        self.rest_stiffness = rest_stiffness_factor(body) if self.movable_vertices.size else None
+        self.rest_stiffness = RestFactor(rest_stiffness(body)) if self.movable_vertices.size else None
 
     def set_gravity(self, gravity: np.ndarray) -> None:
         self._gravity_force = self._vertex_mass[:, None] * gravity
         for colour in self._colours:
-            colour.gravity_force = np.ascontiguousarray(self._gravity_force[colour.vertices].T)
+            colour.gravity_force = self._gravity_force[colour.vertices]
 
     def set_material(self, config: SimulatorConfig) -> None:
         """The element moduli rescaled in place: the colouring (a Python loop over the
@@ -453,27 +633,22 @@ class VertexBlockDescent(SimulatorSolver):
             element = incidence_element[selected]
             gradient = corner_gradient[element, incidence_corner[selected]]
             local_vertex = np.searchsorted(members, incidence_vertex[selected])
-            segment_starts = np.flatnonzero(np.r_[True, local_vertex[1:] != local_vertex[:-1]])
+            segment_bounds = np.flatnonzero(np.r_[True, local_vertex[1:] != local_vertex[:-1], True])
             shear = self.config.shear_modulus * volumes[element] * np.einsum("pi,pi->p", gradient, gradient)
             colours.append(
                 _VertexColour(
                     vertices=members,
-                    segment_starts=segment_starts,
-                    incidence_vertex=local_vertex,
-                    corners=np.ascontiguousarray(tets[element].T),
-                    rest_inverse=np.ascontiguousarray(rest_inverse[element].transpose(1, 2, 0)),
-                    shape_gradient=np.ascontiguousarray(gradient.T),
-                    volume_gradient=np.ascontiguousarray((volumes[element][:, None] * gradient).T),
+                    segment_bounds=segment_bounds,
+                    corners=np.ascontiguousarray(tets[element], dtype=np.int64),
+                    rest_inverse=np.ascontiguousarray(rest_inverse[element]),
+                    shape_gradient=np.ascontiguousarray(gradient),
+                    volume_gradient=np.ascontiguousarray(volumes[element][:, None] * gradient),
                     volumetric_stiffness=self._volumetric_modulus * volumes[element],
-                    shear_diagonal=np.add.reduceat(shear, segment_starts),
-                    gravity_force=np.ascontiguousarray(self._gravity_force[members].T),
+                    shear_diagonal=np.add.reduceat(shear, segment_bounds[:-1]),
+                    gravity_force=self._gravity_force[members],
                 )
             )
         return colours
-
-    def _rest_solve(self, right_hand_side: np.ndarray) -> np.ndarray:
-        """K0^-1 applied to a vector (3 n,) or to the columns (3 n, k) of a matrix on the movable dofs."""
-        return self.rest_stiffness.solve(right_hand_side)
 
     def substep(self, state, step, tool_centre, held) -> None:
         """Quasi-static iterations of one sub-step in place: a vertex sweep, then a global K0 step.
@@ -483,59 +658,39 @@ class VertexBlockDescent(SimulatorSolver):
         held_mask = np.zeros(self.rest_mesh.vertex_count, dtype=bool)
         held_mask[held] = True
         held_rows = np.flatnonzero(held_mask[self.movable_vertices])
-        _, held_constraints = _unit_columns(self.movable_vertices.size, held_rows)
-        held_responses = self._rest_solve(held_constraints)  # K0^-1 E for the sub-step's held dofs
         for _ in range(int(self.config.solver_iterations)):
             for colour in self._colours:
-                self._vertex_sweep(state, colour, tool_centre, held_mask[colour.vertices])
-            self._global_step(state, tool_centre, held_mask, held_constraints, held_responses)
+                self._vertex_sweep(state, colour, tool_centre, held_mask)
+            self._global_step(state, tool_centre, held_mask, held_rows)
 
-    def _energy_and_volume_ratios(self, state: np.ndarray):
-        """Total energy (elastic + gravity) and volume ratios J (M,) at `state`, with F and cof F."""
-        deformation = _deformation_em(state, self._corners_em, self._rest_inverse_em)
-        cofactor = _cofactor_em(deformation)
-        volume_ratio = np.einsum("am,am->m", deformation[:, 0], cofactor[:, 0])
-        frobenius_squared = np.einsum("ajm,ajm->m", deformation, deformation)
-        volume_change = volume_ratio - self._rest_volume_ratio
-        density = 0.5 * self.config.shear_modulus * (frobenius_squared - 3.0) + (
-            0.5 * self._volumetric_modulus * volume_change**2
-        )
-        energy = float(self._volumes @ density) - float(np.einsum("ij,ij->", self._gravity_force, state))
-        return energy, volume_ratio, deformation, cofactor
+    def _energy_and_volume_ratios(self, state: np.ndarray, with_forces: bool = False):
+        """Total energy (elastic + gravity) and volume ratios J (M,) at `state`; with
+        `with_forces`, the forces -dE/dx (N, 3), elastic + gravity, too (else None)."""
+        volume_ratio = np.empty(self._volumes.size)
+        forces = np.zeros(state.shape if with_forces else (0, 3))
+        elastic = _elastic_energy(state, self._tetrahedra, self._rest_inverse, self._corner_volume_gradient,
+                                  self._volumes, self.config.shear_modulus, self._volumetric_modulus,
+                                  self._rest_volume_ratio, volume_ratio, forces)
+        energy = elastic - float(np.einsum("ij,ij->", self._gravity_force, state))
+        return energy, volume_ratio, (forces + self._gravity_force if with_forces else None)
 
-    def _forces(self, state: np.ndarray, deformation, cofactor, volume_ratio) -> np.ndarray:
-        """Forces -dE/dx (N, 3), elastic + gravity, from the element F, cof F and J at `state`."""
-        pressure = self._volumetric_modulus * (volume_ratio - self._rest_volume_ratio)
-        stress = self.config.shear_modulus * deformation + pressure * cofactor  # P, (3, 3, M)
-        corner_forces = -np.einsum("ajm,kjm->kam", stress, self._corner_volume_gradient_em)  # -V P g
-        flat_corners = self._corners_em.reshape(-1)
-        elastic = [
-            np.bincount(flat_corners, corner_forces[:, axis].reshape(-1), state.shape[0]) for axis in range(3)
-        ]
-        return np.stack(elastic, axis=1) + self._gravity_force
-
-    def _global_step(self, state, tool_centre, held_mask, held_constraints, held_responses) -> None:
+    def _global_step(self, state, tool_centre, held_mask, held_rows) -> None:
         """Quasi-Newton step with the rest Hessian K0, in place: the smooth, global part of the error.
 
-        Held vertices (constraint columns `held_constraints`, K0^-1 of them `held_responses`) do
-        not move and other vertices touching the tool may only slide along it: the step is
-        constrained through a Schur complement on the K0 factor. It is halved until the energy
-        does not rise and no volume drops below a fraction of its value, and skipped if that fails.
+        Held vertices (`held_rows` of the movable ones) do not move and other vertices touching
+        the tool may only slide along it: the step is constrained through a Schur complement on
+        the K0 factor (RestFactor.solve). It is halved until the energy does not rise and no
+        volume drops below a fraction of its value, and skipped if that fails.
         """
-        energy, volume_ratio, deformation, cofactor = self._energy_and_volume_ratios(state)
-        forces = self._forces(state, deformation, cofactor, volume_ratio)
+        energy, volume_ratio, forces = self._energy_and_volume_ratios(state, with_forces=True)
         movable = self.movable_vertices
-        step = self._rest_solve(forces[movable].reshape(-1))
-        sliding = self._sliding_constraints(state[movable], tool_centre, held_mask[movable])
-        constraints = np.concatenate([held_constraints, sliding], axis=1)
-        if constraints.shape[1]:
-            responses = np.concatenate([held_responses, self._rest_solve(sliding)], axis=1)  # K0^-1 E
-            step = _constrained(step, constraints, responses)
+        sliding_rows, normals = self._sliding_contacts(state[movable], tool_centre, held_mask[movable])
+        step = self.rest_stiffness.solve(forces[movable].reshape(-1), held_rows, sliding_rows, normals)
         step = step.reshape(-1, 3)
         trial = state.copy()
         for _ in range(_MAX_STEP_HALVINGS):
             trial[movable] = state[movable] + step
-            trial_energy, trial_ratio, _, _ = self._energy_and_volume_ratios(trial)
+            trial_energy, trial_ratio, _ = self._energy_and_volume_ratios(trial)
             if trial_energy <= energy + _ENERGY_ROUNDING * abs(energy) and np.all(
                 trial_ratio > _MIN_VOLUME_FRACTION_PER_MOVE * volume_ratio
             ):
@@ -543,49 +698,25 @@ class VertexBlockDescent(SimulatorSolver):
                 return
             step *= 0.5
 
-    def _sliding_constraints(self, positions: np.ndarray, tool_centre, held: np.ndarray) -> np.ndarray:
-        """Columns E (3 n, c) of zero normal motion for movable vertices touching the tool, not held."""
+    def _sliding_contacts(self, positions: np.ndarray, tool_centre, held: np.ndarray):
+        """The movable vertices touching the tool, not held (rows of `positions`, the movable
+        ones'), and their outward normals on it (k, 3): they may not move along them."""
         if self.config.tool_mode != "sphere":
-            return np.zeros((positions.size, 0))
+            return _NO_ROWS, np.zeros((0, 3))
         offsets = positions - tool_centre
         distances = np.sqrt(np.einsum("ij,ij->i", offsets, offsets))
         touching = np.flatnonzero((distances <= self.config.tool_radius * _CONTACT_BAND) & ~held)
-        constraints = np.zeros((positions.size, touching.size))
-        normals = offsets[touching] / distances[touching, None]
-        constraints[3 * touching[:, None] + _DIAGONAL, np.arange(touching.size)[:, None]] = normals
-        return constraints
+        return touching, offsets[touching] / distances[touching, None]
 
-    def _vertex_sweep(self, state: np.ndarray, colour: _VertexColour, tool_centre: np.ndarray, held) -> None:
-        """Exact energy minimisation over each vertex of a colour, tool contact, volume-safe move.
-
-        `held` (n,) marks the colour's vertices stuck to the tool, which stay where they are.
-        """
-        deformation = _deformation_em(state, colour.corners, colour.rest_inverse)
-        cofactor = _cofactor_em(deformation)
-        volume_ratio = np.einsum("ap,ap->p", deformation[:, 0], cofactor[:, 0])
-        pressure = self._volumetric_modulus * (volume_ratio - self._rest_volume_ratio)
-        stress = self.config.shear_modulus * deformation + pressure * cofactor  # P = mu F + p cof F
-        energy_gradient = np.einsum("ajp,jp->ap", stress, colour.volume_gradient)  # V P g, (3, P)
-        volume_slope = np.einsum("ajp,jp->ap", cofactor, colour.shape_gradient)  # dJ/dx = cof(F) g
-        weighted_slope = colour.volumetric_stiffness * volume_slope
-        hessian = np.add.reduceat(weighted_slope[:, None] * volume_slope[None], colour.segment_starts, axis=2)
-        hessian[_DIAGONAL, _DIAGONAL] += colour.shear_diagonal
-        force = colour.gravity_force - np.add.reduceat(energy_gradient, colour.segment_starts, axis=1)
-        adjugate = _cofactor_em(hessian)  # the Hessian is symmetric: its inverse is adjugate / det
-        determinant = np.einsum("an,an->n", hessian[:, 0], adjugate[:, 0])
-        positions = state[colour.vertices]
-        targets = positions + (np.einsum("abn,bn->an", adjugate, force) / determinant).T
-        if self.config.tool_mode == "sphere":
-            targets = _outside_tool(targets, tool_centre, self.config.tool_radius)
-        targets[held] = positions[held]
-        moves = targets - positions
-        # J is affine along a vertex move: keep every incident J above a fraction of its value.
-        slope = np.einsum("ap,pa->p", volume_slope, moves[colour.incidence_vertex])
-        shrinking = (slope < 0.0) & (volume_ratio > 0.0)
-        allowed_drop = (1.0 - _MIN_VOLUME_FRACTION_PER_MOVE) * volume_ratio
-        limits = np.where(shrinking, allowed_drop / np.where(shrinking, -slope, 1.0), 1.0)
-        scale = np.minimum(np.minimum.reduceat(limits, colour.segment_starts), 1.0)
-        state[colour.vertices] = positions + scale[:, None] * moves
+    def _vertex_sweep(self, state: np.ndarray, colour: _VertexColour, tool_centre: np.ndarray,
+                      held_mask: np.ndarray) -> None:
+        """Exact energy minimisation over each vertex of a colour, tool contact, volume-safe move
+        (the compiled `_sweep_colour`); vertices in `held_mask` (N,) stay where they are."""
+        _sweep_colour(state, colour.vertices, colour.segment_bounds, colour.corners, colour.rest_inverse,
+                      colour.shape_gradient, colour.volume_gradient, colour.volumetric_stiffness,
+                      colour.shear_diagonal, colour.gravity_force, held_mask, self.config.shear_modulus,
+                      self._volumetric_modulus, self._rest_volume_ratio, np.asarray(tool_centre, dtype=np.float64),
+                      float(self.config.tool_radius), self.config.tool_mode == "sphere")
 
 
 def _bulk_modulus(config: SimulatorConfig) -> float:
@@ -849,14 +980,10 @@ class ElasticSimulator:
         other vertices held, and the movable ones in `held` too (a Schur complement on the
         factor, as the global step holds stuck vertices): the model's small-strain response."""
         if self.solver.rest_stiffness is None:
-            self.solver.rest_stiffness = rest_stiffness_factor(self._body)
-        response = self.solver.rest_stiffness.solve(forces)
-        rows = np.flatnonzero(np.isin(self.movable_vertices, held)) if held is not None else np.zeros(0, int)
-        if rows.size == 0:
-            return response
-        dofs, constraints = _unit_columns(self.movable_vertices.size, rows)
-        response = _constrained(response, constraints, self.solver.rest_stiffness.solve(constraints))
-        response[dofs] = 0.0  # zero but for rounding
+            self.solver.rest_stiffness = RestFactor(rest_stiffness(self._body))
+        rows = np.flatnonzero(np.isin(self.movable_vertices, held)) if held is not None else _NO_ROWS
+        response = self.solver.rest_stiffness.solve(forces, held_rows=rows)
+        response[(3 * rows[:, None] + _DIAGONAL).reshape(-1)] = 0.0  # zero but for rounding
         return response
 
     @property

@@ -136,11 +136,26 @@ class SparseCholesky:
     def sample(self, draws: np.ndarray) -> np.ndarray:
         """P^T L^-T draws for draws (n, k): with draws ~ N(0, I), samples of N(0, A^-1), since
         A = P^T L L^T P (CHOLMOD's sys codes 5, L^T x = b, and 8, x = P^T b)."""
-        draws = np.asarray(draws, dtype=np.float64)
-        if draws.shape[0] != self.size:
-            raise ValueError(f"draws have {draws.shape[0]} rows, the matrix {self.size}")
+        return self.back_solve(draws)
+
+    def forward_solve(self, rhs: np.ndarray) -> np.ndarray:
+        """L^-1 P rhs for rhs (n,) or (n, k), the first half of `solve` (sys codes 7, x = P b, and
+        4, L x = b): solve(b) = back_solve(forward_solve(b)), and B^T A^-1 B is the Gram matrix
+        of forward_solve(B)'s columns."""
+        return self._substitutions(rhs, (7, 4))
+
+    def back_solve(self, rhs: np.ndarray) -> np.ndarray:
+        """P^T L^-T rhs for rhs (n,) or (n, k), the second half of `solve`."""
+        return self._substitutions(rhs, (5, 8))
+
+    def _substitutions(self, rhs: np.ndarray, systems: tuple[int, ...]) -> np.ndarray:
+        rhs = np.asarray(rhs, dtype=np.float64)
+        if rhs.shape[0] != self.size:
+            raise ValueError(f"right-hand side has {rhs.shape[0]} rows, the matrix {self.size}")
+        if rhs.size == 0:
+            return rhs.copy()
         cvxopt = _cvxopt()
-        solution = cvxopt.matrix(draws.reshape(self.size, -1))
-        cvxopt.cholmod.solve(self._factor, solution, sys=5)
-        cvxopt.cholmod.solve(self._factor, solution, sys=8)
-        return np.array(solution).reshape(draws.shape)
+        solution = cvxopt.matrix(rhs.reshape(self.size, -1))
+        for system in systems:
+            cvxopt.cholmod.solve(self._factor, solution, sys=system)
+        return np.array(solution).reshape(rhs.shape)
