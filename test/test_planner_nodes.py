@@ -24,6 +24,7 @@ from meshfg_msgs.srv import SurfaceQuery as SurfaceQueryService
 from meshfg_ros.core.surface_query import SurfaceQuery
 from meshfg_ros.io.messages import MeshState, header_msg, mesh_state_from_msg, mesh_state_to_msg, stamp_ns_from_msg
 from meshfg_ros.nodes.planner_service import points_from_flat
+from meshfg_ros.planner_client import SurfaceQueryClient, SurfaceQueryError
 from meshfg_ros.synthetic.meshing import cube_mesh
 from test_nodes import (  # noqa: F401 - probe and processes are fixtures
     FACTORY,
@@ -144,6 +145,21 @@ def test_estimator_node_answers_surface_queries_in_any_frame_on_the_newest_estim
                                atol=1e-12)
     np.testing.assert_allclose(in_planner.distance_std, expected.distance_std, rtol=1e-12)
 
+    # The Python client: the same answers as arrays, a refusal as SurfaceQueryError with the reason.
+    python_client = SurfaceQueryClient(probe, f"{namespace}/surface_query")
+    for _ in range(3):  # a response the transport drops to a just-matched client is asked again
+        try:
+            answered = python_client.query(to_planner(points[:5]), frame_id="planner", timeout_s=5.0)
+            break
+        except SurfaceQueryError as error:
+            assert "no answer" in str(error), error
+    assert (answered.stamp_ns, answered.step, answered.frame_id) == (ESTIMATE_STAMP_NS, ESTIMATE_STEP, "planner")
+    np.testing.assert_allclose(answered.signed_distance, signed[:5], rtol=0.0, atol=1e-12)
+    np.testing.assert_allclose(answered.closest, to_planner(expected.closest[:5]), atol=1e-12)
+    np.testing.assert_allclose(answered.distance_std, expected.distance_std[:5], rtol=1e-12)
+    with pytest.raises(SurfaceQueryError, match="unknown frame 'elsewhere'"):
+        python_client.query(points[:1], frame_id="elsewhere", timeout_s=10.0)
+
     # A malformed estimate is not taken: the queries go on on the previous one.
     malformed = estimate_msg()
     malformed.header.stamp.sec, malformed.positions = 9, malformed.positions[:-1]
@@ -162,7 +178,7 @@ def test_estimator_node_answers_surface_queries_in_any_frame_on_the_newest_estim
     four_values.points = FACTORY.sequence(np.zeros(4), np.float64)
     odd = call_service(probe, client, four_values)
     assert not odd.success and odd.message == "points rejected: points has 4 values, not a multiple of 3 (x y z per point)"
-    assert spin_until(probe, lambda: reports and reports[-1][2]["queries_refused_frame"] == "1"
+    assert spin_until(probe, lambda: reports and reports[-1][2]["queries_refused_frame"] == "2"
                       and reports[-1][2]["queries_refused_points"] == "2", timeout_s=10.0), reports[-1:]
     assert int(reports[-1][2]["queries_answered"]) >= 2
     assert_clean_exit(node, node.interrupt())
