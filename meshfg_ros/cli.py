@@ -103,7 +103,7 @@ def bundled_recording(name: str) -> Path | None:
 # --------------------------------------------------------------------------- synth
 def _synth_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("scenario", help="cube-translate, cube-shear-spd, cube-shear-nonspd, cao-push, liver-push, "
-                                         "slab-inclusion, dome-tilted, liver-gravity, kidney-drag or flap-bend")
+                                         "slab-inclusion, dome-tilted, liver-gravity, kidney-drag, flap-bend or sheet-cut")
     parser.add_argument("--out", required=True, type=Path, help="new recording directory to write")
     parser.add_argument("--seed", type=int, default=0, help="random seed of the scenario (default 0)")
     parser.add_argument("--max-points", type=_positive_integer, default=None,
@@ -555,7 +555,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("demo", "replay, evaluate and render the bundled airway-push recording", _demo_arguments, run_demo),
     Command("ablation", "the paper's Table I: factor configurations on a deforming cube", _ablation_arguments,
             run_ablation),
-    Command("accuracy", "factor graph against the simulation alone on eight scenes, default settings",
+    Command("accuracy", "factor graph against the simulation alone on nine scenes, default settings",
             _accuracy_arguments, run_accuracy),
     Command("bench", "latency and speed figures against targets and baselines", _bench_arguments, run_bench),
     Command("fuzz", "hostile input against the decoder, the estimator and the replay; recovery from faults",
