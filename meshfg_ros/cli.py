@@ -49,6 +49,7 @@ _USER_ERRORS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("meshfg_ros.replay", ("ReplayError",)),
     ("meshfg_ros.evaluation.evaluate", ("EvaluationError",)),
     ("meshfg_ros.evaluation.render", ("OutputDirectoryError",)),
+    ("meshfg_ros.nodes.parameter_client", ("ParameterClientError",)),
 )
 
 
@@ -541,6 +542,38 @@ def run_params(args: argparse.Namespace) -> int:
     return 0
 
 
+# --------------------------------------------------------------------------- param
+def _param_arguments(parser: argparse.ArgumentParser) -> None:
+    actions = parser.add_subparsers(dest="param_action", required=True, metavar="ACTION")
+    get = actions.add_parser("get", help="print parameters of a running node",
+                             description="Print parameters of a running node (as `ros2 param get`).")
+    get.add_argument("node", help="fully qualified node name, e.g. /meshfg/estimator_node")
+    get.add_argument("names", nargs="+", help="parameter names")
+    put = actions.add_parser("set", help="set a parameter of a running node (the dynamic ones)",
+                             description="Set a parameter of a running node (as `ros2 param set`); the node "
+                                         "range-checks it and answers with the reason when it refuses.")
+    put.add_argument("node", help="fully qualified node name, e.g. /meshfg/estimator_node")
+    put.add_argument("name", help="parameter name")
+    put.add_argument("value", help="the value, in YAML: 0.002, true, [0.0, 0.0, 1.0], a string")
+    parser.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the node (default 10)")
+
+
+def run_param(args: argparse.Namespace) -> int:
+    """Read or set a running node's parameters over its parameter services (nodes/parameter_client.py)."""
+    import yaml
+
+    from meshfg_ros.nodes.parameter_client import get_parameters, set_parameter
+
+    if args.param_action == "get":
+        for name, value in get_parameters(args.node, args.names, args.timeout).items():
+            print(f"{name}: {value}")
+        return 0
+    value = yaml.safe_load(args.value)
+    set_parameter(args.node, args.name, value, args.timeout)
+    print(f"{args.node}: {args.name} = {value!r}")
+    return 0
+
+
 def _refuse_existing(path: Path | None) -> None:
     if path is not None and (path.exists() or path.is_symlink()):
         raise FileExistsError(17, "File exists (never overwritten)", str(path))
@@ -564,6 +597,8 @@ COMMANDS: tuple[Command, ...] = (
             _mesh_arguments, run_mesh),
     Command("params", "the ROS 2 parameters file that makes the live nodes run as the replay of a recording",
             _params_arguments, run_params),
+    Command("param", "get or set a running node's parameters (`ros2 param get|set` without the ros2 command)",
+            _param_arguments, run_param),
 )
 
 

@@ -282,3 +282,30 @@ def test_help_into_a_pipe_closed_early_ends_without_a_traceback():
     process.stdout.close()
     _, errors = process.communicate(timeout=60)
     assert process.returncode == 0 and errors.decode() == ""
+
+
+# ---------------------------------------------------------------------------- parameters while running, without ros2
+@pytest.mark.slow
+def test_meshfg_param_gets_and_sets_a_running_nodes_parameters(processes, tmp_path):
+    node = Process(tmp_path, "estimator_node", *ros_args("/pset"))
+    processes.append(node)
+
+    def meshfg(*args):
+        return subprocess.run([str(BIN / "meshfg"), "param", "--timeout", "30", *args], capture_output=True, text=True,
+                              timeout=120)
+
+    done = meshfg("set", "/pset/estimator_node", "measurement_sigma", "0.002")
+    assert done.returncode == 0 and done.stdout == "/pset/estimator_node: measurement_sigma = 0.002\n", done.stderr
+    done = meshfg("get", "/pset/estimator_node", "measurement_sigma", "window_size")
+    assert done.returncode == 0 and done.stdout == "measurement_sigma: 0.002\nwindow_size: 5\n", done.stderr
+    refused = meshfg("set", "/pset/estimator_node", "measurement_sigma", "100")  # beyond its range
+    assert refused.returncode == 1 and refused.stdout == ""
+    assert refused.stderr.startswith("meshfg param: error: /pset/estimator_node refused measurement_sigma = 100: ")
+    refused = meshfg("set", "/pset/estimator_node", "window_size", "3")  # read at start-up only
+    assert refused.returncode == 1 and "refused window_size = 3" in refused.stderr
+    assert meshfg("get", "/pset/estimator_node", "measurement_sigma").stdout == "measurement_sigma: 0.002\n"
+    missing = subprocess.run([str(BIN / "meshfg"), "param", "--timeout", "1", "get", "/nowhere/estimator_node",
+                              "window_size"], capture_output=True, text=True, timeout=120)
+    assert missing.returncode == 1 and missing.stderr.startswith("meshfg param: error: no node /nowhere/estimator_node "
+                                                                 "answers on /nowhere/estimator_node/get_parameters")
+    assert_clean_exit(node, node.interrupt())
