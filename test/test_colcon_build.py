@@ -16,7 +16,7 @@ pytestmark = pytest.mark.slow  # a colcon build, then each executable as its own
 
 REPO = Path(__file__).resolve().parents[1]
 VENV_PREFIX = Path(sys.prefix)
-EXECUTABLES = ("simulation_node", "estimator_node", "meshfg_stack", "bag_player", "meshfg")
+EXECUTABLES = ("simulation_node", "estimator_node", "meshfg_stack", "bag_player", "meshfg", "sim_bridge_server")
 
 
 @pytest.fixture(scope="module")
@@ -25,12 +25,12 @@ def install_space(tmp_path_factory) -> Path:
     env = dict(os.environ, AMENT_PREFIX_PATH=str(VENV_PREFIX), CMAKE_PREFIX_PATH=str(VENV_PREFIX))
     result = subprocess.run(
         [str(VENV_PREFIX / "bin" / "colcon"), "--log-base", str(work / "log"), "build",
-         "--base-paths", str(REPO), str(REPO / "meshfg_msgs"), str(REPO / "tf2_msgs"),
+         "--base-paths", str(REPO), str(REPO / "meshfg_msgs"), str(REPO / "sim_bridge"), str(REPO / "tf2_msgs"),
          "--build-base", str(work / "build"), "--install-base", str(work / "install"),
          "--cmake-args", f"-DPython3_EXECUTABLE={sys.executable}", "-DBUILD_TESTING=OFF"],
         cwd=work, env=env, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
-    assert "3 packages finished" in result.stdout
+    assert "4 packages finished" in result.stdout
     return work / "install"
 
 
