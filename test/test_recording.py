@@ -501,10 +501,15 @@ def test_a_different_tetra_mesh_definition_is_refused(tmp_path):
             reader.messages()
 
 
-@pytest.mark.parametrize("missing", [("position_covariance",), ("position_covariance", "degraded")])
+CUT_FIELDS = ("invalid_vertices", "removed_elements")
+
+
+@pytest.mark.parametrize("missing", [CUT_FIELDS, (*CUT_FIELDS, "position_covariance"),
+                                     (*CUT_FIELDS, "position_covariance", "degraded")])
 def test_a_recording_with_an_earlier_tetra_mesh_is_read_with_its_own_definition(tmp_path, missing):
-    """Recordings made before TetraMesh.position_covariance, or before degraded too (the bundled
-    ones), stay readable; their meshes read as without covariance and not degraded."""
+    """Recordings made before TetraMesh's cut fields, before position_covariance too, or before
+    degraded too (the bundled ones), stay readable; their meshes read as uncut, without
+    covariance and not degraded."""
     (earlier,) = [text for text in EARLIER_MSG_DEFINITIONS[TETRA_MESH]
                   if all(f" {name} " not in text for name in missing)
                   and all(f" {name} " in text for name in {"position_covariance", "degraded"} - set(missing))]
@@ -517,6 +522,8 @@ def test_a_recording_with_an_earlier_tetra_mesh_is_read_with_its_own_definition(
                   fixed_vertices=np.array([0], np.uint32), position_std=np.zeros(0, np.float32))
     if "degraded" not in missing:
         fields["degraded"] = True
+    if "position_covariance" not in missing:
+        fields["position_covariance"] = np.zeros(0, np.float32)
     with Writer(tmp_path / "earlier", version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         connection = writer.add_connection("/meshfg/mesh", TETRA_MESH, typestore=store)
         writer.write(connection, 5, store.serialize_cdr(store.types[TETRA_MESH](**fields), TETRA_MESH))
@@ -525,6 +532,7 @@ def test_a_recording_with_an_earlier_tetra_mesh_is_read_with_its_own_definition(
     assert state.step == 3 and state.degraded is ("degraded" not in missing) and state.fixed_vertices.tolist() == [0]
     np.testing.assert_array_equal(state.positions[3], [0.0, 0.0, 1.0])
     assert state.position_covariance.shape == (0, 3, 3)
+    assert state.invalid_vertices.size == state.removed_elements.size == 0
 
 
 @pytest.mark.parametrize("bag", sorted(path.name for path in (REPO / "bags").iterdir() if path.is_dir()))
