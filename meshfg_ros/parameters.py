@@ -191,6 +191,10 @@ class SimulationNodeConfig:
     estimate_timeout: float = setting(
         SchedulingTimeouts.estimate_timeout, "Seconds (wall time) a prediction request waits for the estimate of the previous request before it "
         "is predicted from the newest state the node has.", range=(0.0, 60.0))
+    newest_first: bool = setting(
+        True, "When the pipeline falls behind the clouds, predict the newest cloud from the newest estimate and "
+        "skip the clouds between (counted as clouds_skipped_behind); false: predict every cloud in order, "
+        "however late (the offline replay's estimates, for recordings played faster than real time).")
     blade_half_extents: tuple[float, ...] = setting(
         (0.0, 0.0, 0.0), "Half extents [x, y, z] in metres of the tool's blade, a box in the tool frame about "
         "blade_offset: at each tool pose the elements reaching into it, and the pieces that leaves hanging, are "
@@ -220,8 +224,9 @@ class EstimatorNodeConfig:
         "where every cloud counts; false: the sensor-data profile of live cameras (best effort, depth 5), which "
         "drops clouds the transport loses when the CPU is saturated.")
     prediction_timeout: float = setting(
-        SchedulingTimeouts.prediction_timeout, "Seconds (wall time) a cloud waits for its simulator prediction before the step runs degraded "
-        "without it.", range=(0.0, 60.0))
+        SchedulingTimeouts.prediction_timeout, "Seconds (wall time) a cloud waits at least for its simulator prediction "
+        "before the step runs degraded without it; longer while the simulator's recent predictions took longer "
+        "(1.5x the longest of the last 5, at most 5 s).", range=(0.0, 60.0))
     prediction_source: str = setting(
         "simulation_node", "Where each cloud's prediction comes from: simulation_node (this project's, on "
         "prediction_request / predicted_mesh) or sim_bridge (the XPBD tissue simulator's sim_bridge service "

@@ -182,3 +182,78 @@ def test_a_tool_pose_with_a_zero_quaternion_is_set_aside_with_the_reason(scenari
     scheduler.add_tool_pose(FIRST_STAMP_NS, broken)  # the estimator's side ignores it, no error
     scheduler.add_cloud(FIRST_STAMP_NS, scenario.steps[0].points)
     assert scheduler.next_step(flush=True).tool_pose is None  # nothing was buffered
+
+
+def test_a_pipeline_behind_the_clouds_predicts_the_newest_cloud_and_skips_the_one_between(scenario):
+    """Newest first: the request waiting for the previous estimate when a newer cloud comes is
+    superseded; the simulator predicts the newest cloud from the newest estimate (the tool moved
+    from the first cloud's pose), and the estimator drops the skipped cloud with the reason."""
+    simulation, estimator = prediction(scenario), estimation(scenario)
+    first, second, third = scenario.steps[:3]
+    simulation.add_tool_pose(FIRST_STAMP_NS, scenario.initial_tool_pose)
+    for step in (first, second, third):
+        simulation.add_tool_pose(step.stamp_ns, step.tool_pose)
+    simulation.request(first.stamp_ns, now_s=0.0)
+    estimator.add_cloud(first.stamp_ns, first.points, now_s=0.0)
+    [answer] = simulation.poll(now_s=0.1)
+    assert estimator.add_prediction(answer, now_s=0.1) is None
+    clock = iter((0.1, 1.7))  # the update's start and end: longer than the clouds' period
+    run = estimator.run(estimator.next_step(now_s=0.1), now=lambda: next(clock))
+    assert run.result is not None and not run.result.degraded
+    for step, now in ((second, 1.0), (third, 1.5)):  # both come while the first estimate is awaited
+        estimator.add_cloud(step.stamp_ns, step.points, now_s=now)
+        simulation.request(step.stamp_ns, now_s=now)
+    [skipped] = simulation.poll(now_s=1.5)  # answered at once, the simulator not moved
+    assert skipped.stamp_ns == second.stamp_ns and skipped.superseded and skipped.positions is None
+    [rejection] = [estimator.add_prediction(skipped, now_s=1.5)]
+    assert rejection.counter == "clouds_skipped_behind" and "the update 1600 ms" in rejection.reason
+    assert "clouds come every 1000 ms" in rejection.reason and "voxel filter" in rejection.reason
+    assert estimator.queued == 1
+    simulation.add_estimate(first.stamp_ns, run.result.positions)
+    [newest] = simulation.poll(now_s=1.7)
+    assert newest.stamp_ns == third.stamp_ns and newest.positions is not None and not newest.superseded
+    reference = prediction(scenario)  # the same simulator, asked for the third cloud from the first estimate
+    reference.add_tool_pose(FIRST_STAMP_NS, scenario.initial_tool_pose)
+    reference.add_tool_pose(first.stamp_ns, first.tool_pose)
+    reference.request(first.stamp_ns)
+    reference.poll()
+    reference.add_estimate(first.stamp_ns, run.result.positions)
+    reference.add_tool_pose(third.stamp_ns, third.tool_pose)
+    reference.request(third.stamp_ns)
+    [expected] = reference.poll()
+    np.testing.assert_allclose(newest.positions, expected.positions, rtol=0.0, atol=1e-12)
+    estimator.add_prediction(newest, now_s=1.7)
+    paired = estimator.next_step(now_s=1.7)
+    assert paired.stamp_ns == third.stamp_ns and paired.predicted is not None
+
+
+def test_a_pipeline_that_keeps_up_never_supersedes(scenario):
+    simulation = prediction(scenario)
+    first, second = scenario.steps[:2]
+    simulation.add_tool_pose(FIRST_STAMP_NS, scenario.initial_tool_pose)
+    simulation.add_tool_pose(first.stamp_ns, first.tool_pose)
+    simulation.request(first.stamp_ns, now_s=0.0)
+    [answer] = simulation.poll(now_s=0.1)
+    simulation.add_estimate(first.stamp_ns, answer.positions)  # the estimate came before the next cloud
+    simulation.add_tool_pose(second.stamp_ns, second.tool_pose)
+    simulation.request(second.stamp_ns, now_s=1.0)
+    [later] = simulation.poll(now_s=1.1)
+    assert not later.superseded and later.positions is not None
+
+
+def test_a_cloud_waits_as_long_as_the_simulator_recently_took(scenario):
+    """A slow simulator (a large mesh) still pairs its predictions: the wait follows the measured
+    prediction times instead of running every step degraded after prediction_timeout."""
+    scheduler = estimation(scenario)
+    first, second = scenario.steps[:2]
+    assert scheduler.prediction_wait_s == TIMEOUTS.prediction_timeout
+    scheduler.add_cloud(first.stamp_ns, first.points, now_s=0.0)
+    scheduler.add_prediction(Prediction(first.stamp_ns, first.truth), now_s=1.2)  # took 1.2 s
+    clock = iter((1.2, 1.3))
+    scheduler.run(scheduler.next_step(now_s=1.2), now=lambda: next(clock))
+    assert scheduler.prediction_wait_s == pytest.approx(1.5 * 1.2)
+    scheduler.add_cloud(second.stamp_ns, second.points, now_s=2.0)
+    assert scheduler.next_step(now_s=2.0 + 1.5 * 1.2 - 0.05) is None  # beyond prediction_timeout, still waiting
+    assert scheduler.next_step(now_s=2.0 + 1.5 * 1.2).predicted is None  # the learnt wait is over
+    late = scheduler.add_prediction(Prediction(second.stamp_ns, second.truth), now_s=4.0)
+    assert late.counter == "predictions_rejected" and "prediction takes 1200 ms" in late.reason

@@ -48,9 +48,10 @@ READY_FILE = "recorder.ready"
 # (tool_pose_timeout stays: a recording's last cloud may have no tool pose after it, and the
 # offline replay extrapolates then at once, as the live node does after that wait.)
 # Reliable points: with the sensor-data profile, a saturated machine lost clouds in the
-# transport (2 to 4 of 15 clouds at 4x playback, in full-suite runs).
+# transport (2 to 4 of 15 clouds at 4x playback, in full-suite runs). Every cloud in order
+# (newest_first off): a recording played faster than the pipeline runs must not skip clouds.
 LIVE_OVERRIDES = {"prediction_timeout": 10.0, "estimate_timeout": 10.0, "transform_timeout": 10.0,
-                  "points_reliable": True}
+                  "points_reliable": True, "newest_first": False}
 PLAYED_TOPIC_READERS = 2
 _SHUTDOWN_TIMEOUT_S = 20.0
 _POLL_S = 0.05
@@ -237,7 +238,9 @@ def _wait_for_recorder(processes: Mapping[str, subprocess.Popen], timeout_s: flo
 
 # ---------------------------------------------------------------------------- the recorder
 def record(out: Path, clouds: int, timeout_s: float, args: list[str]) -> int:
-    """Recorder process: wait for the pipeline's graph, then record `clouds` estimates to `out`."""
+    """Recorder process: wait for the pipeline's graph, then record the estimates of `clouds`
+    clouds to `out`, until the newest cloud's estimate came (a pipeline behind the clouds skips
+    some: core/scheduler.py, newest first)."""
     rclpy.init(args=args)
     node = Node("live_recorder")
     cloud_arrivals: dict[int, float] = {}
@@ -270,7 +273,13 @@ def record(out: Path, clouds: int, timeout_s: float, args: list[str]) -> int:
                 return 4
             rclpy.spin_once(node, timeout_sec=_POLL_S)
         (out.parent / READY_FILE).touch()
-        while (len(estimates) < clouds or len(statuses) < clouds) and time.monotonic() < deadline:
+        def newest_estimated() -> bool:
+            if len(cloud_arrivals) < clouds:
+                return False
+            newest = max(cloud_arrivals)
+            return newest in statuses and any(estimate[0] == newest for estimate in estimates)
+
+        while not newest_estimated() and time.monotonic() < deadline:
             rclpy.spin_once(node, timeout_sec=_POLL_S)
     finally:
         node.destroy_node()
@@ -284,8 +293,9 @@ def record(out: Path, clouds: int, timeout_s: float, args: list[str]) -> int:
              positions=np.stack([e[3] for e in estimates]), position_std=np.stack([e[4] for e in estimates]),
              latency_ms=latency, degraded=np.array([statuses.get(s, (True, np.nan))[0] for s in stamps]),
              solve_time_ms=np.array([statuses.get(s, (True, np.nan))[1] for s in stamps]))
-    if len(estimates) < clouds:
-        print(f"live_recorder: {len(estimates)} of {clouds} estimates within {timeout_s} s", file=sys.stderr)
+    if not newest_estimated():
+        print(f"live_recorder: {len(estimates)} estimates of {clouds} clouds, not the newest cloud's, within "
+              f"{timeout_s} s", file=sys.stderr)
         return 3
     return 0
 
@@ -305,7 +315,7 @@ def main(argv: list[str] | None = None) -> int:
     commands = parser.add_subparsers(dest="command", required=True)
     recorder = commands.add_parser("record", help="record the estimates of a running pipeline")
     recorder.add_argument("out", type=Path)
-    recorder.add_argument("--clouds", type=int, required=True, help="estimates to wait for")
+    recorder.add_argument("--clouds", type=int, required=True, help="clouds whose estimates to wait for")
     recorder.add_argument("--timeout", type=float, default=180.0)
     options = parser.parse_args(remove_ros_args(argv)[1:])
     return record(options.out, options.clouds, options.timeout, argv)

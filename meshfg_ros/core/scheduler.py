@@ -11,8 +11,16 @@ Two schedulers share the work, as the two nodes do:
   it is answered with a prediction, or with a failure and its reason.
 - `EstimationScheduler` (the estimator node's side) queues the clouds and pairs each with the
   answer for its stamp and the tool pose at its stamp. A cloud runs once its answer has come, an
-  answer for a later cloud has come, or it has waited prediction_timeout; without a prediction
-  the step runs degraded.
+  answer for a later cloud has come, or it has waited for its prediction: prediction_timeout, or
+  longer where the simulator's recent predictions took longer (`prediction_wait_s`, so that a
+  large mesh's slow predictions still arrive in time); without a prediction the step runs
+  degraded.
+
+Newest first: when the pipeline is slower than the clouds, a request still waiting for the
+previous estimate is superseded by the next cloud's (`PredictionScheduler.request`): the
+simulator predicts the newest cloud from the newest estimate, and the estimator drops the
+superseded cloud with a reason that names what one cloud costs (`clouds_skipped_behind`).
+Estimates come less often but never without their physics, and the queue stays short.
 
 A cut (`PredictionScheduler.remove_elements`, from the simulation node's blade or a request)
 changes the simulator's mesh at once; each answer carries the element slots removed so far, and
@@ -67,6 +75,12 @@ from meshfg_ros.core.tool_poses import PoseUnavailable, ToolPoseBuffer
 # Bounds on what a scheduler holds while it waits: beyond them the oldest entry goes.
 MAX_QUEUED_CLOUDS = 100
 MAX_STORED_ANSWERS = 100
+# A cloud's wait for its prediction follows the simulator's recent predictions: the longest of
+# the last PREDICTION_TIMES_KEPT, with a margin for their jitter, within MAX_PREDICTION_WAIT_S (a
+# simulator that stops answering costs each cloud at most that).
+PREDICTION_TIMES_KEPT = 5
+PREDICTION_WAIT_MARGIN = 1.5
+MAX_PREDICTION_WAIT_S = 5.0
 
 
 @dataclass(frozen=True)
@@ -95,6 +109,9 @@ class Prediction:
     positions: np.ndarray | None
     failure: str = ""
     tool_pose: np.ndarray | None = None  # (7,) the tool pose the simulator moved to
+    # The simulator skipped this stamp for a newer cloud's while it waited for an estimate (the
+    # pipeline is behind): the estimator drops the cloud instead of running it without physics.
+    superseded: bool = False
     # An external simulator's stiffness at `positions` (world frame), the prior's information
     # for the step (core/external_prior.py); None: the estimator's own model.
     stiffness: ExternalStiffness | None = None
@@ -121,6 +138,7 @@ def _jump_ns(clock_jump_threshold_s: float) -> int:
 class _Request:
     stamp_ns: int
     arrival_s: float
+    superseded: bool = False  # a newer request came while this one waited for the previous estimate
 
 
 class PredictionScheduler:
@@ -129,8 +147,11 @@ class PredictionScheduler:
     def __init__(self, mesh: TetMesh, model: SimulatorConfig, grasped_vertices: np.ndarray | None = None, *,
                  clock_jump_threshold: float = DEFAULT_CLOCK_JUMP_THRESHOLD_S,
                  tool_pose_extrapolation: float = TOOL_POSE_HORIZON_S,
-                 timeouts: SchedulingTimeouts = SchedulingTimeouts()) -> None:
+                 timeouts: SchedulingTimeouts = SchedulingTimeouts(), newest_first: bool = True) -> None:
+        """newest_first: supersede the requests still waiting for the previous estimate when a
+        newer one comes (`request`); False: answer every request in order, however late."""
         self.mesh = mesh
+        self.newest_first = newest_first
         self.scene = check_initial_mesh(mesh.vertices)
         self.simulator = ElasticSimulator(mesh, model, grasped_vertices)
         self.body_load = (BodyLoadEstimate(self.simulator)
@@ -217,7 +238,15 @@ class PredictionScheduler:
         return None
 
     def request(self, stamp_ns: int, now_s: float = 0.0) -> None:
-        """Ask for a prediction at a cloud's stamp (answered by `poll`, in stamp order)."""
+        """Ask for a prediction at a cloud's stamp (answered by `poll`, in stamp order). Newest
+        first: the requests still waiting for the previous estimate when a newer one comes are
+        superseded by it (answered at once with `superseded`, the simulator not moved), so that a
+        pipeline slower than the clouds predicts the newest cloud from the newest estimate instead
+        of falling further behind; one that keeps up (the offline pipeline always does) never
+        supersedes."""
+        if self.newest_first and self._requests and not self._previous_settled():
+            for waiting in self._requests:
+                waiting.superseded = True
         self._requests.append(_Request(stamp_ns, now_s))
         while len(self._requests) > MAX_QUEUED_CLOUDS:
             self._requests.popleft()
@@ -279,6 +308,9 @@ class PredictionScheduler:
 
     def _answer(self, request: _Request, now_s: float, flush: bool) -> Prediction | None:
         stamp = request.stamp_ns
+        if request.superseded:
+            return Prediction(stamp, None, "superseded: a newer cloud came while this one waited for the previous "
+                                           "estimate (the pipeline is behind the clouds)", superseded=True)
         if stamp <= self._previous_ns:
             if stamp == self._start_ns:
                 return Prediction(stamp, None, "the first tool pose only starts the simulation")
@@ -385,6 +417,9 @@ class EstimationScheduler:
         self._newest_answer_ns: int | None = None
         self._last_step_ns: int | None = None
         self._solver_free_s = 0.0
+        self._prediction_times_s: deque[float] = deque(maxlen=PREDICTION_TIMES_KEPT)
+        self._update_s = 0.0  # wall time of the last step
+        self._cloud_period_s: float | None = None  # between the last two clouds' stamps
         self._registered = False  # whether a cloud has confirmed the mesh's size and place
         self._stiffness_template: tuple | None = None  # (the estimator's model, its K's pattern)
 
@@ -419,6 +454,8 @@ class EstimationScheduler:
             back_s = (self._newest_cloud_ns - stamp_ns) / NS_PER_S
             notes.append(Rejection("clock_jumps_back",
                                    f"cloud stamp jumped back by {back_s:.3f} s: restarting from the initial mesh"))
+        if self._newest_cloud_ns is not None and not restart:
+            self._cloud_period_s = (stamp_ns - self._newest_cloud_ns) / NS_PER_S
         self._newest_cloud_ns = stamp_ns
         self._clouds.append(CloudStep(stamp_ns, points, now_s, None, None, restart, viewpoint))
         if len(self._clouds) > MAX_QUEUED_CLOUDS:
@@ -454,14 +491,40 @@ class EstimationScheduler:
             self._poses.clear()
         self._poses.insert(stamp_ns, pose)
 
-    def add_prediction(self, answer: Prediction) -> Rejection | None:
-        """Take the simulator's answer for a stamp (a prediction or a failure)."""
+    @property
+    def prediction_wait_s(self) -> float:
+        """How long a cloud waits for its prediction: prediction_timeout, or PREDICTION_WAIT_MARGIN
+        times the longest of the recent predictions' times when longer (at most MAX_PREDICTION_WAIT_S)."""
+        measured = PREDICTION_WAIT_MARGIN * max(self._prediction_times_s, default=0.0)
+        return max(self.timeouts.prediction_timeout, min(measured, MAX_PREDICTION_WAIT_S))
+
+    def _cost_per_cloud(self) -> str:
+        """What one cloud costs against the clouds' period, for the reasons of a pipeline behind."""
+        prediction = max(self._prediction_times_s, default=float("nan"))
+        period = "" if self._cloud_period_s is None else f"; clouds come every {1e3 * self._cloud_period_s:.0f} ms"
+        return f"per cloud the prediction takes {1e3 * prediction:.0f} ms and the update {1e3 * self._update_s:.0f} ms{period}"
+
+    def add_prediction(self, answer: Prediction, now_s: float | None = None) -> Rejection | None:
+        """Take the simulator's answer for a stamp (a prediction or a failure), arrived at `now_s`
+        (the caller's monotonic clock; None offline, where nothing waits)."""
         stamp = answer.stamp_ns
         newest = self._newest_answer_ns
+        if answer.superseded:
+            skipped = [cloud for cloud in self._clouds if cloud.stamp_ns == stamp]
+            if not skipped:
+                return None
+            self._clouds.remove(skipped[0])
+            return Rejection("clouds_skipped_behind", f"cloud at {stamp} ns skipped: the pipeline is behind the "
+                             f"clouds and the simulator predicts the newest one ({self._cost_per_cloud()}). Send "
+                             "smaller clouds (a voxel filter), use a coarser mesh or a lower max_iterations")
+        queued = next((cloud for cloud in self._clouds if cloud.stamp_ns == stamp), None)
+        if queued is not None and answer.positions is not None and now_s is not None:
+            self._prediction_times_s.append(now_s - max(queued.arrival_s, self._solver_free_s))
         if newest is not None and newest - stamp > self._jump_ns:
             self._answers.clear()  # the simulator restarted its timeline (a looped recording)
         elif self._last_step_ns is not None and 0 <= self._last_step_ns - stamp <= self._jump_ns:
-            return Rejection("predictions_rejected", f"prediction at {stamp} ns comes after its cloud ran")
+            return Rejection("predictions_rejected", f"prediction at {stamp} ns came after its cloud ran without it "
+                             f"(after {self.prediction_wait_s:.2f} s; {self._cost_per_cloud()}): the step ran degraded")
         if answer.positions is not None and answer.positions.shape != self.mesh.vertices.shape:
             self._newest_answer_ns = stamp
             self._answers[stamp] = Prediction(stamp, None, "wrong vertex count")
@@ -479,7 +542,7 @@ class EstimationScheduler:
             return None
         queued = self._clouds[0]
         stamp = queued.stamp_ns
-        waited = flush or now_s - max(queued.arrival_s, self._solver_free_s) >= self.timeouts.prediction_timeout
+        waited = flush or now_s - max(queued.arrival_s, self._solver_free_s) >= self.prediction_wait_s
         answer = self._answers.get(stamp)
         later_answer = any(stamp < other <= self._newest_cloud_ns for other in self._answers)
         if answer is None and not (later_answer or waited):
@@ -506,6 +569,7 @@ class EstimationScheduler:
     def run(self, step: CloudStep, now: Callable[[], float] | None = None) -> StepOutcome:
         """Run one step on the estimator. A failed update leaves the window as it was; a
         non-finite result (never returned) restarts the estimator from the initial mesh."""
+        start_s = now() if now is not None else 0.0
         if step.restart:
             self.estimator = self.estimator.restarted()
         notes: tuple[Rejection, ...] = ()
@@ -525,6 +589,7 @@ class EstimationScheduler:
                 outcome = StepOutcome(step, None, "the estimate is not finite: the estimator restarts from the "
                                       "initial mesh", "nonfinite_estimates", notes)
         self._solver_free_s = now() if now is not None else 0.0
+        self._update_s = self._solver_free_s - start_s
         return outcome
 
     def _prior_stiffness(self, step: CloudStep) -> tuple:

@@ -43,6 +43,7 @@ class EstimatorCounters(_Counters):
     clouds_rejected_stamp: int = 0  # out of order, repeated or invalid (negative) stamps
     clouds_rejected_registration: int = 0  # the mesh and the cloud differ in size or place
     clouds_dropped_backlog: int = 0
+    clouds_skipped_behind: int = 0  # superseded by a newer cloud while the pipeline was behind (core/scheduler.py)
     nan_points_dropped: int = 0
     clock_jumps_back: int = 0
     predictions_received: int = 0
@@ -98,7 +99,8 @@ class EstimatorCounters(_Counters):
 
     # The counters of clouds that did not become a step, whatever the reason.
     CLOUD_REJECTIONS = ("clouds_rejected_malformed", "clouds_rejected_empty", "clouds_rejected_frame",
-                        "clouds_rejected_stamp", "clouds_rejected_registration", "clouds_dropped_backlog")
+                        "clouds_rejected_stamp", "clouds_rejected_registration", "clouds_dropped_backlog",
+                        "clouds_skipped_behind")
 
     @property
     def clouds_rejected(self) -> int:
@@ -125,6 +127,7 @@ class SimulatorCounters(_Counters):
     requests: int = 0                   # prediction requests (one per accepted cloud)
     predictions: int = 0
     predictions_failed: int = 0
+    predictions_superseded: int = 0     # requests skipped for a newer cloud's while behind (core/scheduler.py)
     estimates_ignored: int = 0          # wrong vertex count, not finite, or far outside the scene
     estimate_std_ignored: int = 0       # an estimate's position_std malformed (count, NaN, < 0): not learnt from
     elements_removed: int = 0           # element slots cut away so far (blade or remove_elements; core/topology.py)

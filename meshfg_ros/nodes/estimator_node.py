@@ -190,12 +190,14 @@ class EstimatorNode(Node):
                                      removed_elements=removed if removed.size else None))
 
     def _on_failure(self, msg: PredictionFailure) -> None:
-        self._take_answer(Prediction(stamp_ns_from_msg(msg.header.stamp), None, msg.reason), "predictions_failed")
+        answer = Prediction(stamp_ns_from_msg(msg.header.stamp), None, msg.reason, superseded=msg.superseded)
+        self._take_answer(answer, None if msg.superseded else "predictions_failed")  # superseded: the skip counts
 
-    def _take_answer(self, answer: Prediction, counter: str = "predictions_received") -> None:
-        self.outputs.count(counter)
+    def _take_answer(self, answer: Prediction, counter: str | None = "predictions_received") -> None:
+        if counter is not None:
+            self.outputs.count(counter)
         with self._lock:
-            rejection = None if self._scheduler is None else self._scheduler.add_prediction(answer)
+            rejection = None if self._scheduler is None else self._scheduler.add_prediction(answer, time.monotonic())
         self.outputs.note([rejection] if rejection else [])
         self._solver.wake()
 

@@ -116,7 +116,7 @@ class SimulationNode(Node):
         self._scheduler = PredictionScheduler(
             mesh, simulator_config(self.params), self.params["grasped_vertices"] or None, timeouts=timeouts,
             clock_jump_threshold=self.params["clock_jump_threshold"],
-            tool_pose_extrapolation=self.params["tool_pose_horizon"])
+            tool_pose_extrapolation=self.params["tool_pose_horizon"], newest_first=self.params["newest_first"])
         self._messages = MeshMessages(state)
 
     def _hold(self, kind: str, handler, item) -> None:
@@ -219,9 +219,16 @@ class SimulationNode(Node):
             return
         start = time.perf_counter()
         answers = self._scheduler.poll(time.monotonic())
-        if answers:
-            self.counters.last_prediction_ms = 1e3 * (time.perf_counter() - start) / len(answers)
+        predicted = sum(answer.positions is not None for answer in answers)
+        if predicted:
+            self.counters.last_prediction_ms = 1e3 * (time.perf_counter() - start) / predicted
         for answer in answers:
+            if answer.superseded:
+                self.counters.predictions_superseded += 1
+                self._failure_publisher.publish(PredictionFailure(
+                    header=header_msg(answer.stamp_ns, self._frame, RCLPY_FACTORY), reason=answer.failure,
+                    superseded=True))
+                continue
             if answer.positions is None:
                 self.counters.predictions_failed += 1
                 self._last_failure = answer.failure
