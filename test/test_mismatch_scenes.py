@@ -49,7 +49,7 @@ def open_loop(scene):
 
 def test_scenes_are_registered():
     assert set(MISMATCH_SCENARIOS) <= set(SCENARIOS)
-    assert len(set(SCENARIOS)) == len(SCENARIOS) == 11
+    assert len(set(SCENARIOS)) == len(SCENARIOS) == 12
 
 
 def test_same_seed_gives_equal_scenes(scene_pair):

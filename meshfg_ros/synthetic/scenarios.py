@@ -25,8 +25,9 @@ from meshfg_ros.core.simulator import ElasticSimulator, SimulatorConfig
 
 MISMATCH_SCENARIOS = ("slab-inclusion", "dome-tilted", "liver-gravity", "kidney-drag", "flap-bend")
 CUT_SCENARIOS = ("sheet-cut",)  # meshfg_ros.synthetic.cut_scene
+ORGAN_SCALE_SCENARIOS = ("organ-slab",)  # slab-inclusion at organ scale, for `meshfg bench`
 SCENARIOS = ("cube-translate", "cube-shear-spd", "cube-shear-nonspd", "cao-push", "liver-push", *MISMATCH_SCENARIOS,
-             *CUT_SCENARIOS)
+             *CUT_SCENARIOS, *ORGAN_SCALE_SCENARIOS)
 STEP_PERIOD_NS = 1_000_000_000  # 1 Hz, as the paper's capture
 FIRST_STAMP_NS = 1_000_000_000
 LIVER_PATH_CANDIDATES = (
@@ -87,7 +88,8 @@ def generate(name: str, seed: int = 0, steps: int | None = None) -> Scenario:
         "cube-shear-nonspd": lambda: _cube(seed, steps or 15, motion="shear", prior="nonspd"),
         "cao-push": lambda: _airway_push(seed, steps or 10),
         "liver-push": lambda: _liver_push(seed, steps or 10),
-        **{name: (lambda name=name: _mismatch_scene(name, seed, steps or 10)) for name in MISMATCH_SCENARIOS},
+        **{name: (lambda name=name: _mismatch_scene(name, seed, steps or 10))
+           for name in (*MISMATCH_SCENARIOS, *ORGAN_SCALE_SCENARIOS)},
         "sheet-cut": lambda: _cut_scene(seed, steps or 10),
     }
     if name not in builders:
