@@ -33,6 +33,7 @@ def test_every_figure_line_names_the_cpu_and_the_blas():
         "paper_scale": estimator_row(512),
         "organ_scale": estimator_row(10648),
         "baselines": {"machine": ON, **comparison(), "paper_scale": comparison()},
+        "planner": {"machine": ON, "vertices": 1000, "points": 1000, "build_ms": 2.0, "query_ms": 4.0},
         "loaded": {"machine": ON, "busy_processes": 2, "paper_scale": {**estimator_row(512), "p95_ms": 50.0},
                    "organ_scale": {**estimator_row(10648), "p95_ms": 90.0}},
         "live": {"machine": ON, **live_row(300.0)},
@@ -43,9 +44,9 @@ def test_every_figure_line_names_the_cpu_and_the_blas():
     assert lines[0] == ("CPU: Some CPU 9000, 2 cores; sparse Cholesky BLAS: bundled, 1 thread(s) "
                         "(chosen for SomeVendor)")
     figures = [line for line in lines[1:] if not line.startswith(("Core (ms):", "Baselines ("))]  # not headings
-    # liver, two estimator scales with their stage budgets, both loaded, meshfg and scipy twice, live
-    # and organ-scale live idle and loaded
-    assert len(figures) == 14
+    # liver, the planner query, two estimator scales with their stage budgets, both loaded, meshfg
+    # and scipy twice, live and organ-scale live idle and loaded
+    assert len(figures) == 15
     assert all(line.endswith(TAG) for line in figures), [line for line in figures if not line.endswith(TAG)]
     budget = next(line for line in figures if "stage budget per cloud at 512 vertices" in line)
     # prediction 40 + update stages 21 + messaging 1 = 62 ms to the estimate, learning 5 after it
@@ -58,6 +59,7 @@ def test_every_figure_line_names_the_cpu_and_the_blas():
         "met_runs"] == 0
     assert rows["paper-scale p95 loaded / idle"]["met_runs"] == 1
     assert rows["organ-scale live latency max, idle"]["met_runs"] == 1
+    assert rows["planner query, 1,000 points"]["met_runs"] == 1
     assert rows["organ-scale live latency max, loaded"]["met_runs"] == 0  # late, degraded and clouds skipped
 
 

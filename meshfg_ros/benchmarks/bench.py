@@ -3,7 +3,8 @@
 Sections (each can be skipped):
 - core: time to assemble K (linear, corotational), one simulator step and learning the load
   and the Poisson ratio from an estimate (core/model_fit.py), on the liver, the airway phantom
-  and a ~10,000-vertex box;
+  and a ~10,000-vertex box; and the planner service's surface query (1,000 points, ~1,000
+  vertices, target 20 ms);
 - estimator: per-update latency (median, p95), LM iterations and one linear solve at paper
   scale (~500 vertices, 2,000 points, W=10) and organ scale (~10,000 vertices, 20,000
   points, W=5), against the targets (p95 <= 30 ms and <= 500 ms); and each scale's stage
@@ -40,6 +41,7 @@ ORGAN_SCALE = dict(target_vertices=10_000, points_per_step=20_000, window_size=5
 TARGETS_MS = {"paper_scale": 30.0, "organ_scale": 500.0}
 CLOUD_PERIOD_MS = 1000.0  # the paper's camera rate: the whole loop must fit in it
 LOADED_SLOWDOWN_TARGET = 3.0  # update p95 with one busy process per core, against idle
+PLANNER_QUERY_TARGET_MS = 20.0  # the surface_query service: 1,000 points at ~1,000 vertices
 SPEEDUP_TARGET = 10.0
 # The estimator figures run the estimator's defaults on core.baselines.mismatch_sequence: a box
 # whose nominal model misses a lateral load, bends 20 % less and indents 30 % less deep than
@@ -141,6 +143,19 @@ def messaging_ms(mesh, repeats: int) -> float:
 
     elapsed, _ = _median_time(round_trip, repeats)
     return elapsed
+
+
+def bench_planner(repeats: int = 20) -> dict:
+    """The planner service's geometry (core/surface_query.py) on a ~1,000-vertex box: building the
+    query structure for an estimate, and one query of 1,000 points around it (median ms)."""
+    from meshfg_ros.core.surface_query import query_timing
+    from meshfg_ros.synthetic.meshing import box_mesh
+
+    mesh = box_mesh(1000, (0.05, 0.05, 0.05))
+    covariance = np.broadcast_to(1e-8 * np.eye(3), (mesh.vertex_count, 3, 3)).copy()
+    points = np.random.default_rng(0).uniform(-0.01, 0.06, size=(1000, 3))
+    build_s, query_s = query_timing(mesh.vertices, mesh.surface_triangles, covariance, points, repeats)
+    return {"vertices": mesh.vertex_count, "points": len(points), "build_ms": 1e3 * build_s, "query_ms": 1e3 * query_s}
 
 
 def bench_estimator(scale: dict, progress: bool = True) -> dict:
@@ -333,6 +348,7 @@ def run_bench(sections=("core", "estimator", "baselines", "live"), bag: Path | N
     out = {"machine": on}
     if "core" in sections:
         out["core"] = {"machine": on, **bench_core(progress=progress)}
+        out["planner"] = {"machine": on, **bench_planner()}
     if "estimator" in sections:
         for key, scale in (("paper_scale", PAPER_SCALE), ("organ_scale", ORGAN_SCALE)):
             out[key] = {"machine": on, **bench_estimator(scale, progress), "stages": bench_stages(scale, progress)}
@@ -356,6 +372,10 @@ def target_figures(result: dict) -> list[dict]:
             value = result[key]["p95_ms"]
             figures.append({"figure": f"{key.replace('_', '-')} update p95", "value": value, "unit": "ms",
                             "target": TARGETS_MS[key], "met": value <= TARGETS_MS[key]})
+    if "planner" in result:
+        value = result["planner"]["query_ms"]
+        figures.append({"figure": "planner query, 1,000 points", "value": value, "unit": "ms",
+                         "target": PLANNER_QUERY_TARGET_MS, "met": value <= PLANNER_QUERY_TARGET_MS})
     if "loaded" in result:
         for key in ("paper_scale", "organ_scale"):
             if key in result:
@@ -429,6 +449,12 @@ def format_report(result: dict) -> str:
             lines.append(f"  {name:<9}{row['vertices']:>7}{row['assemble_linear_ms']:>10.2f}"
                          f"{row['assemble_corotational_ms']:>10.2f}{row['simulator_step_ms']:>10.1f}"
                          f"{row['model_learning_ms']:>10.1f}{_on(result['core'])}")
+    if "planner" in result:
+        row = result["planner"]
+        verdict = "met" if row["query_ms"] <= PLANNER_QUERY_TARGET_MS else "NOT met"
+        lines.append(f"Planner surface query ({row['vertices']} vertices): {row['points']} points in "
+                     f"{row['query_ms']:.1f} ms (target {PLANNER_QUERY_TARGET_MS:g} ms: {verdict}), structure built per "
+                     f"estimate in {row['build_ms']:.1f} ms{_on(row)}")
     for key in ("paper_scale", "organ_scale"):
         if key in result:
             row, target = result[key], TARGETS_MS[key]
