@@ -104,7 +104,8 @@ def bundled_recording(name: str) -> Path | None:
 # --------------------------------------------------------------------------- synth
 def _synth_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("scenario", help="cube-translate, cube-shear-spd, cube-shear-nonspd, cao-push, liver-push, "
-                                         "slab-inclusion, dome-tilted, liver-gravity, kidney-drag, flap-bend or sheet-cut")
+                                         "slab-inclusion, dome-tilted, liver-gravity, kidney-drag, flap-bend, sheet-cut "
+                                         "or organ-slab (organ scale, for the bench)")
     parser.add_argument("--out", required=True, type=Path, help="new recording directory to write")
     parser.add_argument("--seed", type=int, default=0, help="random seed of the scenario (default 0)")
     parser.add_argument("--max-points", type=_positive_integer, default=None,
