@@ -120,12 +120,16 @@ def test_a_changed_ratio_predicts_as_a_simulator_built_with_it(solver):
 
     changed = model(NOMINAL)
     load = np.tile([0.0, 0.0, -1e-3], changed.movable_vertices.size)
-    changed.rest_response(load)  # the rest factor exists before the change
+    held = changed.movable_vertices[::5]
+    changed.rest_response(load, held=held)  # the rest factor and its held columns exist before the change
     changed.poisson_ratio = 0.47
     changed.reset(START)
     built = model(0.47)
     np.testing.assert_allclose(pressed(changed, mesh.vertices), pressed(built, mesh.vertices), rtol=0, atol=1e-12)
     np.testing.assert_allclose(changed.rest_response(load), built.rest_response(load), rtol=1e-10, atol=0)
+    held_response = built.rest_response(load, held=held)
+    np.testing.assert_allclose(changed.rest_response(load, held=held), held_response, rtol=0,
+                               atol=1e-10 * np.abs(held_response).max())
 
 
 def test_the_scheduler_learns_the_ratio_from_estimates_and_forgets_it_on_a_new_timeline():

@@ -242,6 +242,93 @@ def test_colourings_have_no_conflicts(pushed_block):
     assert len(vertex_colours) < len(tet_colours)
 
 
+def _deformed(mesh, scale: float, seed: int) -> np.ndarray:
+    """The mesh's vertices with the free ones moved by `scale` times a normal draw."""
+    state = mesh.vertices.copy()
+    state[mesh.free_vertices] += scale * np.random.default_rng(seed).normal(size=(mesh.free_vertices.size, 3))
+    return state
+
+
+def test_vbd_energy_forces_are_minus_its_gradient(pushed_block):
+    """The compiled energy and forces of vbd's global step agree: central differences of the
+    energy (elastic and gravity) along random directions equal -forces . direction."""
+    simulator = ElasticSimulator(pushed_block, SimulatorConfig(youngs_modulus=YOUNGS_MODULUS,
+                                                               poisson_ratio=POISSON_RATIO, gravity=(0.0, 0.0, -9.81)))
+    solver = simulator.solver
+    state = _deformed(pushed_block, 1e-3, 0)
+    energy, ratios, forces = solver._energy_and_volume_ratios(state, with_forces=True)
+    np.testing.assert_allclose(ratios, signed_volumes(state, pushed_block.tetrahedra)
+                               / signed_volumes(pushed_block.vertices, pushed_block.tetrahedra), rtol=1e-12)
+    rng = np.random.default_rng(1)
+    for _ in range(3):
+        direction = rng.normal(size=state.shape)
+        step = 1e-7
+        slope = (solver._energy_and_volume_ratios(state + step * direction)[0]
+                 - solver._energy_and_volume_ratios(state - step * direction)[0]) / (2.0 * step)
+        assert slope == pytest.approx(-np.sum(forces * direction), rel=1e-6)
+
+
+def test_vbd_sweep_minimises_each_vertex_energy_exactly(pushed_block):
+    """A vertex's energy is an exact quadratic in its position (module docstring): after one
+    colour's sweep, with no tool near and no move shortened, the net force on each of its
+    vertices vanishes, and the vertices of the other colours do not move."""
+    simulator = ElasticSimulator(pushed_block, SimulatorConfig(youngs_modulus=YOUNGS_MODULUS,
+                                                               poisson_ratio=POISSON_RATIO, gravity=(0.0, 0.0, -9.81)))
+    solver = simulator.solver
+    state = _deformed(pushed_block, 2e-4, 2)
+    _, _, forces_before = solver._energy_and_volume_ratios(state, with_forces=True)
+    held = np.zeros(pushed_block.vertex_count, dtype=bool)
+    far = np.array([10.0, 10.0, 10.0])
+    for colour in solver._colours:
+        swept = state.copy()
+        solver._vertex_sweep(swept, colour, far, held)
+        _, _, forces = solver._energy_and_volume_ratios(swept, with_forces=True)
+        scale = np.abs(forces_before[colour.vertices]).max()
+        assert np.abs(forces[colour.vertices]).max() < 1e-9 * scale
+        others = np.setdiff1d(np.arange(pushed_block.vertex_count), colour.vertices)
+        np.testing.assert_array_equal(swept[others], state[others])
+    held[solver._colours[0].vertices[::2]] = True  # held vertices stay, the others still settle
+    swept = state.copy()
+    solver._vertex_sweep(swept, solver._colours[0], far, held)
+    np.testing.assert_array_equal(swept[held], state[held])
+    assert np.all(np.any(swept[solver._colours[0].vertices[1::2]] != state[solver._colours[0].vertices[1::2]], axis=1))
+
+
+def test_rest_factor_holds_and_slides_as_a_dense_constrained_solve(pushed_block):
+    """RestFactor.solve (the global step's K0 solve through the factor's halves and the contact
+    vertices' kept unit columns) equals the dense KKT solution: held vertices do not move,
+    sliding ones do not move along their normals; the same again with the columns kept, and
+    for several right-hand sides at once."""
+    simulator = ElasticSimulator(pushed_block, SimulatorConfig(youngs_modulus=YOUNGS_MODULUS,
+                                                               poisson_ratio=POISSON_RATIO))
+    factor = simulator.solver.rest_stiffness
+    movable = simulator.movable_vertices
+    dofs = (3 * movable[:, None] + np.arange(3)).reshape(-1)
+    stiffness = ElasticModel(pushed_block.vertices, pushed_block.tetrahedra, YOUNGS_MODULUS,
+                             POISSON_RATIO).stiffness(kind="linear").toarray()[np.ix_(dofs, dofs)]
+    rng = np.random.default_rng(4)
+    held_rows, sliding_rows = np.array([3, 40]), np.array([7, 40 + 1, 60])
+    normals = rng.normal(size=(3, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    constraints = np.zeros((dofs.size, 9))
+    for k, row in enumerate(held_rows):
+        constraints[3 * row + np.arange(3), 3 * k + np.arange(3)] = 1.0
+    for k, (row, normal) in enumerate(zip(sliding_rows, normals)):
+        constraints[3 * row + np.arange(3), 6 + k] = normal
+    kkt = np.block([[stiffness, constraints], [constraints.T, np.zeros((9, 9))]])
+    forces = rng.normal(size=(dofs.size, 2))
+    expected = np.linalg.solve(kkt, np.concatenate([forces, np.zeros((9, 2))]))[:dofs.size]
+    scale = np.abs(expected).max()
+    for _ in range(2):  # computes the unit columns, then uses the kept ones
+        solution = factor.solve(forces[:, 0], held_rows, sliding_rows, normals)
+        np.testing.assert_allclose(solution, expected[:, 0], rtol=0, atol=1e-9 * scale)
+    np.testing.assert_allclose(factor.solve(forces, held_rows, sliding_rows, normals), expected, rtol=0,
+                               atol=1e-9 * scale)
+    assert np.abs(constraints.T @ factor.solve(forces, held_rows, sliding_rows, normals)).max() < 1e-12 * scale
+    free = np.linalg.solve(stiffness, forces[:, 0])
+    np.testing.assert_allclose(factor.solve(forces[:, 0]), free, rtol=0, atol=1e-9 * np.abs(free).max())
+
+
 def test_inverting_grasp_motion_is_reported():
     mesh = cube_mesh(side=0.1, divisions=2)
     bottom = np.flatnonzero(mesh.vertices[:, 2] < 1e-9)

@@ -30,6 +30,33 @@ def test_solves_vectors_and_matrices(stiffness):
     assert factor.solve(columns).shape == columns.shape
 
 
+def test_forward_and_back_solves_are_the_halves_of_a_solve(stiffness):
+    """forward_solve is L^-1 P and back_solve P^T L^-T, for A = P^T L L^T P: together a solve, the
+    Gram matrix of forward-solved columns B^T A^-1 B, and forward_solve(A back_solve(z)) = z;
+    one column or several (the multi-column path), sparse unit columns and zero columns too."""
+    rng = np.random.default_rng(5)
+    factor = SparseCholesky(stiffness)
+    dense = stiffness.toarray()
+    size = stiffness.shape[0]
+    vector = rng.normal(size=size)
+    columns = rng.normal(size=(size, 3))
+    units = np.zeros((size, 4))
+    units[[3, 4, 5, 200], np.arange(4)] = 1.0
+    units[:, 3] = 0.0  # a zero column
+    for rhs in (vector, columns, units):
+        halves = factor.forward_solve(rhs)
+        assert halves.shape == rhs.shape
+        expected = np.linalg.solve(dense, rhs)
+        np.testing.assert_allclose(factor.back_solve(halves), expected, rtol=0, atol=1e-10 * np.abs(expected).max())
+        np.testing.assert_allclose(factor.forward_solve(dense @ factor.back_solve(rhs)), rhs, rtol=0, atol=1e-10)
+    gram = factor.forward_solve(columns).T @ factor.forward_solve(columns)
+    np.testing.assert_allclose(gram, columns.T @ np.linalg.solve(dense, columns), rtol=1e-9)
+    assert not np.allclose(factor.forward_solve(columns), np.linalg.solve(dense, columns), rtol=1e-3)  # a half only
+    np.testing.assert_array_equal(factor.forward_solve(units)[:, 3], 0.0)
+    with pytest.raises(ValueError, match="rows"):
+        factor.forward_solve(vector[:-1])
+
+
 def test_refactor_uses_the_new_values(stiffness):
     rng = np.random.default_rng(1)
     factor = SparseCholesky(stiffness)
