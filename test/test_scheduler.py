@@ -157,20 +157,30 @@ def test_the_offline_pipeline_requests_no_prediction_for_a_cloud_it_did_not_queu
 
 
 def test_after_a_request_without_a_tool_pose_the_tool_moves_from_where_the_simulator_left_it(scenario):
-    """The time step of a prediction runs from the simulator's last tool pose, not from a request
-    it could not predict (no tool pose within the horizon)."""
+    """The time steps of a prediction run from the simulator's last tool pose, through the request
+    it could not predict (no tool pose within the horizon: a stalled stream), with the tool
+    interpolated between the two poses it has; the degraded estimate of that request is no start
+    state (the simulator keeps the one it had)."""
     simulation = prediction(scenario)
     steps = []
     predict = simulation.simulator.predict
-    simulation.simulator.predict = lambda state, pose, dt: steps.append(dt) or predict(state, pose, dt)
+    simulation.simulator.predict = lambda state, pose, dt: steps.append((dt, pose, state)) or predict(state, pose, dt)
     simulation.add_tool_pose(FIRST_STAMP_NS, scenario.initial_tool_pose)
     simulation.request(FIRST_STAMP_NS + S, now_s=0.0)
     [unavailable] = simulation.poll(now_s=1.0)
     assert unavailable.positions is None and steps == []
+    degraded = scenario.initial_mesh.vertices + 1e-3
+    assert simulation.add_estimate(FIRST_STAMP_NS + S, degraded, degraded=True) is None
     simulation.add_tool_pose(FIRST_STAMP_NS + 3 * S, scenario.steps[0].tool_pose)
     simulation.request(FIRST_STAMP_NS + 2 * S, now_s=1.0)
-    [answer] = simulation.poll(now_s=1.0, flush=True)
-    assert answer.positions is not None and steps == [2.0]
+    [answer] = simulation.poll(now_s=1.0)  # the degraded estimate settled the skipped request
+    assert answer.positions is not None and [dt for dt, _, _ in steps] == [1.0, 1.0]
+    (_, passed_pose, start), (_, last_pose, _) = steps
+    np.testing.assert_array_equal(start, scenario.initial_mesh.vertices)  # not the degraded estimate
+    halfway = scenario.initial_tool_pose[:3] + (scenario.steps[0].tool_pose[:3] - scenario.initial_tool_pose[:3]) / 3
+    np.testing.assert_allclose(passed_pose[:3], halfway, rtol=0.0, atol=1e-15)  # a third of the way at 1 of 3 s
+    np.testing.assert_allclose(last_pose[:3], halfway + (halfway - scenario.initial_tool_pose[:3]), rtol=0.0,
+                               atol=1e-15)
 
 
 def test_a_tool_pose_with_a_zero_quaternion_is_set_aside_with_the_reason(scenario):

@@ -66,7 +66,7 @@ from meshfg_ros.core.model_fit import learn
 from meshfg_ros.core.poisson_ratio import PoissonRatioEstimate
 from meshfg_ros.core.mesh import TetMesh
 from meshfg_ros.core.patient_mesh import PatientMeshError, check_against_clouds
-from meshfg_ros.core.pose_history import InvalidPoseError, as_pose
+from meshfg_ros.core.pose_history import InvalidPoseError, PoseHistory, as_pose
 from meshfg_ros.core.simulator import SimulatorConfig, ElasticSimulator
 from meshfg_ros.core.weights import MIN_POINTS
 from meshfg_ros.core.tool_poses import DEFAULT_EXTRAPOLATION_HORIZON_S as TOOL_POSE_HORIZON_S
@@ -141,6 +141,12 @@ class _Request:
     superseded: bool = False  # a newer request came while this one waited for the previous estimate
 
 
+# After a stalled tool stream the simulator passes at most this many of the stamps it answered
+# without a pose, one prediction each, before it predicts the next cloud (_catch_up): enough to
+# follow the tool's path over a few seconds' gap, bounded in time at organ scale.
+CATCH_UP_STEPS = 5
+
+
 class PredictionScheduler:
     """The simulator's timeline over tool poses and prediction requests (module docstring)."""
 
@@ -188,6 +194,10 @@ class PredictionScheduler:
         self._start_ns: int | None = None       # stamp of the timeline's first tool pose
         self._previous_ns: int | None = None    # stamp of the last request answered (or the start)
         self._tool_ns: int | None = None        # stamp the simulator's tool pose belongs to
+        self._tool_pose: np.ndarray | None = None  # and that pose
+        # The newest stamps answered without a tool pose (a stalled stream), which the tool passes
+        # on its way to the next pose (_catch_up).
+        self._unposed: deque[int] = deque(maxlen=CATCH_UP_STEPS)
         self._previous_done_s = 0.0
         self._state = self.mesh.vertices.copy()
         self._state_ns: int | None = None       # stamp of the estimate self._state is
@@ -234,6 +244,7 @@ class PredictionScheduler:
         self._poses.insert(stamp_ns, pose)
         if self._start_ns is None:
             self._start_ns = self._previous_ns = self._tool_ns = stamp_ns
+            self._tool_pose = pose
             self.simulator.reset(pose)
         return None
 
@@ -257,8 +268,12 @@ class PredictionScheduler:
         failed), so the next request need not wait and starts from the newest state. `degraded`:
         the update ran without this stamp's prediction (it came late, or was rejected), so the
         estimate is the next start but its difference from the prediction teaches the body load
-        and the Poisson ratio nothing. `position_std` (N,): the estimate's posterior std, which
-        weighs their fit (core/model_fit.py); without it they learn nothing from this estimate."""
+        and the Poisson ratio nothing; a degraded estimate at a stamp answered without a tool pose
+        (a stalled stream) is not even that: the physics of the tool's motion is missing from it
+        (the hidden tissue stays where it was), so the simulator stays at the state it had and the
+        tool passes that stamp on its way to the next one (_catch_up). `position_std` (N,): the
+        estimate's posterior std, which weighs their fit (core/model_fit.py); without it they learn
+        nothing from this estimate."""
         if self._start_ns is None or not self._start_ns <= stamp_ns <= self._previous_ns:
             return None  # not a stamp this timeline predicted (a looped recording, or no pose yet)
         if positions is None:
@@ -269,6 +284,9 @@ class PredictionScheduler:
                 or self.scene.far(positions).any()):
             return Rejection("estimates_ignored", f"estimate at {stamp_ns} ns has a wrong vertex count, "
                              "non-finite positions or positions far outside the scene: ignored")
+        if degraded and stamp_ns > self._tool_ns:  # the simulator never reached it: no pose for it
+            self._skipped_ns = max(stamp_ns, self._skipped_ns or 0)  # settled, but no start state
+            return None
         if self._state_ns is None or stamp_ns > self._state_ns:
             self._state, self._state_ns = positions, stamp_ns
             if not degraded and self._predicted is not None and self._predicted.stamp_ns == stamp_ns:
@@ -325,10 +343,12 @@ class PredictionScheduler:
         try:
             pose = self._poses.pose_at(stamp)
         except PoseUnavailable as error:
+            self._unposed.append(stamp)
             return self._finish(Prediction(stamp, None, str(error)), now_s)
-        dt = (stamp - self._tool_ns) / NS_PER_S  # the tool moves from where the simulator left it
-        self._tool_ns = stamp
         try:
+            self._catch_up(stamp, pose)
+            dt = (stamp - self._tool_ns) / NS_PER_S  # the tool moves from where the simulator left it
+            self._tool_ns, self._tool_pose = stamp, pose
             predicted = self.simulator.predict(self._state, pose, dt)
         except (ValueError, RuntimeError) as error:
             self._restart_simulator(pose)
@@ -339,10 +359,30 @@ class PredictionScheduler:
         self._predicted = Prediction(stamp, predicted, "", pose)
         return self._finish(self._predicted, now_s)
 
+    def _catch_up(self, stamp: int, pose: np.ndarray) -> None:
+        """After a stalled tool stream: the simulator passes the stamps it answered without a tool
+        pose (the newest CATCH_UP_STEPS), one prediction each, with the tool interpolated between
+        where it left it and `pose` at `stamp` (the path in between is unknown), from the state it
+        had before the stall. In one jump the tool's contact would drag the tissue over the whole
+        gap at once, and from a degraded estimate the hidden tissue would start where the stall
+        left it (docs/design-notes.md, "A stalled tool stream"). ValueError / RuntimeError: a step
+        the simulator cannot take, as a prediction's."""
+        gap = [skipped for skipped in self._unposed if self._tool_ns < skipped < stamp]
+        self._unposed.clear()
+        if not gap:
+            return
+        path = PoseHistory(duration_ns=stamp - self._tool_ns + 1, max_samples=2)
+        path.insert(self._tool_ns, self._tool_pose)
+        path.insert(stamp, pose)
+        for skipped, skipped_pose in zip(gap, path.interpolate(gap)):
+            self._state = self.simulator.predict(self._state, skipped_pose, (skipped - self._tool_ns) / NS_PER_S)
+            self._tool_ns, self._tool_pose = skipped, skipped_pose
+
     def _restart_simulator(self, pose: np.ndarray) -> None:
         """After a failed prediction: the tool restarts at `pose`, and the body load learnt so far
         is forgotten, since it may be what failed; kept, every later prediction could fail alike,
         each step would run degraded, and degraded estimates teach the load nothing."""
+        self._tool_pose = pose
         self.simulator.reset(pose)
         if self.body_load is not None:
             self.body_load.reset()
