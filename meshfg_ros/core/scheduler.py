@@ -540,9 +540,12 @@ class EstimationScheduler:
 
     def _cost_per_cloud(self) -> str:
         """What one cloud costs against the clouds' period, for the reasons of a pipeline behind."""
-        prediction = max(self._prediction_times_s, default=float("nan"))
-        period = "" if self._cloud_period_s is None else f"; clouds come every {1e3 * self._cloud_period_s:.0f} ms"
-        return f"per cloud the prediction takes {1e3 * prediction:.0f} ms and the update {1e3 * self._update_s:.0f} ms{period}"
+        parts = [f"the prediction takes {1e3 * max(self._prediction_times_s):.0f} ms" if self._prediction_times_s
+                 else "no prediction has come yet",
+                 f"the update {1e3 * self._update_s:.0f} ms" if self._update_s else "no update has ended yet"]
+        if self._cloud_period_s is not None:
+            parts.append(f"clouds come every {1e3 * self._cloud_period_s:.0f} ms")
+        return "per cloud " + "; ".join(parts)
 
     def add_prediction(self, answer: Prediction, now_s: float | None = None) -> Rejection | None:
         """Take the simulator's answer for a stamp (a prediction or a failure), arrived at `now_s`
