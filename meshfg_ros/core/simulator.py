@@ -483,20 +483,13 @@ def _outside_tool(points: np.ndarray, centre: np.ndarray, radius: float) -> np.n
     return pushed
 
 
-def rest_stiffness(body: _Body) -> scipy.sparse.csr_matrix:
-    """K0 (small-strain stiffness: the Hessian at rest) on the movable dofs, at the body's moduli;
-    the same pattern at any of them."""
-    shear, volumetric = body.stiffness_parts
-    values = body.config.shear_modulus * shear.data + body.config.lame_lambda * volumetric.data
-    dofs = (3 * body.movable_vertices[:, None] + _DIAGONAL).reshape(-1)
-    stiffness = scipy.sparse.csr_matrix((values, shear.indices, shear.indptr), shape=shear.shape)[dofs][:, dofs]
-    stiffness.sort_indices()
-    return stiffness
-
-
 class RestFactor:
-    """The Cholesky factor of K0 on the movable dofs (`rest_stiffness`), and its solves with some
-    movable vertices held or sliding on the tool.
+    """The Cholesky factor of K0 (small-strain stiffness: the Hessian at rest) on the movable
+    dofs, and its solves with some movable vertices held or sliding on the tool.
+
+    K0 = mu A + lambda B (the body's stiffness_parts) has one pattern at any moduli: the
+    entries of A and B on the movable dofs are picked once, and a new Poisson ratio is a
+    numeric refactor of their sum (`refactor`).
 
     A constrained solve is a Schur complement on the factor: with K0 = P^T L L^T P, the
     constraint columns E and W = L^-1 P E, the solution of K0 x = f held to E^T x = 0 is
@@ -508,13 +501,26 @@ class RestFactor:
     constraint column at every global step (cvxopt's CHOLMOD solves one column at a time).
     """
 
-    def __init__(self, stiffness: scipy.sparse.csr_matrix):
+    def __init__(self, body: _Body):
+        shear, volumetric = body.stiffness_parts
+        dofs = (3 * body.movable_vertices[:, None] + _DIAGONAL).reshape(-1)
+        # Which entries of the parts' shared pattern K0's movable block holds, in its sorted csr order.
+        picked = scipy.sparse.csr_matrix((np.arange(1.0, shear.nnz + 1.0), shear.indices, shear.indptr),
+                                         shape=shear.shape)[dofs][:, dofs]
+        picked.sort_indices()
+        entries = picked.data.astype(np.int64) - 1
+        self._shear, self._volumetric = shear.data[entries], volumetric.data[entries]
+        stiffness = scipy.sparse.csr_matrix((self._values(body.config), picked.indices, picked.indptr),
+                                            shape=picked.shape)
         self.cholesky = SparseCholesky(stiffness, node_size=3)
         self._unit_halves: dict[int, np.ndarray] = {}  # movable row -> L^-1 P of its unit columns (3 n, 3)
 
-    def refactor(self, data: np.ndarray) -> None:
-        """Numeric factorisation at K0's values `data` (its csr pattern unchanged)."""
-        self.cholesky.refactor(data)
+    def _values(self, config: SimulatorConfig) -> np.ndarray:
+        return config.shear_modulus * self._shear + config.lame_lambda * self._volumetric
+
+    def refactor(self, config: SimulatorConfig) -> None:
+        """Numeric factorisation of K0 at `config`'s moduli."""
+        self.cholesky.refactor(self._values(config))
         self._unit_halves.clear()
 
     def solve(self, forces: np.ndarray, held_rows: np.ndarray = _NO_ROWS, sliding_rows: np.ndarray = _NO_ROWS,
@@ -598,7 +604,7 @@ class VertexBlockDescent(SimulatorSolver):
         self._vertex_mass = body.vertex_mass
         self._gravity_force = body.vertex_mass[:, None] * body.gravity
         self._colours = self._vertex_colours(tets, volumes, body.rest_inverse, body.corner_gradient)
-        self.rest_stiffness = RestFactor(rest_stiffness(body)) if self.movable_vertices.size else None
+        self.rest_stiffness = RestFactor(body) if self.movable_vertices.size else None
 
     def set_gravity(self, gravity: np.ndarray) -> None:
         self._gravity_force = self._vertex_mass[:, None] * gravity
@@ -963,7 +969,7 @@ class ElasticSimulator:
         self._body = replace(self._body, config=self.config)
         self.solver.set_material(self.config)
         if self.solver.rest_stiffness is not None:  # numeric only: K0's pattern does not change
-            self.solver.rest_stiffness.refactor(rest_stiffness(self._body).data)
+            self.solver.rest_stiffness.refactor(self.config)
 
     @property
     def linear_stiffness_parts(self) -> tuple:
@@ -980,7 +986,7 @@ class ElasticSimulator:
         other vertices held, and the movable ones in `held` too (a Schur complement on the
         factor, as the global step holds stuck vertices): the model's small-strain response."""
         if self.solver.rest_stiffness is None:
-            self.solver.rest_stiffness = RestFactor(rest_stiffness(self._body))
+            self.solver.rest_stiffness = RestFactor(self._body)
         rows = np.flatnonzero(np.isin(self.movable_vertices, held)) if held is not None else _NO_ROWS
         response = self.solver.rest_stiffness.solve(forces, held_rows=rows)
         response[(3 * rows[:, None] + _DIAGONAL).reshape(-1)] = 0.0  # zero but for rounding
