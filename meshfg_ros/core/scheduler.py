@@ -61,7 +61,7 @@ from meshfg_ros.core.input_checks import (
     stamp_order,
 )
 from meshfg_ros.core.body_load import BodyLoadEstimate
-from meshfg_ros.core.external_prior import ExternalPriorError, ExternalStiffness
+from meshfg_ros.core.external_prior import ExternalPriorError, ExternalStiffness, StiffnessProjection
 from meshfg_ros.core.model_fit import learn
 from meshfg_ros.core.poisson_ratio import PoissonRatioEstimate
 from meshfg_ros.core.mesh import TetMesh
@@ -458,10 +458,14 @@ class EstimationScheduler:
         self._last_step_ns: int | None = None
         self._solver_free_s = 0.0
         self._prediction_times_s: deque[float] = deque(maxlen=PREDICTION_TIMES_KEPT)
+        # (stamp, when its prediction could start) of the last cloud run without its answer, so
+        # that a late prediction's time is measured too and the next clouds wait for theirs
+        self._ran_without_answer: tuple[int, float] | None = None
         self._update_s = 0.0  # wall time of the last step
         self._cloud_period_s: float | None = None  # between the last two clouds' stamps
         self._registered = False  # whether a cloud has confirmed the mesh's size and place
-        self._stiffness_template: tuple | None = None  # (the estimator's model, its K's pattern)
+        # (the estimator's model, the projection of external stiffness onto its K's pattern)
+        self._stiffness_projection: tuple | None = None
 
     def reconfigure(self, changes: dict) -> None:
         """Apply changed dynamic settings (field name -> value) from the next update on, also after
@@ -560,9 +564,12 @@ class EstimationScheduler:
             return Rejection("clouds_skipped_behind", f"cloud at {stamp} ns skipped: the pipeline is behind the "
                              f"clouds and the simulator predicts the newest one ({self._cost_per_cloud()}). Send "
                              "smaller clouds (a voxel filter), use a coarser mesh or a lower max_iterations")
-        queued = next((cloud for cloud in self._clouds if cloud.stamp_ns == stamp), None)
-        if queued is not None and answer.positions is not None and now_s is not None:
-            self._prediction_times_s.append(now_s - max(queued.arrival_s, self._solver_free_s))
+        if answer.positions is not None and now_s is not None:
+            queued = next((cloud for cloud in self._clouds if cloud.stamp_ns == stamp), None)
+            if queued is not None:
+                self._prediction_times_s.append(now_s - max(queued.arrival_s, self._solver_free_s))
+            elif self._ran_without_answer is not None and self._ran_without_answer[0] == stamp:
+                self._prediction_times_s.append(now_s - self._ran_without_answer[1])
         if newest is not None and newest - stamp > self._jump_ns:
             self._answers.clear()  # the simulator restarted its timeline (a looped recording)
         elif self._last_step_ns is not None and 0 <= self._last_step_ns - stamp <= self._jump_ns:
@@ -596,6 +603,8 @@ class EstimationScheduler:
         self._clouds.popleft()
         for old in [other for other in self._answers if other <= stamp]:
             del self._answers[old]
+        if answer is None:
+            self._ran_without_answer = (stamp, max(queued.arrival_s, self._solver_free_s))
         self._last_step_ns = stamp
         tool_pose = answer.tool_pose if answer is not None and answer.tool_pose is not None else self._tool_pose(stamp)
         predicted = answer.positions if answer is not None else None
@@ -641,10 +650,11 @@ class EstimationScheduler:
         model = self.estimator.model
         if step.stiffness is None or step.predicted is None or model is None:
             return None, ()
-        if self._stiffness_template is None or self._stiffness_template[0] is not model:
-            self._stiffness_template = (model, model.stiffness(None, kind="linear"))
+        if self._stiffness_projection is None or self._stiffness_projection[0] is not model:
+            self._stiffness_projection = (model, StiffnessProjection(model.stiffness(None, kind="linear"),
+                                                                     self.estimator.graph.free_dofs))
         try:
-            information = step.stiffness.information(self._stiffness_template[1], self.estimator.graph.free_dofs)
+            information = self._stiffness_projection[1].information(step.stiffness)
         except ExternalPriorError as error:
             return None, (Rejection(error.counter, f"stiffness at {step.stamp_ns} ns: {error}"),)
         notes = (Rejection("sim_bridge_stiffness_repaired", f"stiffness at {step.stamp_ns} ns: {information.note}"),
