@@ -227,3 +227,20 @@ def test_a_cut_and_the_simulators_stiffness_reach_the_estimator_through_the_sche
     assert len(scheduler.estimator.mesh.tetrahedra) == len(keep) and corner in scheduler.estimator.mesh.invalid_vertices
     valid = np.setdiff1d(np.arange(mesh.vertex_count), [corner])
     assert np.abs(outcome.result.positions[valid] - world[valid]).max() < 2e-3
+
+
+def test_a_kept_projection_gives_what_a_fresh_one_gives_answer_after_answer(mesh, model):
+    from meshfg_ros.core.external_prior import StiffnessProjection
+
+    template, free = model.stiffness(None, kind="linear"), free_dofs(mesh)
+    projection = StiffnessProjection(template, free)
+    stiffness = template.toarray()
+    lowest = np.linalg.eigvalsh(stiffness[np.ix_(free, free)]).min()
+    mean_diagonal = np.mean(np.diag(stiffness)[free])
+    answers = [stiffness, stiffness - (lowest + 1e-3 * mean_diagonal) * np.eye(len(stiffness)), 2.0 * stiffness]
+    for given in answers:
+        external = ExternalStiffness(*coo(given)[:3])
+        kept, fresh = projection.information(external), external.information(template, free)
+        np.testing.assert_allclose(kept.matrix.toarray(), fresh.matrix.toarray(), rtol=1e-12, atol=0)
+        assert kept.note == fresh.note
+    assert "shift" in projection.information(ExternalStiffness(*coo(answers[1])[:3])).note

@@ -20,6 +20,7 @@ import numpy as np
 from meshfg_ros.core.estimator import EstimatorConfig
 from meshfg_ros.core.external_prior import FIXED_DIAGONAL, BridgeAnswer, bridge_state
 from meshfg_ros.core.fem import ElasticModel
+from meshfg_ros.core.mesh import signed_volumes
 from meshfg_ros.core.scheduler import EstimationScheduler, Prediction
 from meshfg_ros.core.simulator import ElasticSimulator
 from meshfg_ros.evaluation.metrics import vertex_rmse
@@ -51,7 +52,9 @@ def _answer(mesh, simulator, positions, model, with_stiffness: bool) -> BridgeAn
 def bridge_accuracy(scene, with_stiffness: bool = True) -> dict:
     """Per step the vertex RMSE [m] of the estimate and of the external simulator's state against
     the truth, over all vertices valid at that step, and their ratio at the last step
-    ("ratio_last") and pooled over the steps ("ratio_mean": mean RMSE over mean RMSE)."""
+    ("ratio_last") and pooled over the steps ("ratio_mean": mean RMSE over mean RMSE); the steps
+    whose estimate is on other elements than the simulator's ("topology_mismatches") and the
+    inverted elements of all estimates ("inverted_elements")."""
     mesh = scene.initial_mesh
     # As the replay sets the estimator for a scene: the nominal tissue model and tool, the noise's sigma.
     config = EstimatorConfig(**{**shared_settings(scene.simulator_config, EstimatorConfig),
@@ -62,7 +65,7 @@ def bridge_accuracy(scene, with_stiffness: bool = True) -> dict:
     scheduler = EstimationScheduler(mesh, config)
     viewpoint = None if scene.camera_pose is None else np.asarray(scene.camera_pose[:3], dtype=np.float64)
     state, previous_ns = mesh.vertices.copy(), 0
-    fg, sim = [], []
+    fg, sim, topology_mismatches, inverted = [], [], 0, 0
     for step in scene.steps:
         if step.removed_elements.size:
             simulator.remove_elements(step.removed_elements)
@@ -79,7 +82,11 @@ def bridge_accuracy(scene, with_stiffness: bool = True) -> dict:
         if outcome.result is None:
             raise RuntimeError(f"step at {step.stamp_ns} ns failed: {outcome.error}")
         valid = np.setdiff1d(np.arange(mesh.vertex_count), simulator.rest_mesh.invalid_vertices)
+        estimated_on = scheduler.estimator.mesh
+        topology_mismatches += int(not np.array_equal(estimated_on.removed_elements, simulator.rest_mesh.removed_elements))
+        inverted += int(np.count_nonzero(signed_volumes(outcome.result.positions, estimated_on.tetrahedra) <= 0.0))
         fg.append(vertex_rmse(outcome.result.positions, step.truth, valid))
         sim.append(vertex_rmse(state, step.truth, valid))
     return {"scene": scene.name, "with_stiffness": with_stiffness, "fg_rmse": fg, "sim_rmse": sim,
-            "ratio_last": fg[-1] / sim[-1], "ratio_mean": float(np.mean(fg) / np.mean(sim))}
+            "ratio_last": fg[-1] / sim[-1], "ratio_mean": float(np.mean(fg) / np.mean(sim)),
+            "topology_mismatches": topology_mismatches, "inverted_elements": inverted}
