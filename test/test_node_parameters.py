@@ -34,7 +34,7 @@ pytestmark = pytest.mark.slow  # each test starts executables
 BAG = os.path.join(os.path.dirname(__file__), "..", "bags", "cube-shear-spd")
 EXECUTABLES = {"simulation_node": ["simulation_node"], "estimator_node": ["estimator_node"],
                "meshfg_stack": ["simulation_node", "estimator_node"], "bag_player": ["bag_player"],
-               "tool_clearance_node": ["tool_clearance_node"]}
+               "tool_clearance_node": ["tool_clearance_node"], "sim_bridge_server": ["sim_bridge_server"]}
 
 
 def run(tmp_path, *command, env=None, timeout=60):
