@@ -290,3 +290,50 @@ def test_the_server_executable_answers_with_the_simulator_driven_by_the_tool(pro
     free = np.setdiff1d(np.arange(3 * mesh.vertex_count), fixed_dofs)
     assert np.diag(stiffness)[free].max() < FIXED_DIAGONAL
     assert_clean_exit(server, server.interrupt())
+
+
+def test_a_cut_in_the_simulator_is_followed_by_the_published_estimates(probe, processes, tmp_path):
+    mesh = pushed_cube()
+    corner = int(np.flatnonzero(np.all(np.isclose(mesh.vertices, [SIDE, SIDE, SIDE]), axis=1))[0])
+    around = np.flatnonzero((mesh.tetrahedra == corner).any(axis=1))
+    keep = np.setdiff1d(np.arange(len(mesh.tetrahedra)), around)
+    cut_model = ElasticModel(mesh.vertices, mesh.tetrahedra[keep], 3000.0, 0.45)
+    namespace = "/sb_cut"
+    service = ScriptedService(probe, f"{namespace}/sim/factor_graph_state")
+    publish_sim_frame(probe)
+    node, io = start_node(probe, processes, tmp_path, namespace, "window_size:=3", "prediction_timeout:=20.0",
+                          "camera_pose:=[0.025, 0.025, 0.3, 0.0, 0.0, 0.0, 1.0]")
+    io.mesh.publish(mesh_msg(mesh))
+    time.sleep(1.0)
+
+    def cut(step):
+        response = response_for(mesh, cut_model, pressed(mesh, step), step * S)
+        state = response.fg_state.sim_mesh
+        state.elements.invalid_indices, state.elements.size = around.tolist(), len(keep)
+        state.vertices.invalid_indices, state.vertices.size = [corner], mesh.vertex_count - 1
+        return response
+
+    model = ElasticModel(mesh.vertices, mesh.tetrahedra, 3000.0, 0.45)
+    for step in range(1, 5):
+        service.answers.append(cut(step) if step >= 3 else response_for(mesh, model, pressed(mesh, step), step * S))
+        points = top_points(seed=step)
+        points[:, 2] -= 6e-4 * step * (0.5 + points[:, 0] / SIDE)
+        points = points[np.linalg.norm(points[:, :2] - [SIDE, SIDE], axis=1) > 0.02]  # none on the removed corner
+        io.send(cloud_msg(points, step * S), steps=step)
+    io.wait_for(steps=4, degraded_steps=0, sim_bridge_rejected_mesh=0, sim_bridge_rejected_malformed=0)
+    for step in range(1, 5):
+        estimate = estimate_at(io, step * S)
+        positions = np.asarray(estimate.positions).reshape(-1, 3)
+        tetrahedra = np.asarray(estimate.tetrahedra, dtype=np.int64).reshape(-1, 4)
+        assert np.isfinite(positions).all()
+        if step < 3:
+            assert len(tetrahedra) == len(mesh.tetrahedra) and len(estimate.removed_elements) == 0
+            continue
+        np.testing.assert_array_equal(np.asarray(estimate.removed_elements), around)
+        np.testing.assert_array_equal(np.asarray(estimate.invalid_vertices), [corner])
+        np.testing.assert_array_equal(tetrahedra, mesh.tetrahedra[keep])
+        corners = positions[tetrahedra]
+        volumes = np.einsum("ij,ij->i", np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]),
+                            corners[:, 3] - corners[:, 0])
+        assert volumes.min() > 0.0
+    assert_clean_exit(node, node.interrupt())
