@@ -103,7 +103,8 @@ def test_a_cut_comes_as_the_mesh_own_element_slots_and_removed_vertices_are_held
     assert np.isfinite(world).all() and np.array_equal(world[corner], mesh.vertices[corner])
     cut = mesh.without_elements(removed)
     assert corner in cut.invalid_vertices and len(cut.tetrahedra) == len(mesh.tetrahedra) - len(around)
-    still_used = answer_of(mesh, positions, invalid_vertices=np.array([corner]), valid_vertex_count=mesh.vertex_count - 1)
+    still_used = answer_of(mesh, positions, invalid_vertices=np.array([corner]),
+                           valid_vertex_count=mesh.vertex_count - 1)
     with pytest.raises(ExternalPriorError, match="remaining elements use"):
         bridge_state(still_used, mesh, np.eye(4))
 

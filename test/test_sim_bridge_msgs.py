@@ -15,7 +15,8 @@ AUTHORS = {
     "sim_bridge/msg/VerticesList": "std_msgs/Header header\nuint32 size\nfloat64[] data\nint32[] invalid_indices\n",
     "sim_bridge/msg/FacesList": "std_msgs/Header header\nuint32 size\nint32[] data\nint32[] invalid_indices\n",
     "sim_bridge/msg/ElementsList": "std_msgs/Header header\nuint32 size\nint32[] data\nint32[] invalid_indices\n",
-    "sim_bridge/msg/MeshState": "std_msgs/Header header\nVerticesList vertices\nFacesList faces\nElementsList elements\n",
+    "sim_bridge/msg/MeshState": ("std_msgs/Header header\nVerticesList vertices\nFacesList faces\n"
+                                 "ElementsList elements\n"),
     "sim_bridge/msg/SparseMatrix": ("std_msgs/Header header\nuint32 rows\nuint32 cols\nint32[] row_indices\n"
                                     "int32[] col_indices\nfloat32[] values\n"),
     "sim_bridge/msg/FactorGraphState": "std_msgs/Header header\nMeshState sim_mesh\nSparseMatrix sim_stiffness_mat\n",

@@ -260,7 +260,8 @@ def test_the_server_executable_answers_with_the_simulator_driven_by_the_tool(pro
     path = tmp_path / "cube.vtu"
     save_mesh(mesh, path)
     server = Process(tmp_path, "sim_bridge_server", *ros_args(
-        "/sb_server", f"mesh_file:={path}", "world_frame:=sim/world", "fixed_box:=[-1.0, -1.0, -0.001, 1.0, 1.0, 0.001]"))
+        "/sb_server", f"mesh_file:={path}", "world_frame:=sim/world",
+        "fixed_box:=[-1.0, -1.0, -0.001, 1.0, 1.0, 0.001]"))
     processes.append(server)
     tool = probe.create_publisher(type(tool_pose_msg([0, 0, 0], 0)), "/sb_server/tool_pose", KEEP)
     client = probe.create_client(FactorGraphState, "/sim/factor_graph_state")

@@ -170,7 +170,8 @@ class StiffnessProjection:
         shift = self._definite_shift(matrix.data, mean_diagonal)
         if shift is None:
             raise ExternalPriorError("sim_bridge_stiffness_rejected", (
-                f"the simulator's stiffness is indefinite beyond a shift of {REPAIR_SHIFTS[-1]:g} of its mean diagonal: "
+                f"the simulator's stiffness is indefinite beyond a shift of {REPAIR_SHIFTS[-1]:g} of its mean "
+                "diagonal: "
                 "the estimator's own stiffness is used (check the simulator's state for inverted elements)"))
         if shift > 0.0:
             matrix.data[self._diagonal_slots] += shift

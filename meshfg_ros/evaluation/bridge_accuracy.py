@@ -44,7 +44,8 @@ def _answer(mesh, simulator, positions, model, with_stiffness: bool) -> BridgeAn
         stiffness = (np.concatenate([matrix.row[keep], dofs]), np.concatenate([matrix.col[keep], dofs]),
                      np.concatenate([matrix.data[keep], np.full(dofs.size, _HELD_STIFFNESS)]).astype(np.float32),
                      matrix.shape)
-    return BridgeAnswer(positions=positions.reshape(-1), valid_vertex_count=mesh.vertex_count - rest.invalid_vertices.size,
+    return BridgeAnswer(positions=positions.reshape(-1),
+                        valid_vertex_count=mesh.vertex_count - rest.invalid_vertices.size,
                         invalid_vertices=rest.invalid_vertices, elements=mesh.all_tetrahedra.reshape(-1),
                         invalid_elements=rest.removed_elements, stiffness=stiffness)
 
@@ -83,7 +84,8 @@ def bridge_accuracy(scene, with_stiffness: bool = True) -> dict:
             raise RuntimeError(f"step at {step.stamp_ns} ns failed: {outcome.error}")
         valid = np.setdiff1d(np.arange(mesh.vertex_count), simulator.rest_mesh.invalid_vertices)
         estimated_on = scheduler.estimator.mesh
-        topology_mismatches += int(not np.array_equal(estimated_on.removed_elements, simulator.rest_mesh.removed_elements))
+        topology_mismatches += int(not np.array_equal(estimated_on.removed_elements,
+                                                      simulator.rest_mesh.removed_elements))
         inverted += int(np.count_nonzero(signed_volumes(outcome.result.positions, estimated_on.tetrahedra) <= 0.0))
         fg.append(vertex_rmse(outcome.result.positions, step.truth, valid))
         sim.append(vertex_rmse(state, step.truth, valid))

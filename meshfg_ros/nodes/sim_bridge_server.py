@@ -147,7 +147,8 @@ class SimBridgeServer(Node):
     def _respond(self, request) -> FactorGraphState.Response:
         if self._mesh is None:
             return FactorGraphState.Response()  # no mesh yet: an empty answer, which a client refuses
-        stiffness = self._model.stiffness(self._state, kind="corotational") if request.compute_stiffness_matrix else None
+        stiffness = (self._model.stiffness(self._state, kind="corotational") if request.compute_stiffness_matrix
+                     else None)
         return factor_graph_state_response(self._state, self._mesh, self._frame, self.get_clock().now().nanoseconds,
                                            stiffness)
 
