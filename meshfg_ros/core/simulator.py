@@ -410,7 +410,7 @@ def _elastic_energy(state, tetrahedra, rest_inverse, corner_volume_gradient, vol
 
     Compiled (numba): as numpy passes (F, cof F, their contractions, a bincount per axis) the
     energies and forces of the global steps took a sixth of a prediction at organ scale. Not
-    bounds-checked, as `_sweep_colour` (checks made it 3x slower)."""
+    bounds-checked, as `_sweep_colour` (checks made it nearly 4x slower)."""
     energy = 0.0
     with_forces = forces.shape[0] > 0
     for e in range(tetrahedra.shape[0]):
