@@ -318,7 +318,7 @@ def _cofactor(f00, f01, f02, f10, f11, f12, f20, f21, f22):
 @numba.njit((writable(float64, 2), read_only(int64, 1), read_only(int64, 1), read_only(int64, 2),
              read_only(float64, 3), read_only(float64, 2), read_only(float64, 2), read_only(float64, 1),
              read_only(float64, 1), read_only(float64, 2), read_only(boolean, 1), float64, float64, float64,
-             read_only(float64, 1), float64, boolean), cache=True, boundscheck=False)
+             read_only(float64, 1), float64, boolean), cache=True, boundscheck=False, error_model="numpy")
 def _sweep_colour(state, vertices, segment_bounds, corners, rest_inverse, shape_gradient, volume_gradient,
                   volumetric_stiffness, shear_diagonal, gravity_force, held, shear_modulus, volumetric_modulus,
                   rest_volume_ratio, tool_centre, tool_radius, push):
@@ -400,7 +400,7 @@ def _sweep_colour(state, vertices, segment_bounds, corners, rest_inverse, shape_
 
 @numba.njit((read_only(float64, 2), read_only(int64, 2), read_only(float64, 3), read_only(float64, 3),
              read_only(float64, 1), float64, float64, float64, writable(float64, 1), writable(float64, 2)),
-            cache=True, boundscheck=False)
+            cache=True, boundscheck=False, error_model="numpy")
 def _elastic_energy(state, tetrahedra, rest_inverse, corner_volume_gradient, volumes, shear_modulus,
                     volumetric_modulus, rest_volume_ratio, volume_ratios, forces):
     """The elastic energy of `state` (N, 3), sum of V (mu/2 (I_C - 3) + lambda'/2 (J - gamma)^2);
