@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import difflib
 import functools
+import re
 import textwrap
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
@@ -78,6 +79,9 @@ PARAMETER_TYPES = ("double", "integer", "string", "bool", "double_array", "integ
 # Parameters every rclpy node declares itself: accepted in a parameters file and ignored.
 _ROS_OWN_PARAMETERS = frozenset({"use_sim_time", "start_type_description_service"})
 _PARAMS_KEY = "ros__parameters"
+# A ROS 2 topic or service name (rcl's rules): relative, absolute or private (~), tokens of
+# alphanumerics and '_' not starting with a digit, {substitutions} allowed.
+_ROS_NAME = re.compile(r"(~/?|/)?[A-Za-z_{][A-Za-z0-9_{}]*(/[A-Za-z_{][A-Za-z0-9_{}]*)*")
 
 
 class ParameterError(ValueError):
@@ -244,8 +248,9 @@ class EstimatorNodeConfig:
 
     def __post_init__(self) -> None:
         _check_quaternion("camera_pose", self.camera_pose)
-        if not self.sim_bridge_service.strip():
-            raise ParameterError("sim_bridge_service must name a service, got an empty string")
+        if not _ROS_NAME.fullmatch(self.sim_bridge_service):
+            raise ParameterError(f"sim_bridge_service must be a ROS service name (letters, digits, '_' and '/', no "
+                                 f"token starting with a digit), got {self.sim_bridge_service!r}")
 
 
 @dataclass(frozen=True)

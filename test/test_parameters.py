@@ -286,3 +286,13 @@ def test_mesh_file_placement_and_fixed_vertices_come_from_the_parameters(tmp_pat
     np.testing.assert_array_equal(box.fixed_vertices, np.union1d(bottom.fixed_vertices, [26]))
     with pytest.raises(ParameterError, match="fixed_plane needs 0 or 7 values"):
         load_parameters({"fixed_plane": [0.0, 0.0, 1.0]})
+
+
+@pytest.mark.parametrize("name", ["bad name", "a//b", "1a", "/a/", ""])
+def test_sim_bridge_service_must_be_a_ros_name(name):
+    with pytest.raises(ParameterError, match="sim_bridge_service must be a ROS service name"):
+        load_parameters({"sim_bridge_service": name}, "estimator_node")
+    assert load_parameters({"sim_bridge_service": "/robot/sim/factor_graph_state", "prediction_source": "sim_bridge"},
+                           "estimator_node")["prediction_source"] == "sim_bridge"
+    with pytest.raises(ParameterError, match="prediction_source must be one of simulation_node, sim_bridge"):
+        load_parameters({"prediction_source": "xpbd"}, "estimator_node")
