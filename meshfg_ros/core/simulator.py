@@ -721,8 +721,9 @@ class VertexBlockDescent(SimulatorSolver):
         _sweep_colour(state, colour.vertices, colour.segment_bounds, colour.corners, colour.rest_inverse,
                       colour.shape_gradient, colour.volume_gradient, colour.volumetric_stiffness,
                       colour.shear_diagonal, colour.gravity_force, held_mask, self.config.shear_modulus,
-                      self._volumetric_modulus, self._rest_volume_ratio, np.asarray(tool_centre, dtype=np.float64),
-                      float(self.config.tool_radius), self.config.tool_mode == "sphere")
+                      self._volumetric_modulus, self._rest_volume_ratio,
+                      np.ascontiguousarray(tool_centre, dtype=np.float64), float(self.config.tool_radius),
+                      self.config.tool_mode == "sphere")
 
 
 def _bulk_modulus(config: SimulatorConfig) -> float:
