@@ -12,6 +12,7 @@ import pytest
 import scipy.sparse
 from scipy.spatial.transform import Rotation
 from sim_bridge.srv import FactorGraphState
+from std_msgs.msg import UInt32MultiArray
 from test_nodes import (  # noqa: F401 - probe and processes are fixtures
     FACTORY,
     KEEP,
@@ -290,6 +291,23 @@ def test_the_server_executable_answers_with_the_simulator_driven_by_the_tool(pro
     assert np.all(np.diag(stiffness)[fixed_dofs] == FIXED_DOF_STIFFNESS) and FIXED_DOF_STIFFNESS >= FIXED_DIAGONAL
     free = np.setdiff1d(np.arange(3 * mesh.vertex_count), fixed_dofs)
     assert np.diag(stiffness)[free].max() < FIXED_DIAGONAL
+
+    # A cut: the answers keep every slot and list the removed ones; the stiffness is the rest's.
+    corner = int(np.flatnonzero(np.all(np.isclose(mesh.vertices, [SIDE, SIDE, SIDE]), axis=1))[0])
+    around = np.flatnonzero((mesh.tetrahedra == corner).any(axis=1))
+    cuts = probe.create_publisher(UInt32MultiArray, "/sb_server/remove_elements", KEEP)
+    assert spin_until(probe, lambda: cuts.get_subscription_count() == 1)
+    cuts.publish(UInt32MultiArray(data=around.tolist()))
+    assert spin_until(probe, lambda: "cut: " in server.output()), server.output()
+    state = call_service(probe, client, FactorGraphState.Request(compute_stiffness_matrix=True)).fg_state
+    elements = state.sim_mesh.elements
+    np.testing.assert_array_equal(np.asarray(elements.data).reshape(-1, 4), mesh.tetrahedra)
+    np.testing.assert_array_equal(np.asarray(elements.invalid_indices), around)
+    assert elements.size == len(mesh.tetrahedra) - len(around)
+    np.testing.assert_array_equal(np.asarray(state.sim_mesh.vertices.invalid_indices), [corner])
+    assert state.sim_mesh.vertices.size == mesh.vertex_count - 1
+    rows, values = np.asarray(state.sim_stiffness_mat.row_indices), np.asarray(state.sim_stiffness_mat.values)
+    assert np.all(values[np.isin(rows, 3 * corner + np.arange(3))] == 0.0)  # no element left on the corner
     assert_clean_exit(server, server.interrupt())
 
 

@@ -9,7 +9,10 @@ mesh of mesh_file or `initial_mesh`), and the service `/sim/factor_graph_state`
 world_frame (run it with -p world_frame:=sim/world for the authors' frame) and, when asked,
 the corotational FEM stiffness at that state as a full symmetric COO matrix in float32 with the
 fixed vertices' dofs at FIXED_DOF_STIFFNESS on the diagonal, as the authors' bridge sends them.
-Every slot is valid: this simulator does not cut.
+It cuts on `remove_elements` (std_msgs/UInt32MultiArray: element slots, as the simulation node
+takes them; core/topology.py): the answers then keep every slot, list the removed elements and
+the vertices left without one in `invalid_indices`, and the stiffness is the remaining
+elements'.
 
 `factor_graph_state_response` builds an answer from arrays; `SimBridgeService` serves answers
 from any function of the request (the tests serve scripted states with it).
@@ -24,6 +27,7 @@ from collections.abc import Callable
 import numpy as np
 import scipy.sparse
 from geometry_msgs.msg import PoseStamped
+from std_msgs.msg import UInt32MultiArray
 from rclpy.node import Node
 from sim_bridge.srv import FactorGraphState
 
@@ -31,7 +35,7 @@ from meshfg_ros.core.fem import ElasticModel
 from meshfg_ros.core.mesh import TetMesh
 from meshfg_ros.core.simulator import ElasticSimulator
 from meshfg_ros.io.messages import MessageValidationError, header_msg, pose_from_msg
-from meshfg_ros.nodes.ros_conversions import RCLPY_FACTORY, STREAM_QOS, InitialMeshSource
+from meshfg_ros.nodes.ros_conversions import RCLPY_FACTORY, REQUEST_QOS, STREAM_QOS, InitialMeshSource
 from meshfg_ros.nodes.ros_parameters import declare_parameters
 from meshfg_ros.nodes.runtime import run_nodes
 from meshfg_ros.parameters import simulator_config
@@ -52,24 +56,28 @@ def _sequence(values, dtype) -> array.array:
 
 def factor_graph_state_response(positions: np.ndarray, mesh: TetMesh, frame_id: str, stamp_ns: int,
                                 stiffness: scipy.sparse.spmatrix | None = None) -> FactorGraphState.Response:
-    """The service's answer: `positions` (N, 3) of `mesh`'s vertices (every slot valid), its
-    surface triangles and elements, and `stiffness` (3N, 3N) as float32 COO with the fixed
-    vertices' rows and columns cleared and FIXED_DOF_STIFFNESS on their diagonal."""
+    """The service's answer: `positions` (N, 3) of `mesh`'s vertices, its surface triangles, its
+    element slots (`all_tetrahedra`, those a cut removed and the vertices left without an
+    element listed as invalid) and `stiffness` (3N, 3N) as float32 COO with the fixed vertices'
+    rows and columns cleared and FIXED_DOF_STIFFNESS on their diagonal."""
     header = header_msg(stamp_ns, frame_id, RCLPY_FACTORY)
     response = FactorGraphState.Response()
     state = response.fg_state.sim_mesh
     response.fg_state.header = state.header = state.vertices.header = header
     state.faces.header = state.elements.header = header
-    state.vertices.size = mesh.vertex_count
+    state.vertices.size = mesh.vertex_count - len(mesh.invalid_vertices)
+    state.vertices.invalid_indices = _sequence(mesh.invalid_vertices, np.int32)
     state.vertices.data = _sequence(positions, np.float64)
     state.faces.size = len(mesh.surface_triangles)
     state.faces.data = _sequence(mesh.surface_triangles, np.int32)
     state.elements.size = len(mesh.tetrahedra)
-    state.elements.data = _sequence(mesh.tetrahedra, np.int32)
+    state.elements.data = _sequence(mesh.all_tetrahedra, np.int32)
+    state.elements.invalid_indices = _sequence(mesh.removed_elements, np.int32)
     if stiffness is not None:
         matrix = scipy.sparse.coo_matrix(stiffness)
         held = np.zeros(matrix.shape[0], dtype=bool)
-        held[(3 * np.asarray(mesh.fixed_vertices)[:, None] + np.arange(3)).reshape(-1)] = True
+        fixed = np.setdiff1d(mesh.fixed_vertices, mesh.invalid_vertices)  # a removed vertex is no boundary
+        held[(3 * fixed[:, None] + np.arange(3)).reshape(-1)] = True
         keep = ~(held[matrix.row] | held[matrix.col])
         dofs = np.flatnonzero(held)
         rows = np.concatenate([matrix.row[keep], dofs])
@@ -114,14 +122,31 @@ class SimBridgeServer(Node):
         self.tool_poses_ignored = 0
         self._mesh_source = InitialMeshSource(self, self._frame, self._set_mesh)
         self.create_subscription(PoseStamped, "tool_pose", self._on_tool_pose, STREAM_QOS)
+        self.create_subscription(UInt32MultiArray, "remove_elements", self._on_remove_elements, REQUEST_QOS)
         self.service = SimBridgeService(self, self._respond)
         self._mesh_source.load_file(self.params)
 
     def _set_mesh(self, mesh: TetMesh, state) -> None:
-        config = simulator_config(self.params)
-        self._simulator = ElasticSimulator(mesh, config)
-        self._model = ElasticModel(mesh.vertices, mesh.tetrahedra, config.youngs_modulus, config.poisson_ratio)
+        self._simulator = ElasticSimulator(mesh, simulator_config(self.params))
+        self._model = self._elastic_model(mesh)
         self._mesh, self._state, self._last_stamp_ns = mesh, mesh.vertices.copy(), None
+
+    def _elastic_model(self, mesh: TetMesh) -> ElasticModel:
+        config = simulator_config(self.params)
+        return ElasticModel(mesh.vertices, mesh.tetrahedra, config.youngs_modulus, config.poisson_ratio)
+
+    def _on_remove_elements(self, msg: UInt32MultiArray) -> None:
+        if self._simulator is None:
+            return self.get_logger().warning("remove_elements before the mesh: ignored")
+        try:
+            changed = self._simulator.remove_elements(np.asarray(msg.data, dtype=np.int64))
+        except Exception as error:  # noqa: BLE001 - a cut the simulator cannot make leaves it as it was
+            return self.get_logger().warning(f"cut refused: {error}")
+        if changed:
+            self._mesh = self._simulator.rest_mesh
+            self._model = self._elastic_model(self._mesh)
+            self.get_logger().info(f"cut: {self._mesh.removed_elements.size} elements removed, "
+                                   f"{self._mesh.invalid_vertices.size} vertices invalid")
 
     def _on_tool_pose(self, msg: PoseStamped) -> None:
         try:
