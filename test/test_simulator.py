@@ -12,6 +12,7 @@ from scipy.spatial.transform import Rotation
 from meshfg_ros.core.fem import ElasticModel, free_dofs
 from meshfg_ros.core.mesh import signed_volumes
 from meshfg_ros.synthetic.meshing import cube_mesh, structured_box_mesh
+from meshfg_ros.core import simulator as simulator_module
 from meshfg_ros.core.simulator import (
     FLAT_VOLUME_RATIO,
     ElasticSimulator,
@@ -327,6 +328,30 @@ def test_rest_factor_holds_and_slides_as_a_dense_constrained_solve(pushed_block)
     assert np.abs(constraints.T @ factor.solve(forces, held_rows, sliding_rows, normals)).max() < 1e-12 * scale
     free = np.linalg.solve(stiffness, forces[:, 0])
     np.testing.assert_allclose(factor.solve(forces[:, 0]), free, rtol=0, atol=1e-9 * np.abs(free).max())
+
+
+def test_rest_factor_keeps_unit_columns_within_its_budget(pushed_block, monkeypatch):
+    """The kept unit columns stay within _UNIT_HALVES_BYTES (the oldest dropped), and a solve
+    that needs more vertices than the budget holds is still exact."""
+    simulator = ElasticSimulator(pushed_block, SimulatorConfig(youngs_modulus=YOUNGS_MODULUS,
+                                                               poisson_ratio=POISSON_RATIO))
+    factor = simulator.solver.rest_stiffness
+    size = factor.cholesky.size
+    monkeypatch.setattr(simulator_module, "_UNIT_HALVES_BYTES", 2 * 3 * size * 8)  # two vertices' columns
+    held_rows = np.array([3, 10, 20, 30])
+    forces = np.random.default_rng(6).normal(size=size)
+    movable = simulator.movable_vertices
+    dofs = (3 * movable[:, None] + np.arange(3)).reshape(-1)
+    stiffness = ElasticModel(pushed_block.vertices, pushed_block.tetrahedra, YOUNGS_MODULUS,
+                             POISSON_RATIO).stiffness(kind="linear").toarray()[np.ix_(dofs, dofs)]
+    held_dofs = (3 * held_rows[:, None] + np.arange(3)).reshape(-1)
+    free = np.setdiff1d(np.arange(size), held_dofs)
+    expected = np.zeros(size)
+    expected[free] = np.linalg.solve(stiffness[np.ix_(free, free)], forces[free])
+    for _ in range(2):
+        solution = factor.solve(forces, held_rows)
+        np.testing.assert_allclose(solution, expected, rtol=0, atol=1e-9 * np.abs(expected).max())
+        assert len(factor._unit_halves) <= 2
 
 
 def test_inverting_grasp_motion_is_reported():
