@@ -214,7 +214,7 @@ def test_a_service_that_fails_is_counted_named_and_runs_degraded(probe, processe
     expected = {}
     counter_of = {with_nan: "sim_bridge_rejected_malformed", too_few_vertices: "sim_bridge_rejected_mesh",
                   indefinite: "sim_bridge_stiffness_rejected", other_mesh: "sim_bridge_rejected_mesh",
-                  slow: "sim_bridge_late", stiffness_of_another_size: "sim_bridge_rejected_malformed"}
+                  slow: "predictions_rejected", stiffness_of_another_size: "sim_bridge_rejected_malformed"}
     for step, (answer, degraded) in enumerate(script, start=1):
         service.answers.append(lambda answer=answer, step=step: answer(step))
         if answer in counter_of:

@@ -17,9 +17,12 @@ invalid_indices say the whole topology; a refined or coarsened mesh (other slot 
 refused. Whatever goes wrong is a failed Prediction (the step runs degraded
 on the previous estimate at once) and a Rejection with its counter, saying what to fix:
 the service not there (sim_bridge_unavailable), MAX_IN_FLIGHT calls unanswered
-(sim_bridge_busy), an answer later than prediction_timeout (sim_bridge_late: the call is
-dropped), wrong sizes, indices or non-finite values (sim_bridge_rejected_malformed), another
+(sim_bridge_busy), a call unanswered for the longest wait of a cloud (sim_bridge_late: the call
+is dropped), wrong sizes, indices or non-finite values (sim_bridge_rejected_malformed), another
 or a refined mesh (sim_bridge_rejected_mesh), a frame /tf cannot place (sim_bridge_rejected_frame).
+A slow answer goes to the scheduler like any: its cloud waits prediction_timeout, or longer
+after slow answers (EstimationScheduler.prediction_wait_s), and an answer after its cloud ran
+is the scheduler's predictions_rejected.
 """
 
 from __future__ import annotations
@@ -35,7 +38,7 @@ from sim_bridge.srv import FactorGraphState
 from meshfg_ros.core.external_prior import BridgeAnswer, ExternalPriorError, bridge_state
 from meshfg_ros.core.frames import FrameLookupError, TransformBuffer
 from meshfg_ros.core.mesh import TetMesh
-from meshfg_ros.core.scheduler import Prediction, Rejection
+from meshfg_ros.core.scheduler import MAX_PREDICTION_WAIT_S, Prediction, Rejection
 
 __all__ = ["MAX_IN_FLIGHT", "SIM_FRAME", "SimBridgeClient", "answer_from_msg"]
 
@@ -63,14 +66,16 @@ def answer_from_msg(msg: Any, with_stiffness: bool) -> BridgeAnswer:
 
 class SimBridgeClient:
     """Asks the sim_bridge service for each cloud's prediction (module docstring); hands each
-    answer to `on_answer(prediction or None, notes)` in the executor thread (None: a late answer,
-    whose cloud the scheduler runs without a prediction after prediction_timeout)."""
+    answer to `on_answer(prediction or None, notes)` in the executor thread (None: a call given up
+    on, whose cloud the scheduler has run without a prediction)."""
 
     def __init__(self, node: Node, service: str, with_stiffness: bool, world_frame: str, transforms: TransformBuffer,
                  timeout_s: float, on_answer: Callable[[Prediction | None, list[Rejection]], None]) -> None:
         self._client = node.create_client(FactorGraphState, service)
         self._service, self._with_stiffness, self._world = service, with_stiffness, world_frame
-        self._transforms, self._timeout_s, self._on_answer = transforms, timeout_s, on_answer
+        # A call is given up on when no cloud waits for it any longer (the scheduler's longest wait).
+        self._timeout_s = max(timeout_s, MAX_PREDICTION_WAIT_S)
+        self._transforms, self._on_answer = transforms, on_answer
         self._mesh: TetMesh | None = None
         self._in_flight: dict[int, tuple[Any, float]] = {}  # cloud stamp -> (future, sent at, monotonic s)
 
@@ -102,17 +107,12 @@ class SimBridgeClient:
                 self._on_answer(None, [self._late(stamp_ns, now - sent_s)])
 
     def _late(self, stamp_ns: int, waited_s: float) -> Rejection:
-        return Rejection("sim_bridge_late", f"{self._service} took over {waited_s:.2f} s for the cloud at {stamp_ns} "
-                         f"ns (prediction_timeout {self._timeout_s:g} s): that step ran without it; check the "
-                         "simulator's load or raise prediction_timeout")
+        return Rejection("sim_bridge_late", f"{self._service} has not answered for the cloud at {stamp_ns} ns in "
+                         f"{waited_s:.2f} s: that step ran without it; check that the simulator runs and its load")
 
     def _answered(self, stamp_ns: int, future) -> None:
-        sent = self._in_flight.pop(stamp_ns, None)
-        if sent is None or future.cancelled():
+        if self._in_flight.pop(stamp_ns, None) is None or future.cancelled():
             return  # already given up on
-        waited_s = time.monotonic() - sent[1]
-        if waited_s > self._timeout_s:
-            return self._on_answer(None, [self._late(stamp_ns, waited_s)])
         try:
             response = future.result()
             frame = response.fg_state.sim_mesh.header.frame_id or SIM_FRAME
