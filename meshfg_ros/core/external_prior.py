@@ -54,8 +54,9 @@ __all__ = ["FIXED_DIAGONAL", "REPAIR_SHIFTS", "BridgeAnswer", "ExternalPriorErro
 # A dof whose diagonal stiffness reaches this is held by the simulator (it writes 1e9 [N/m]; a
 # tissue's own diagonal stays below ~1e4 N/m at millimetre elements and 1e5 Pa).
 FIXED_DIAGONAL = 1e8
-# Shifts tried, relative to the mean free diagonal: the first is the ridge size that makes a free
-# body's rigid modes definite; beyond the last the matrix is refused.
+# Shifts tried, relative to the mean free diagonal: none first, then the size of the estimator's
+# ridge (PRIOR_RIDGE, which makes a free body's rigid modes definite); beyond the last the matrix
+# is refused.
 REPAIR_SHIFTS = (0.0, 1e-6, 1e-4, 1e-3, 1e-2, 3e-2, 1e-1)
 
 
