@@ -89,8 +89,9 @@ _CORNER_FROM_EDGES = np.array([[-1.0, -1.0, -1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0
 _DIAGONAL = np.arange(3)
 # vbd: one move may shrink an element's volume at most to this fraction of its current value.
 _MIN_VOLUME_FRACTION_PER_MOVE = 0.1
+# Floor of a distance that divides (a vertex at the tool's centre).
 _TINY = np.finfo(float).tiny
-_NO_ROWS = np.zeros(0, dtype=np.int64)
+_NO_ROWS = np.zeros(0, dtype=np.int64)  # no movable vertex held or sliding
 # RestFactor keeps forward-substituted unit columns of at most this many bytes, the oldest
 # dropped first (a vertex's three take 0.7 MB at organ scale, 10,648 vertices).
 _UNIT_HALVES_BYTES = 64 * 2**20
@@ -478,7 +479,7 @@ def _outside_tool(points: np.ndarray, centre: np.ndarray, radius: float) -> np.n
     if inside.size == 0:
         return points
     pushed = points.copy()
-    directions = offsets[inside] / np.maximum(distances[inside], np.finfo(float).tiny)[:, None]
+    directions = offsets[inside] / np.maximum(distances[inside], _TINY)[:, None]
     pushed[inside] = centre + radius * directions
     return pushed
 
