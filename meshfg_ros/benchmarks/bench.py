@@ -297,12 +297,14 @@ ORGAN_RECORDING_SEED = 5
 
 def organ_recording() -> Path:
     """The organ-scale recording of the organ_live section: the organ-slab scene
-    (meshfg_ros.synthetic: a slab with a stiff inclusion, meshed to ~5,000 vertices, full-resolution
-    clouds of 5,000-8,000 points), synthesized once (a few minutes) into the user's cache."""
+    (meshfg_ros.synthetic: a slab with a stiff inclusion, meshed to ~6,400 vertices, full-resolution
+    clouds of 5,000-8,000 points), synthesized once (a few minutes) into the user's cache, under a
+    name that changes with the scene's mesh size."""
+    from meshfg_ros.synthetic.mismatch_scenes import ORGAN_SLAB_MESH_SIZE
     from meshfg_ros.synthetic.recordings import synthesize
 
     cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "meshfg"
-    path = cache / f"organ-slab-seed{ORGAN_RECORDING_SEED}"
+    path = cache / f"organ-slab-{1e6 * ORGAN_SLAB_MESH_SIZE:.0f}um-seed{ORGAN_RECORDING_SEED}"
     if not path.exists():
         cache.mkdir(parents=True, exist_ok=True)
         print(f"bench: synthesizing the organ-scale recording into {path} (once; a few minutes)", file=sys.stderr)
