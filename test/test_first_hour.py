@@ -209,6 +209,7 @@ def test_a_camera_frame_the_clouds_cannot_have_been_seen_from_is_named_at_the_fi
                                                 "from camera_frame's origin or meet its rays beyond 80 degrees")
     assert message.endswith("check camera_frame and its transform on /tf (or camera_pose)")
     assert counters["steps_view_implausible"] == "1"
+    assert spin_until(probe, lambda: "diagnostics: in 1 of the last 1 clouds more than 5 %" in node.output())  # logged
 
     # A tool pose publisher the node cannot match: an ERROR before anything else, within 5 reports.
     driver = probe.create_publisher(PoseStamped, "/cam/tool_pose", BEST_EFFORT)
@@ -231,6 +232,7 @@ def test_a_measurement_sigma_far_from_the_clouds_spread_is_named_at_the_first_st
     assert level == WARN and message == ("in 1 of the last 1 updates the cloud spread more than 10x above or below "
                                          "measurement_sigma about the estimate: check it and its units")
     assert counters["steps_noise_off_nominal"] == "1" and counters["steps_view_implausible"] == "0"
+    assert spin_until(probe, lambda: "diagnostics: in 1 of the last 1 updates the cloud spread" in node.output())
     assert_clean_exit(node, node.interrupt())
 
 

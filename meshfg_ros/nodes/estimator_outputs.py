@@ -8,6 +8,7 @@ Input callbacks and the solver thread both report to it; a lock of its own guard
 
 from __future__ import annotations
 
+import re
 import threading
 import time
 from collections import deque
@@ -26,7 +27,8 @@ from meshfg_ros.core.mesh import TetMesh
 from meshfg_ros.core.scheduler import CloudStep, Rejection, StepOutcome
 from meshfg_ros.io.messages import MeshState, status_record, status_to_msg
 from meshfg_ros.markers import mesh_markers, spread_surface_sample, surface_edges
-from meshfg_ros.nodes.diagnostics import EstimatorCounters, EstimatorHealth, diagnostic_array, with_setup_problems
+from meshfg_ros.nodes.diagnostics import (ERROR, OK, EstimatorCounters, EstimatorHealth, diagnostic_array,
+                                          with_setup_problems)
 from meshfg_ros.nodes.ros_conversions import LATCHED_QOS, RCLPY_FACTORY, STREAM_QOS, MeshMessages
 
 _LATENCY_HISTORY = 100
@@ -52,6 +54,7 @@ class EstimatorOutputs:
         # match (nodes/publisher_qos.py) and what run_nodes found wrong in the set-up.
         self.unmatched_publishers: Callable[[], list[str]] = list
         self.setup_warnings: list[str] = []
+        self._logged_health = ""  # the last WARN / ERROR logged, numbers aside (_log_new_health)
         self._markers_job: tuple | None = None
         # The mesh's state, its TetraMesh builder, surface edges and vertices given ellipsoids (markers).
         self._mesh: tuple[MeshState, MeshMessages, np.ndarray, np.ndarray] | None = None
@@ -140,6 +143,17 @@ class EstimatorOutputs:
                                                    step.viewpoint, result.measurement_sigma)
         return considered >= MIN_VIEW_POINTS and implausible > IMPLAUSIBLE_SHARE * considered
 
+    def _log_new_health(self, level: bytes, message: str) -> None:
+        """Log a WARN or ERROR the first time it says something new, its numbers aside: the
+        diagnostics repeat it every second, the log says it once (a camera or a measurement_sigma
+        that the clouds contradict is otherwise only in /diagnostics)."""
+        kind = re.sub(r"\d+(\.\d+)?", "N", message) if level != OK else ""
+        if kind and kind != self._logged_health and level == ERROR:  # rclpy: one severity per call site
+            self._node.get_logger().error(f"diagnostics: {message}")
+        elif kind and kind != self._logged_health:
+            self._node.get_logger().warning(f"diagnostics: {message}")
+        self._logged_health = kind
+
     def report(self) -> None:
         """Diagnostics (after each step and periodically) and markers of the newest estimate."""
         queued = self._queued()
@@ -149,9 +163,9 @@ class EstimatorOutputs:
             since, last_rejection = self._unanswered_since_s, self._last_rejection
             self.health.prediction_problem = self._last_prediction_problem
         unanswered_s = 0.0 if since is None else time.monotonic() - since
-        level, message = with_setup_problems(*self.health.assess(counters, queued is None, unanswered_s,
-                                                                 last_rejection),
-                                             self.unmatched_publishers(), self.setup_warnings)
+        health = self.health.assess(counters, queued is None, unanswered_s, last_rejection)
+        self._log_new_health(*health)  # the wiring's problems are logged where they are found
+        level, message = with_setup_problems(*health, self.unmatched_publishers(), self.setup_warnings)
         self._diagnostics.publish(diagnostic_array(f"{self._node.get_fully_qualified_name()}: estimation", level,
                                                    message, counters, self._node.get_clock().now().nanoseconds))
         if job is not None and self._markers.get_subscription_count() > 0:
