@@ -7,6 +7,7 @@ effect is counted (a step, a rejection, a request), and "within its first 5 repo
 depends on discovery (a publisher that cannot match), so that a loaded machine does not decide.
 """
 import subprocess
+import time
 
 import numpy as np
 import pytest
@@ -274,6 +275,21 @@ def test_a_parameters_file_whose_node_names_match_no_node_is_named_by_both_nodes
         assert reports.items[0][:2] == (WARN, expected)
     assert_clean_exit(node, node.interrupt())
     assert node.output().count(expected) == 2  # each node's log
+
+
+@pytest.mark.slow
+def test_a_program_without_diagnostics_logs_an_unmatched_parameters_file(processes, tmp_path):
+    """tool_clearance_node shares run_nodes but publishes no diagnostics: the warning is its log's."""
+    params = tmp_path / "planner.yaml"
+    params.write_text(yaml.safe_dump({"/planner": {"ros__parameters": {"clearance_sigmas": 2.0}}}))
+    node = Process(tmp_path, "tool_clearance_node", "--ros-args", "--params-file", str(params))
+    processes.append(node)
+    expected = f"parameters file {params} sets nothing: its node names (/planner) match none of this program's nodes"
+    deadline = time.monotonic() + 60.0
+    while expected not in node.output() and time.monotonic() < deadline and node.alive():
+        time.sleep(0.2)
+    assert node.alive() and expected in node.output()
+    assert_clean_exit(node, node.interrupt())
 
 
 # ---------------------------------------------------------------------------- --help

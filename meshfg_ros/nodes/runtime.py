@@ -109,7 +109,8 @@ def run_nodes(program: str, node_factories: Sequence[Callable[[], Node]], args=N
         for warning in unmatched_parameter_files(argv, [node.get_fully_qualified_name() for node in nodes]):
             for node in nodes:
                 node.get_logger().warning(warning)
-                node.setup_warnings.append(warning)
+                if hasattr(node, "setup_warnings"):  # the pipeline's nodes: their diagnostics say it too
+                    node.setup_warnings.append(warning)
         executor = SingleThreadedExecutor()
         for node in nodes:
             executor.add_node(node)
