@@ -135,15 +135,8 @@ class SparseCholesky:
 
     def sample(self, draws: np.ndarray) -> np.ndarray:
         """P^T L^-T draws for draws (n, k): with draws ~ N(0, I), samples of N(0, A^-1), since
-        A = P^T L L^T P (CHOLMOD's sys codes 5, L^T x = b, and 8, x = P^T b)."""
-        draws = np.asarray(draws, dtype=np.float64)
-        if draws.shape[0] != self.size:
-            raise ValueError(f"draws have {draws.shape[0]} rows, the matrix {self.size}")
-        cvxopt = _cvxopt()
-        solution = cvxopt.matrix(draws.reshape(self.size, -1))
-        cvxopt.cholmod.solve(self._factor, solution, sys=5)
-        cvxopt.cholmod.solve(self._factor, solution, sys=8)
-        return np.array(solution).reshape(draws.shape)
+        A = P^T L L^T P: `back_solve`, all draws in CHOLMOD's blocks of columns."""
+        return self.back_solve(draws)
 
     def forward_solve(self, rhs: np.ndarray) -> np.ndarray:
         """L^-1 P rhs for rhs (n,) or (n, k), the first half of `solve` (sys codes 7, x = P b, and
