@@ -252,6 +252,20 @@ def test_an_update_solved_again_after_re_weighting_reports_every_run(scene):
     assert result.accepted_steps == sum(runs) and runs[0] >= 1
 
 
+def test_the_update_stages_account_for_its_time(scene):
+    """StepResult.stage_ms: each stage of STAGES measured, none negative, together within the
+    update's own time; the linear solves are at least the LM solves the result lists."""
+    mesh, sequence = scene
+    estimator = SlidingWindowEstimator(mesh, EstimatorConfig())
+    for step in sequence[:4]:
+        result = estimator.update(step.stamp_ns, step.points, step.predicted)
+        assert tuple(result.stage_ms) == estimator_module.STAGES
+        assert all(value >= 0.0 for value in result.stage_ms.values()), result.stage_ms
+        assert sum(result.stage_ms.values()) <= result.solve_time_ms
+        assert result.stage_ms["linear_solves"] >= sum(result.linear_solve_ms)
+        assert result.stage_ms["association"] > 0.0 and result.stage_ms["covariance"] > 0.0
+
+
 def test_the_gate_reuses_the_innovation_tests_association(scene, monkeypatch):
     """Preparing an update queries the closest triangles of the cloud on the prediction once:
     the innovation test's association serves the measurement factor's gate, which keeps the

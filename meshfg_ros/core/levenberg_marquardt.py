@@ -105,6 +105,7 @@ class LevenbergMarquardtResult:
     reason: str
     cost_history: list = field(default_factory=list)
     solve_times_ms: list = field(default_factory=list)
+    decrement_times_ms: list = field(default_factory=list)  # of the convergence tests' preconditioner applications
     not_positive_definite: int = 0
     shortened_steps: int = 0
     extrapolated_steps: int = 0
@@ -368,10 +369,13 @@ class _Run:
         """Newton decrement of the (floor-damped) model below the cost tolerance."""
         if not self.lightly_damped:
             return False
+        start = time.perf_counter()
         try:
             estimate = self.solver.decrement(self._damped(self.damping), self.gradient)
         except (NotPositiveDefiniteError, LinearSolveError):
             return False
+        finally:
+            self.result.decrement_times_ms.append(1e3 * (time.perf_counter() - start))
         return 0.0 <= estimate <= self.tolerance(self.cost)
 
     def relinearize(self) -> str | None:
