@@ -43,6 +43,8 @@ def test_tetramesh_roundtrip_10k_vertices(tmp_path):
         "position_std": rng.random(n_vertices).astype(np.float32),
         "degraded": np.array(True),
         "position_covariance": rng.random(6 * n_vertices).astype(np.float32),
+        "invalid_vertices": np.arange(3, n_vertices, 101, dtype=np.uint32),
+        "removed_elements": np.arange(5, n_tets, 97, dtype=np.uint32),
     }
     received = run_pair(tmp_path, "TetraMesh", sent)
     assert set(received) == set(sent)
