@@ -397,9 +397,15 @@ class PCGSolver(LinearSolver):
     def _precondition(self, system: WindowSystem, mode: str, residual: np.ndarray) -> np.ndarray:
         parts = residual.reshape(len(system.keys), system.block_size)
         if mode == "block":
-            out = np.zeros_like(parts)
+            # The blocks that share a factor (a state borrowing the latest one, usually the
+            # newest two) are solved together, as one solve of several columns.
+            sharing: dict[int, tuple[SparseCholesky, list[int]]] = {}
             for t, key in enumerate(system.keys):
-                out[t] = self._block_factors[key].factor.solve(parts[t])
+                factor = self._block_factors[key].factor
+                sharing.setdefault(id(factor), (factor, []))[1].append(t)
+            out = np.zeros_like(parts)
+            for factor, blocks in sharing.values():
+                out[blocks] = factor.solve(parts[blocks].T).T
             return out.reshape(-1)
         eigenvectors = self._vertex["eigenvectors"]
         rotated = eigenvectors.T @ parts
