@@ -298,7 +298,7 @@ ORGAN_RECORDING_SEED = 5
 def organ_recording() -> Path:
     """The organ-scale recording of the organ_live section: the organ-slab scene
     (meshfg_ros.synthetic: a slab with a stiff inclusion, meshed to ~6,400 vertices, full-resolution
-    clouds of 5,000-8,000 points), synthesized once (a few minutes) into the user's cache, under a
+    clouds of about 7,000 points), synthesized once (a few minutes) into the user's cache, under a
     name that changes with the scene's mesh size."""
     from meshfg_ros.synthetic.mismatch_scenes import ORGAN_SLAB_MESH_SIZE
     from meshfg_ros.synthetic.recordings import synthesize

@@ -30,7 +30,7 @@ Scenes (10 steps at 1 Hz; every random choice from `seed`):
                   Added after the estimator's defaults were settled, as a design they were
                   not tuned on.
   organ-slab      slab-inclusion meshed to organ scale (~6,400 vertices), every pixel
-                  captured (5,000-8,000 points per cloud): the organ-scale live figure of
+                  captured (about 7,000 points per cloud): the organ-scale live figure of
                   `meshfg bench`, not an accuracy scene.
 """
 
@@ -270,7 +270,7 @@ SLAB_CALIBRATION_ERROR = np.array([0.4e-3, -0.3e-3, 0.0])
 SLAB_CAPTURE = CaptureOptions(stride=2, noise_constant=0.35e-3, noise_quadratic=0.01, grazing_exponent=1.0,
                               leak_fraction=0.7, leak_dilation_pixels=4.0)
 # organ-slab: the same scene at organ scale, for `meshfg bench` (~6,400 vertices, every pixel:
-# 5,000-8,000 points per cloud).
+# about 7,000 points per cloud).
 ORGAN_SLAB_MESH_SIZE = SLAB_MESH_SIZE / 1.75
 ORGAN_SLAB_CAPTURE = replace(SLAB_CAPTURE, stride=1)
 
