@@ -13,6 +13,18 @@ def healthy_steps(health: EstimatorHealth, count: int = HEALTH_WINDOW) -> Estima
     return EstimatorCounters(clouds_received=count, steps=count)
 
 
+def assess_when_most_steps_are(**flag) -> tuple:
+    """(level, message) once one step more than half of the window carries `flag`; half of them
+    is not most, and still OK."""
+    health = EstimatorHealth(stalled_after_s=2.0)
+    counters = healthy_steps(health, HEALTH_WINDOW // 2)
+    for _ in range(HEALTH_WINDOW // 2):
+        health.record(degraded=False, converged=True, points_used=900, points_set_aside=100, **flag)
+    assert health.assess(counters, False, 0.0) == (OK, "estimating")
+    health.record(degraded=False, converged=True, points_used=900, points_set_aside=100, **flag)
+    return health.assess(counters, False, 0.0)
+
+
 def test_healthy_steps_are_ok_and_waiting_for_the_mesh_is_a_warning_then_an_error():
     health = EstimatorHealth(stalled_after_s=2.0)
     assert health.assess(EstimatorCounters(), waiting_for_mesh=True, unanswered_s=0.0) == (
@@ -53,13 +65,7 @@ def test_degraded_gated_unconverged_and_lagging_steps_are_warnings():
     assert health.assess(counters, False, 0.0) == (WARN, f"{HEALTH_WINDOW} of the last {HEALTH_WINDOW} updates "
                                                          "did not converge")
 
-    health = EstimatorHealth(stalled_after_s=2.0)
-    healthy_steps(health, HEALTH_WINDOW // 2)
-    for _ in range(HEALTH_WINDOW // 2):  # half is not most
-        health.record(degraded=False, converged=True, points_used=900, points_set_aside=100, noise_off_nominal=True)
-    assert health.assess(counters, False, 0.0) == (OK, "estimating")
-    health.record(degraded=False, converged=True, points_used=900, points_set_aside=100, noise_off_nominal=True)
-    level, message = health.assess(counters, False, 0.0)
+    level, message = assess_when_most_steps_are(noise_off_nominal=True)
     assert level == WARN and message.startswith(f"in {HEALTH_WINDOW // 2 + 1} of the last {HEALTH_WINDOW} updates the "
                                                 "cloud spread more than 10x above or below measurement_sigma")
     assert message.endswith("check it and its units")
@@ -94,13 +100,7 @@ def test_clouds_rejected_before_any_estimate_keep_a_warning_with_the_last_reason
 
 
 def test_clouds_seen_from_implausible_angles_warn_to_check_camera_frame():
-    health = EstimatorHealth(stalled_after_s=2.0)
-    counters = healthy_steps(health, HEALTH_WINDOW // 2)
-    for _ in range(HEALTH_WINDOW // 2):  # half is not most
-        health.record(degraded=False, converged=True, points_used=900, points_set_aside=100, view_implausible=True)
-    assert health.assess(counters, False, 0.0) == (OK, "estimating")
-    health.record(degraded=False, converged=True, points_used=900, points_set_aside=100, view_implausible=True)
-    level, message = health.assess(counters, False, 0.0)
+    level, message = assess_when_most_steps_are(view_implausible=True)
     assert level == WARN and message.startswith(f"in {HEALTH_WINDOW // 2 + 1} of the last {HEALTH_WINDOW} clouds more "
                                                 "than 5 % of the points face away from camera_frame's origin")
     assert "check camera_frame and its transform on /tf (or camera_pose)" in message
