@@ -28,12 +28,17 @@ MIN_HELD_VERTICES = 3
 _TET_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]], dtype=np.int64)
 
 
+def _remaining_slots(mesh: TetMesh) -> np.ndarray:
+    """Slots (of mesh.all_tetrahedra) of the remaining elements, in the order of mesh.tetrahedra."""
+    return np.setdiff1d(np.arange(mesh.all_tetrahedra.shape[0]), mesh.removed_elements)
+
+
 def elements_in_box(mesh: TetMesh, centre, half_extents, rotation=np.eye(3)) -> np.ndarray:
     """Slots (of mesh.all_tetrahedra) of the remaining elements that reach into the box of
     `half_extents` (3,) about `centre` (3,), its axes the columns of `rotation` (3, 3): their
     corners' extent along each box axis overlaps the box's, at the mesh's vertices."""
-    slots = np.setdiff1d(np.arange(mesh.all_tetrahedra.shape[0]), mesh.removed_elements)
-    local = (mesh.vertices[mesh.all_tetrahedra[slots]] - np.asarray(centre, dtype=np.float64)) @ np.asarray(
+    slots = _remaining_slots(mesh)
+    local = (mesh.vertices[mesh.tetrahedra] - np.asarray(centre, dtype=np.float64)) @ np.asarray(
         rotation, dtype=np.float64)  # (M, 4, 3) corners in the box's frame
     half = np.asarray(half_extents, dtype=np.float64)
     overlaps = np.all((local.min(axis=1) <= half) & (local.max(axis=1) >= -half), axis=1)
@@ -43,8 +48,8 @@ def elements_in_box(mesh: TetMesh, centre, half_extents, rotation=np.eye(3)) -> 
 def detached_elements(mesh: TetMesh) -> np.ndarray:
     """Slots of the remaining elements in face-connected pieces with fewer than
     MIN_HELD_VERTICES boundary vertices (module doc)."""
-    slots = np.setdiff1d(np.arange(mesh.all_tetrahedra.shape[0]), mesh.removed_elements)
-    tetrahedra = mesh.all_tetrahedra[slots]
+    slots = _remaining_slots(mesh)
+    tetrahedra = mesh.tetrahedra
     faces = np.sort(tetrahedra[:, _TET_FACES].reshape(-1, 3), axis=1)
     _, face_ids = np.unique(faces, axis=0, return_inverse=True)
     elements = np.repeat(np.arange(len(slots)), 4)
