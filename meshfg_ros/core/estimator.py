@@ -721,12 +721,9 @@ class SlidingWindowEstimator:
         variance along each point's normal (core/covariance.py); kept when too few points tell."""
         if "simulation" not in self.enabled:
             return
-        triangles = self.mesh.surface_triangles
         found = association.triangle >= 0
-        corners = triangles[association.triangle[found]]
-        normals = np.cross(predicted[corners[:, 1]] - predicted[corners[:, 0]],
-                           predicted[corners[:, 2]] - predicted[corners[:, 0]])
-        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+        corners = self.mesh.surface_triangles[association.triangle[found]]
+        normals = self.mesh.triangle_normals(predicted)[association.triangle[found]]
         at_points = np.einsum("pk,pkij->pij", association.barycentric[found], self.unit_prior_covariance[corners])
         variance = self.simulation_sigma**2 * np.einsum("pi,pij,pj->p", normals, at_points, normals)
         scale = prior_error_scale(association.distance[found], variance, self.noise.sigma, GATE_SIGMAS)
