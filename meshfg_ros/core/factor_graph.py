@@ -164,9 +164,7 @@ class FactorGraph:
         """The newest state's information over its free dofs (block_pattern): its single-state
         factors at their last linearisation plus its temporal terms, conditioned on the other
         states of the window."""
-        key = self.keys[-1]
-        cached = self._cache.get(key) or self._relinearize([key], self.states)[key]
-        temporal = sum(factor.identity_terms().get((key, key), 0.0) for factor in self._identity_factors())
+        cached, temporal = self._newest_terms()
         block = cached.block.copy()
         block.data[self._diagonal_index] += temporal
         return block
@@ -174,13 +172,15 @@ class FactorGraph:
     def newest_vertex_information(self) -> np.ndarray:
         """3x3 information blocks (free vertices, 3, 3) of the newest state: its single-state
         factors at their last linearisation plus its temporal terms."""
+        cached, temporal = self._newest_terms()
+        return cached.data[self._vertex_block_slots] + temporal * np.eye(3)
+
+    def _newest_terms(self) -> tuple:
+        """(the newest state's single-state factors at their last linearisation, the weight of
+        its temporal terms on its diagonal)."""
         key = self.keys[-1]
         cached = self._cache.get(key) or self._relinearize([key], self.states)[key]
-        blocks = cached.data[self._vertex_block_slots].copy()
-        temporal = 0.0
-        for factor in self._identity_factors():
-            temporal += factor.identity_terms().get((key, key), 0.0)
-        return blocks + temporal * np.eye(3)
+        return cached, sum(factor.identity_terms().get((key, key), 0.0) for factor in self._identity_factors())
 
     # ------------------------------------------------------------------------ states
     def add_state(self, key, initial) -> None:
