@@ -609,8 +609,8 @@ class EstimationScheduler:
         tool_pose = answer.tool_pose if answer is not None and answer.tool_pose is not None else self._tool_pose(stamp)
         predicted = answer.positions if answer is not None else None
         removed = answer.removed_elements if answer is not None else None
-        queued = replace(queued, stiffness=answer.stiffness if answer is not None else None)
-        return replace(queued, predicted=predicted, tool_pose=tool_pose, removed_elements=removed)
+        stiffness = answer.stiffness if answer is not None else None
+        return replace(queued, predicted=predicted, tool_pose=tool_pose, removed_elements=removed, stiffness=stiffness)
 
     def _tool_pose(self, stamp_ns: int) -> np.ndarray | None:
         try:
