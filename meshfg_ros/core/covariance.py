@@ -119,7 +119,7 @@ class MarginalCovariance:
             else:
                 self._factor.refactor(matrix.data)
             factor = self._factor
-        draws = factor.sample(np.random.default_rng(seed).standard_normal((size, self.samples)))
+        draws = factor.back_solve(np.random.default_rng(seed).standard_normal((size, self.samples)))
         if factor is not self._factor:
             # A factor of M = c H draws N(0, H^-1 / c), and E[x^T H x] = size / c: rescaled by it.
             draws *= np.sqrt(size * self.samples / np.einsum("is,is->", draws, matrix @ draws))

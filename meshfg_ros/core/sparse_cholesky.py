@@ -122,14 +122,8 @@ class SparseCholesky:
             raise NotPositiveDefiniteError(f"Cholesky failed: pivot {error} not positive") from None
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
-        """A^-1 rhs for rhs (n,) or (n, k) (CHOLMOD's sys code 0; several columns in its blocks of
-        columns: two at organ scale in 0.82 of the time of two single solves, three in 0.65)."""
+        """A^-1 rhs for rhs (n,) or (n, k) (CHOLMOD's sys code 0)."""
         return self._substitutions(rhs, (0,))
-
-    def sample(self, draws: np.ndarray) -> np.ndarray:
-        """P^T L^-T draws for draws (n, k): with draws ~ N(0, I), samples of N(0, A^-1), since
-        A = P^T L L^T P: `back_solve`, all draws in CHOLMOD's blocks of columns."""
-        return self.back_solve(draws)
 
     def forward_solve(self, rhs: np.ndarray) -> np.ndarray:
         """L^-1 P rhs for rhs (n,) or (n, k), the first half of `solve` (sys codes 7, x = P b, and
@@ -138,13 +132,15 @@ class SparseCholesky:
         return self._substitutions(rhs, (7, 4))
 
     def back_solve(self, rhs: np.ndarray) -> np.ndarray:
-        """P^T L^-T rhs for rhs (n,) or (n, k), the second half of `solve`."""
+        """P^T L^-T rhs for rhs (n,) or (n, k), the second half of `solve`: with rhs ~ N(0, I),
+        samples of N(0, A^-1), since A = P^T L L^T P."""
         return self._substitutions(rhs, (5, 8))
 
     def _substitutions(self, rhs: np.ndarray, systems: tuple[int, ...]) -> np.ndarray:
         """CHOLMOD's `systems` applied in turn to rhs (n,) or (n, k). Several columns go through
         cvxopt's sparse solve, which hands CHOLMOD blocks of columns, where its dense one solves a
-        column at a time: three columns at organ scale (31k dofs) in 0.6 of the time."""
+        column at a time: at organ scale (31k dofs) two columns in 0.82 of the time of two single
+        solves, three in 0.65."""
         rhs = np.asarray(rhs, dtype=np.float64)
         if rhs.shape[0] != self.size:
             raise ValueError(f"right-hand side has {rhs.shape[0]} rows, the matrix {self.size}")
