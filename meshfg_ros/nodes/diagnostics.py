@@ -26,14 +26,20 @@ from meshfg_ros.io.messages import RclpyMessageFactory, header_msg
 _RCLPY = RclpyMessageFactory()
 
 
-class _Counters:
+class Counters:
+    """Base of a node's counters (a dataclass of them): the values of its diagnostics."""
+
     def count(self, counter: str) -> None:
         """One more of `counter` (a field name)."""
         setattr(self, counter, getattr(self, counter) + 1)
 
+    def values(self) -> dict[str, str]:
+        """Counter name -> text value."""
+        return {name: _text(value) for name, value in asdict(self).items()}
+
 
 @dataclass
-class EstimatorCounters(_Counters):
+class EstimatorCounters(Counters):
     """What the estimator node has seen since it started (the values of its diagnostics)."""
 
     clouds_received: int = 0
@@ -109,13 +115,13 @@ class EstimatorCounters(_Counters):
 
     def values(self) -> dict[str, str]:
         """Counter name -> text value (the rejected total included)."""
-        values = {name: _text(value) for name, value in asdict(self).items()}
+        values = super().values()
         values["clouds_rejected"] = str(self.clouds_rejected)
         return values
 
 
 @dataclass
-class SimulatorCounters(_Counters):
+class SimulatorCounters(Counters):
     """What the simulation node has seen since it started (the values of its diagnostics)."""
 
     tool_poses_received: int = 0
@@ -154,7 +160,7 @@ class SimulatorCounters(_Counters):
 
     def values(self) -> dict[str, str]:
         """Counter name -> text value (the rejected total included)."""
-        values = {name: _text(value) for name, value in asdict(self).items()}
+        values = super().values()
         values["tool_poses_rejected"] = str(self.tool_poses_rejected)
         return values
 
@@ -174,7 +180,7 @@ def _text(value) -> str:
 
 
 def diagnostic_array(
-    name: str, level: bytes, message: str, counters: EstimatorCounters | SimulatorCounters, stamp_ns: int
+    name: str, level: bytes, message: str, counters: Counters, stamp_ns: int
 ) -> DiagnosticArray:
     """DiagnosticArray with one status `name` (level: DiagnosticStatus.OK / WARN / ERROR)."""
     status = DiagnosticStatus(

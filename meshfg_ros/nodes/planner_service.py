@@ -16,7 +16,7 @@ logged, and counted in its own status on /diagnostics.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
@@ -30,7 +30,7 @@ from meshfg_ros.core.frames import FrameLookupError, transform_points
 from meshfg_ros.core.surface_query import SurfaceQuery
 from meshfg_ros.core.world_frame import WorldFrameInputs
 from meshfg_ros.io.messages import MeshState, MessageValidationError, header_msg, mesh_state_from_msg, stamp_ns_from_msg
-from meshfg_ros.nodes.diagnostics import diagnostic_array
+from meshfg_ros.nodes.diagnostics import Counters, diagnostic_array
 from meshfg_ros.nodes.ros_conversions import LATCHED_QOS, RCLPY_FACTORY, STREAM_QOS
 
 __all__ = ["SURFACE_QUERY_SERVICE", "PlannerService", "points_from_flat"]
@@ -57,7 +57,7 @@ class QueryRefused(Exception):
 
 
 @dataclass
-class SurfaceQueryCounters:
+class SurfaceQueryCounters(Counters):
     """What the service has done since it started (the values of its diagnostics)."""
 
     queries_answered: int = 0
@@ -65,9 +65,6 @@ class SurfaceQueryCounters:
     queries_refused_frame: int = 0
     queries_refused_points: int = 0
     estimates_unreadable: int = 0  # estimated_mesh messages that are malformed: the previous one is kept
-
-    def values(self) -> dict[str, str]:
-        return {key: str(value) for key, value in asdict(self).items()}
 
 
 class PlannerService:
@@ -103,7 +100,7 @@ class PlannerService:
             self._answer(request, response)
             self.counters.queries_answered += 1
         except QueryRefused as refusal:
-            setattr(self.counters, refusal.counter, getattr(self.counters, refusal.counter) + 1)
+            self.counters.count(refusal.counter)
             self._refused_since_report += 1
             self._last_refusal = str(refusal)
             self._node.get_logger().warning(f"surface_query refused: {refusal}", throttle_duration_sec=1.0)

@@ -16,7 +16,7 @@ still out replaces it (the older answer would be stale).
 from __future__ import annotations
 
 import sys
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
@@ -25,7 +25,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 from meshfg_ros.io.messages import stamp_ns_from_msg
-from meshfg_ros.nodes.diagnostics import diagnostic_array
+from meshfg_ros.nodes.diagnostics import Counters, diagnostic_array
 from meshfg_ros.nodes.planner_service import SURFACE_QUERY_SERVICE
 from meshfg_ros.nodes.ros_conversions import STREAM_QOS
 from meshfg_ros.nodes.ros_parameters import declare_parameters
@@ -36,7 +36,7 @@ _REPORT_PERIOD_S = 1.0
 
 
 @dataclass
-class ClearanceCounters:
+class ClearanceCounters(Counters):
     """What the node has done since it started (the values of its diagnostics)."""
 
     desired_poses_received: int = 0
@@ -44,9 +44,6 @@ class ClearanceCounters:
     poses_moved_out: int = 0        # published at the clearance instead of where desired
     poses_held_back: int = 0        # not checked (refused query, service down): nothing published
     poses_superseded: int = 0       # a newer desired pose came before the answer
-
-    def values(self) -> dict[str, str]:
-        return {key: str(value) for key, value in asdict(self).items()}
 
 
 class ToolClearanceNode(Node):
