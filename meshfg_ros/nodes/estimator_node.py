@@ -185,7 +185,7 @@ class EstimatorNode(Node):
             self.outputs.note([Rejection("predictions_rejected", f"predicted_mesh at {stamp_ns} ns is malformed or "
                                          "not finite: the step runs without it")])
         # The simulator's topology: after a cut, the element slots it removed (the estimator follows them).
-        removed = np.asarray(getattr(msg, "removed_elements", ()), dtype=np.int64)
+        removed = np.asarray(msg.removed_elements, dtype=np.int64)
         self._take_answer(Prediction(stamp_ns, positions, "" if positions is not None else "malformed or not finite",
                                      removed_elements=removed if removed.size else None))
 

@@ -148,10 +148,11 @@ class EstimatorOutputs:
         diagnostics repeat it every second, the log says it once (a camera or a measurement_sigma
         that the clouds contradict is otherwise only in /diagnostics)."""
         kind = re.sub(r"\d+(\.\d+)?", "N", message) if level != OK else ""
-        if kind and kind != self._logged_health and level == ERROR:  # rclpy: one severity per call site
-            self._node.get_logger().error(f"diagnostics: {message}")
-        elif kind and kind != self._logged_health:
-            self._node.get_logger().warning(f"diagnostics: {message}")
+        if kind and kind != self._logged_health:
+            if level == ERROR:  # rclpy: one severity per call site
+                self._node.get_logger().error(f"diagnostics: {message}")
+            else:
+                self._node.get_logger().warning(f"diagnostics: {message}")
         self._logged_health = kind
 
     def report(self) -> None:
