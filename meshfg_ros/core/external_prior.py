@@ -124,6 +124,8 @@ class StiffnessProjection:
         rows = np.repeat(np.arange(size, dtype=np.int64), np.diff(template.indptr))
         self._keys = rows * size + template.indices.astype(np.int64)
         self._diagonal_slots = np.searchsorted(self._keys, np.arange(size, dtype=np.int64) * (size + 1))
+        # Each entry's mirror (col, row): the template's pattern is symmetric.
+        self._mirror_slots = np.searchsorted(self._keys, template.indices.astype(np.int64) * size + rows)
         self._is_free = np.zeros(size, dtype=bool)
         self._is_free[free_dofs] = True
         block_index = np.full(size, -1, dtype=np.int64)
@@ -143,9 +145,8 @@ class StiffnessProjection:
     def information(self, stiffness: ExternalStiffness) -> StiffnessInformation:
         """See ExternalStiffness.information."""
         size, rows, cols, values = self.size, stiffness.rows, stiffness.cols, stiffness.values
-        diagonal = np.zeros(size)
         on_diagonal = rows == cols
-        np.add.at(diagonal, rows[on_diagonal], values[on_diagonal])
+        diagonal = np.bincount(rows[on_diagonal], weights=values[on_diagonal], minlength=size)
         held_dofs = diagonal >= FIXED_DIAGONAL
         notes = []
         # Symmetrise: each entry and its mirror, halved, on the template; the held dofs' rows and
@@ -157,7 +158,7 @@ class StiffnessProjection:
             dropped = float(np.abs(values[outside]).sum() / max(np.abs(values).sum(), 1e-300))
             notes.append(f"{dropped:.1%} of the stiffness (by magnitude) couples vertices sharing no element: dropped")
         upper = np.bincount(slots[kept], weights=values[kept], minlength=self._keys.size)
-        data = 0.5 * (upper + _transposed(upper, self._indptr, self._indices, size))
+        data = 0.5 * (upper + upper[self._mirror_slots])
         matrix = scipy.sparse.csr_matrix((data, self._indices.copy(), self._indptr.copy()), shape=(size, size))
         free_diagonal = data[self._diagonal_slots][self._is_free & ~held_dofs]
         if free_diagonal.size == 0 or not np.mean(free_diagonal) > 0.0:
@@ -208,14 +209,6 @@ class StiffnessProjection:
                 continue
             return relative * mean_diagonal
         return None
-
-
-def _transposed(data: np.ndarray, indptr: np.ndarray, indices: np.ndarray, size: int) -> np.ndarray:
-    """The values of the transpose of a csr matrix (data, indices, indptr) with a symmetric,
-    sorted pattern, on that same pattern."""
-    transposed = scipy.sparse.csr_matrix((data, indices, indptr), shape=(size, size)).T.tocsr()
-    transposed.sort_indices()
-    return transposed.data
 
 
 def bridge_state(answer: BridgeAnswer, mesh: TetMesh, to_world: np.ndarray
