@@ -20,7 +20,7 @@ import numpy as np
 from meshfg_ros.core.estimator import EstimatorConfig
 from meshfg_ros.core.external_prior import FIXED_DIAGONAL, BridgeAnswer, bridge_state
 from meshfg_ros.core.fem import ElasticModel
-from meshfg_ros.core.mesh import signed_volumes
+from meshfg_ros.core.mesh import inverted_elements
 from meshfg_ros.core.scheduler import EstimationScheduler, Prediction
 from meshfg_ros.core.simulator import ElasticSimulator
 from meshfg_ros.evaluation.metrics import vertex_rmse
@@ -67,11 +67,12 @@ def bridge_accuracy(scene, with_stiffness: bool = True) -> dict:
     viewpoint = None if scene.camera_pose is None else np.asarray(scene.camera_pose[:3], dtype=np.float64)
     state, previous_ns = mesh.vertices.copy(), 0
     fg, sim, topology_mismatches, inverted = [], [], 0, 0
+    model = None
     for step in scene.steps:
-        if step.removed_elements.size:
-            simulator.remove_elements(step.removed_elements)
-        model = ElasticModel(mesh.vertices, simulator.rest_mesh.tetrahedra, scene.simulator_config.youngs_modulus,
-                             scene.simulator_config.poisson_ratio) if with_stiffness else None
+        cut = step.removed_elements.size and simulator.remove_elements(step.removed_elements)
+        if with_stiffness and (model is None or cut):  # assembled again only when a cut changes the elements
+            model = ElasticModel(mesh.vertices, simulator.rest_mesh.tetrahedra, scene.simulator_config.youngs_modulus,
+                                 scene.simulator_config.poisson_ratio)
         state = simulator.predict(state, step.tool_pose, (step.stamp_ns - previous_ns) * 1e-9 or 1.0)
         previous_ns = step.stamp_ns
         positions, stiffness, removed = bridge_state(_answer(mesh, simulator, state, model, with_stiffness), mesh,
@@ -82,11 +83,11 @@ def bridge_accuracy(scene, with_stiffness: bool = True) -> dict:
         outcome = scheduler.run(scheduler.next_step(0.0, flush=True))
         if outcome.result is None:
             raise RuntimeError(f"step at {step.stamp_ns} ns failed: {outcome.error}")
-        valid = np.setdiff1d(np.arange(mesh.vertex_count), simulator.rest_mesh.invalid_vertices)
+        valid = simulator.rest_mesh.valid_vertices
         estimated_on = scheduler.estimator.mesh
         topology_mismatches += int(not np.array_equal(estimated_on.removed_elements,
                                                       simulator.rest_mesh.removed_elements))
-        inverted += int(np.count_nonzero(signed_volumes(outcome.result.positions, estimated_on.tetrahedra) <= 0.0))
+        inverted += int(inverted_elements(outcome.result.positions, estimated_on.tetrahedra).size)
         fg.append(vertex_rmse(outcome.result.positions, step.truth, valid))
         sim.append(vertex_rmse(state, step.truth, valid))
     return {"scene": scene.name, "with_stiffness": with_stiffness, "fg_rmse": fg, "sim_rmse": sim,
