@@ -127,9 +127,9 @@ class MarginalCovariance:
         return np.einsum("vis,vjs->vij", vertices, vertices) / self.samples
 
 
-def _dense_inverse(matrix) -> np.ndarray:
+def _dense_inverse(matrix: scipy.sparse.csr_matrix) -> np.ndarray:
     try:
-        factor = scipy.linalg.cho_factor(scipy.sparse.csr_matrix(matrix).toarray(), lower=True)
+        factor = scipy.linalg.cho_factor(matrix.toarray(), lower=True)
     except np.linalg.LinAlgError as error:
         raise NotPositiveDefiniteError(f"Cholesky failed: {error}") from None
     return scipy.linalg.cho_solve(factor, np.eye(matrix.shape[0]))

@@ -722,8 +722,9 @@ class SlidingWindowEstimator:
         if "simulation" not in self.enabled:
             return
         found = association.triangle >= 0
-        corners = self.mesh.surface_triangles[association.triangle[found]]
-        normals = self.mesh.triangle_normals(predicted)[association.triangle[found]]
+        triangle = association.triangle[found]
+        corners = self.mesh.surface_triangles[triangle]
+        normals = self.mesh.triangle_normals(predicted)[triangle]
         at_points = np.einsum("pk,pkij->pij", association.barycentric[found], self.unit_prior_covariance[corners])
         variance = self.simulation_sigma**2 * np.einsum("pi,pij,pj->p", normals, at_points, normals)
         scale = prior_error_scale(association.distance[found], variance, self.noise.sigma, GATE_SIGMAS)
