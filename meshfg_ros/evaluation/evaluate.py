@@ -146,7 +146,12 @@ def mesh_states(reader: RecordingReader, topic: str) -> list[MeshState]:
 def mesh_series(reader: RecordingReader, topic: str) -> tuple[MeshState, dict[int, np.ndarray]]:
     """The first mesh of a topic and stamp -> positions of every mesh on it."""
     states = mesh_states(reader, topic)
-    return states[0], {state.stamp_ns: state.positions for state in states}
+    return states[0], _positions(states)
+
+
+def _positions(states: list[MeshState]) -> dict[int, np.ndarray]:
+    """stamp -> positions of the states."""
+    return {state.stamp_ns: state.positions for state in states}
 
 
 def _cut_states(states: list[MeshState]) -> dict[int, MeshState]:
@@ -158,20 +163,20 @@ def load_inputs(replay_path: str | Path, truth_path: str | Path) -> EvaluationIn
     """Read the replay output and the ground truth; check that they belong together."""
     with RecordingReader(truth_path) as truth_reader:
         truth_states = mesh_states(truth_reader, GROUND_TRUTH_TOPIC)
-        truth_mesh, truth = truth_states[0], {state.stamp_ns: state.positions for state in truth_states}
+        truth_mesh, truth = truth_states[0], _positions(truth_states)
         metadata = read_metadata(truth_reader)
         camera_center = None
         if CAMERA_POSE_TOPIC in truth_reader.topics:
             camera_center = next(iter(truth_reader.records(CAMERA_POSE_TOPIC, PoseRecord))).pose[:3].copy()
     with RecordingReader(replay_path) as replay_reader:
         estimated_states = mesh_states(replay_reader, ESTIMATED_MESH_TOPIC)
-        estimate_mesh, estimated = estimated_states[0], {state.stamp_ns: state.positions for state in estimated_states}
+        estimate_mesh, estimated = estimated_states[0], _positions(estimated_states)
         position_std = {state.stamp_ns: state.position_std for state in estimated_states if state.position_std.size}
         estimates = {"factor_graph": estimated}
         estimate_meshes = {"factor_graph": _cut_states(estimated_states)}
         if SIMULATION_ONLY_MESH_TOPIC in replay_reader.topics:
             simulated_states = mesh_states(replay_reader, SIMULATION_ONLY_MESH_TOPIC)
-            estimates["simulation"] = {state.stamp_ns: state.positions for state in simulated_states}
+            estimates["simulation"] = _positions(simulated_states)
             estimate_meshes["simulation"] = _cut_states(simulated_states)
         predictions = {}
         if PREDICTED_MESH_TOPIC in replay_reader.topics:
