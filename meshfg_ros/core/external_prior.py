@@ -131,11 +131,10 @@ class StiffnessProjection:
         block_index = np.full(size, -1, dtype=np.int64)
         block_index[free_dofs] = np.arange(len(free_dofs))
         in_block = self._is_free[rows] & self._is_free[template.indices]
-        self._block_entries = np.flatnonzero(in_block)  # template data positions, in csr order of the block
         block_rows, block_cols = block_index[rows[in_block]], block_index[template.indices[in_block]]
         block_size = len(free_dofs)
         order = np.lexsort((block_cols, block_rows))
-        self._block_entries = self._block_entries[order]
+        self._block_entries = np.flatnonzero(in_block)[order]  # template data positions, in csr order of the block
         block_indptr = np.searchsorted(block_rows[order], np.arange(block_size + 1)).astype(np.int32)
         self._block_pattern = (block_cols[order].astype(np.int32), block_indptr)
         self._block_diagonal = np.flatnonzero(block_rows[order] == block_cols[order])
