@@ -351,8 +351,7 @@ class TetMesh:
     def with_fixed(self, fixed_vertices) -> TetMesh:
         """Same geometry and topology with a new set of fixed vertex indices (the invalid
         vertices of a cut mesh stay held)."""
-        fixed = _as_fixed(np.concatenate([np.asarray(fixed_vertices, dtype=np.int64).reshape(-1),
-                                          self.invalid_vertices]), self.vertex_count)
+        fixed = _read_only(np.union1d(_as_fixed(fixed_vertices, self.vertex_count), self.invalid_vertices))
         return TetMesh._from_parts(self._vertices, fixed, self._topology, self.name, 0)
 
     def without_elements(self, removed_elements) -> TetMesh:
