@@ -331,7 +331,7 @@ def _bench_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--bag", type=Path, help="recording for the live section (default: bundled cao-push)")
     parser.add_argument("--organ-bag", type=Path,
                         help="organ-scale recording for organ_live (default: the organ-slab scene, synthesized "
-                             "once into build/bench/)")
+                             "once into the user's cache, ~/.cache/meshfg/)")
     parser.add_argument("--runs", type=_positive_integer, default=1,
                         help="measure this many times in a row and say in how many runs each target held "
                              "(default 1)")
@@ -343,13 +343,13 @@ def run_bench(args: argparse.Namespace) -> int:
     _refuse_existing(args.json)
     _refuse_existing(args.plot)
     bag = args.bag if args.bag is not None else bundled_recording(DEMO_SCENARIO)
+    organ_bag = None
+    if "organ_live" in args.sections:
+        organ_bag = args.organ_bag if args.organ_bag is not None else bench.organ_recording()
     results = []
     for number in range(1, args.runs + 1):
         if args.runs > 1:
             print(f"bench: run {number} of {args.runs}", file=sys.stderr)
-        organ_bag = None
-        if "organ_live" in args.sections:
-            organ_bag = args.organ_bag if args.organ_bag is not None else bench.organ_recording()
         results.append(bench.run_bench(tuple(args.sections), bag, organ_bag=organ_bag))
         heading = f"Run {number} of {args.runs}:\n" if args.runs > 1 else ""
         print(("\n" if number > 1 else "") + heading + bench.format_report(results[-1]), flush=True)
