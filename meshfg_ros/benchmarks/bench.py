@@ -176,7 +176,7 @@ def bench_estimator(scale: dict, progress: bool = True) -> dict:
             "stage_ms": {stage: float(np.median(result["stage_ms"][stage])) for stage in STAGES}}
 
 
-def bench_stages(scale: dict, progress: bool = True) -> dict:
+def bench_stages(scale: dict) -> dict:
     """What one cloud costs at `scale`, stage by stage (median ms): the simulator's prediction and
     the model learning on the estimator's mesh, then the estimator's update stages (bench_estimator)
     and the estimate's messaging, against the cloud period (1 s: the paper's camera rate)."""
@@ -318,7 +318,6 @@ def bench_organ_live(bag: Path, timeout_s: float = 900.0) -> dict:
     """The live pipeline at organ scale (bench_live on an organ-scale recording), idle and with one
     busy process per core."""
     from meshfg_ros.benchmarks.latency import measure_live_latency
-
     from meshfg_ros.parameters import EstimatorNodeConfig, SharedNodeConfig, SimulationNodeConfig
 
     # The nodes' own waits and newest-first scheduling, as a robot runs them (the live section
@@ -353,7 +352,7 @@ def run_bench(sections=("core", "estimator", "baselines", "live"), bag: Path | N
         out["planner"] = {"machine": on, **bench_planner()}
     if "estimator" in sections:
         for key, scale in (("paper_scale", PAPER_SCALE), ("organ_scale", ORGAN_SCALE)):
-            out[key] = {"machine": on, **bench_estimator(scale, progress), "stages": bench_stages(scale, progress)}
+            out[key] = {"machine": on, **bench_estimator(scale, progress), "stages": bench_stages(scale)}
     if "loaded" in sections:
         out["loaded"] = {"machine": on, **bench_loaded(progress)}
     if "baselines" in sections:
