@@ -345,8 +345,7 @@ def prepare_mesh(path: str | Path, fixed: FixedSelection = FixedSelection(), sca
     return mesh
 
 
-def _check_regions(placed: TetMesh, selection: FixedSelection, scale: float = 1.0,
-                  pose: Sequence[float] = (0, 0, 0, 0, 0, 0, 1)) -> None:
+def _check_regions(placed: TetMesh, selection: FixedSelection, scale: float, pose: Sequence[float]) -> None:
     """PatientMeshError for a fixed plane or box that selects no vertex or every vertex of the
     placed mesh, saying whether it would select some read in the mesh file's units (planes and
     boxes are in the world frame, metres, after mesh_scale and mesh_pose; a user copying them from
