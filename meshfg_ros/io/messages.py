@@ -166,6 +166,7 @@ class RclpyMessageFactory:
     _TYPECODES = {
         np.dtype(np.float64): "d",
         np.dtype(np.float32): "f",
+        np.dtype(np.int32): "i",
         np.dtype(np.uint32): "I",
         np.dtype(np.uint8): "B",
     }

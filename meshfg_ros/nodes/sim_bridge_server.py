@@ -20,7 +20,6 @@ from any function of the request (the tests serve scripted states with it).
 
 from __future__ import annotations
 
-import array
 import sys
 from collections.abc import Callable
 
@@ -45,13 +44,6 @@ __all__ = ["FIXED_DOF_STIFFNESS", "SERVICE", "SimBridgeServer", "SimBridgeServic
 SERVICE = "/sim/factor_graph_state"
 FIXED_DOF_STIFFNESS = 1e9  # N/m on the diagonal of a held dof, as the authors' bridge writes it
 _MAX_STEP_S = 0.1  # a pause in the tool poses is not simulated as one long step
-_TYPECODES = {np.dtype(np.float64): "d", np.dtype(np.float32): "f", np.dtype(np.int32): "i"}
-
-
-def _sequence(values, dtype) -> array.array:
-    """A primitive sequence field's value (array.array) of `values` as `dtype`."""
-    dtype = np.dtype(dtype)
-    return array.array(_TYPECODES[dtype], np.ascontiguousarray(values, dtype=dtype).tobytes())
 
 
 def factor_graph_state_response(positions: np.ndarray, mesh: TetMesh, frame_id: str, stamp_ns: int,
@@ -66,13 +58,13 @@ def factor_graph_state_response(positions: np.ndarray, mesh: TetMesh, frame_id: 
     response.fg_state.header = state.header = state.vertices.header = header
     state.faces.header = state.elements.header = header
     state.vertices.size = mesh.vertex_count - len(mesh.invalid_vertices)
-    state.vertices.invalid_indices = _sequence(mesh.invalid_vertices, np.int32)
-    state.vertices.data = _sequence(positions, np.float64)
+    state.vertices.invalid_indices = RCLPY_FACTORY.sequence(mesh.invalid_vertices, np.int32)
+    state.vertices.data = RCLPY_FACTORY.sequence(positions, np.float64)
     state.faces.size = len(mesh.surface_triangles)
-    state.faces.data = _sequence(mesh.surface_triangles, np.int32)
+    state.faces.data = RCLPY_FACTORY.sequence(mesh.surface_triangles, np.int32)
     state.elements.size = len(mesh.tetrahedra)
-    state.elements.data = _sequence(mesh.all_tetrahedra, np.int32)
-    state.elements.invalid_indices = _sequence(mesh.removed_elements, np.int32)
+    state.elements.data = RCLPY_FACTORY.sequence(mesh.all_tetrahedra, np.int32)
+    state.elements.invalid_indices = RCLPY_FACTORY.sequence(mesh.removed_elements, np.int32)
     if stiffness is not None:
         matrix = scipy.sparse.coo_matrix(stiffness)
         held = np.zeros(matrix.shape[0], dtype=bool)
@@ -86,9 +78,9 @@ def factor_graph_state_response(positions: np.ndarray, mesh: TetMesh, frame_id: 
         out = response.fg_state.sim_stiffness_mat
         out.header = header
         out.rows, out.cols = matrix.shape
-        out.row_indices = _sequence(rows, np.int32)
-        out.col_indices = _sequence(cols, np.int32)
-        out.values = _sequence(values, np.float32)
+        out.row_indices = RCLPY_FACTORY.sequence(rows, np.int32)
+        out.col_indices = RCLPY_FACTORY.sequence(cols, np.int32)
+        out.values = RCLPY_FACTORY.sequence(values, np.float32)
     response.updated_last_mesh = state
     return response
 
