@@ -78,11 +78,12 @@ _TETRA_MESH_DEGRADED_LINE = (
 # take their defaults): TetraMesh before `invalid_vertices` and `removed_elements`, before
 # `position_covariance` too, and before `degraded` too (the bundled recordings').
 _TETRA_MESH_UNCUT = MSG_DEFINITIONS[TETRA_MESH].replace(_TETRA_MESH_CUT_LINES, "")
+_TETRA_MESH_NO_COVARIANCE = _TETRA_MESH_UNCUT.replace(_TETRA_MESH_COVARIANCE_LINE, "")
 EARLIER_MSG_DEFINITIONS: dict[str, tuple[str, ...]] = {
     TETRA_MESH: (
         _TETRA_MESH_UNCUT,
-        _TETRA_MESH_UNCUT.replace(_TETRA_MESH_COVARIANCE_LINE, ""),
-        _TETRA_MESH_UNCUT.replace(_TETRA_MESH_COVARIANCE_LINE, "").replace(_TETRA_MESH_DEGRADED_LINE, ""),
+        _TETRA_MESH_NO_COVARIANCE,
+        _TETRA_MESH_NO_COVARIANCE.replace(_TETRA_MESH_DEGRADED_LINE, ""),
     ),
 }
 # Row and column of each entry of a vertex's 3x3 covariance in TetraMesh.position_covariance:
