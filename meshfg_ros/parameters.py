@@ -39,7 +39,12 @@ from meshfg_ros.core.patient_mesh import Box, FixedSelection, Plane, prepare_mes
 from meshfg_ros.core.pose_history import InvalidPoseError, as_pose, pose_matrix
 from meshfg_ros.core.frames import TransformBuffer
 from meshfg_ros.core.input_checks import DEFAULT_CLOCK_JUMP_THRESHOLD_S
-from meshfg_ros.core.scheduler import SchedulingTimeouts
+from meshfg_ros.core.scheduler import (
+    MAX_PREDICTION_WAIT_S,
+    PREDICTION_TIMES_KEPT,
+    PREDICTION_WAIT_MARGIN,
+    SchedulingTimeouts,
+)
 from meshfg_ros.core.world_frame import DEFAULT_TRANSFORM_WAIT_S, WorldFrameInputs
 from meshfg_ros.core.settings import setting, settings_of
 from meshfg_ros.core.simulator import SimulatorConfig
@@ -230,7 +235,8 @@ class EstimatorNodeConfig:
     prediction_timeout: float = setting(
         SchedulingTimeouts.prediction_timeout, "Seconds (wall time) a cloud waits at least for its simulator prediction "
         "before the step runs degraded without it; longer while the simulator's recent predictions took longer "
-        "(1.5x the longest of the last 5, at most 5 s).", range=(0.0, 60.0))
+        f"({PREDICTION_WAIT_MARGIN:g}x the longest of the last {PREDICTION_TIMES_KEPT}, at most "
+        f"{MAX_PREDICTION_WAIT_S:g} s).", range=(0.0, 60.0))
     prediction_source: str = setting(
         "simulation_node", "Where each cloud's prediction comes from: simulation_node (this project's, on "
         "prediction_request / predicted_mesh) or sim_bridge (the XPBD tissue simulator's sim_bridge service "
