@@ -221,3 +221,11 @@ def test_inverted_elements_are_the_flat_flipped_and_non_finite_ones():
                            [0, 1, 2, 5],   # flat
                            [6, 1, 2, 3]])  # NaN corner
     np.testing.assert_array_equal(inverted_elements(vertices, tetrahedra), [1, 2, 3])
+
+
+def test_sorted_unique_is_numpys_unique():
+    from meshfg_ros.core.mesh import sorted_unique
+
+    keys = np.random.default_rng(3).integers(0, 500, 5000)
+    np.testing.assert_array_equal(sorted_unique(keys), np.unique(keys))
+    np.testing.assert_array_equal(sorted_unique(np.array([7])), [7])

@@ -20,7 +20,7 @@ from numba.types import float64, int64
 from meshfg_ros.core.factors import Factor, FactorError, FactorLinearization, checked_state
 from meshfg_ros.core.kernel_types import read_only, writable
 from meshfg_ros.core.linear_system import WindowSystem, diagonal_positions
-from meshfg_ros.core.mesh import ElementVolumes, cross3, dot3
+from meshfg_ros.core.mesh import ElementVolumes, cross3, dot3, sorted_unique
 
 __all__ = ["MIN_VOLUME_RATIO_PER_STEP", "FactorGraph"]
 
@@ -113,10 +113,7 @@ class FactorGraph:
         free_rows, free_cols = self._free_index[rows], self._free_index[cols]
         keep = (free_rows >= 0) & (free_cols >= 0)
         n = self.block_size
-        # Sorted, then deduplicated: np.unique's hashing (numpy 2.4) takes seconds on an organ-scale
-        # mesh's millions of keys, a sort a tenth of a second (as core/fem.py's pattern).
-        keys = np.sort(np.concatenate([free_rows[keep] * n + free_cols[keep], np.arange(n) * (n + 1)]))
-        keys = keys[np.r_[True, keys[1:] != keys[:-1]]]
+        keys = sorted_unique(np.concatenate([free_rows[keep] * n + free_cols[keep], np.arange(n) * (n + 1)]))
         self._pattern_keys = keys
         pattern_rows, pattern_cols = np.divmod(keys, n)
         indptr = np.searchsorted(pattern_rows, np.arange(n + 1)).astype(np.int32)

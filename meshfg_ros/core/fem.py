@@ -43,6 +43,7 @@ from numba.types import float64, int64
 
 from meshfg_ros.core.kernel_types import read_only
 from meshfg_ros.core.mesh import DegenerateMeshError as DegenerateElementError  # one error for degenerate rest elements
+from meshfg_ros.core.mesh import sorted_unique
 
 __all__ = [
     "STIFFNESS_KINDS",
@@ -435,9 +436,7 @@ class ElasticModel:
         rows = self._element_dofs_em[a, i]  # (78, M), element-major like the entries
         columns = self._element_dofs_em[b, k]
         keys = (np.minimum(rows, columns) * dof_count + np.maximum(rows, columns)).reshape(-1)
-        # np.unique's hashing (numpy 2.4) took 1.2 s on the organ-scale box's 4.3M keys; a sort 0.1 s.
-        sorted_keys = np.sort(np.concatenate([keys, np.arange(dof_count) * (dof_count + 1)]))
-        unique_keys = sorted_keys[np.r_[True, sorted_keys[1:] != sorted_keys[:-1]]]
+        unique_keys = sorted_unique(np.concatenate([keys, np.arange(dof_count) * (dof_count + 1)]))
         self._upper_slot = np.searchsorted(unique_keys, keys).astype(np.intp)
         self._upper_count = unique_keys.size
         upper_rows, upper_columns = np.divmod(unique_keys, dof_count)

@@ -83,6 +83,14 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
+def sorted_unique(keys: np.ndarray) -> np.ndarray:
+    """The distinct values of integer `keys`, ascending: np.unique's, by a sort. np.unique hashes
+    integers (numpy 2.4), which took 1.2 s on an organ-scale mesh's 4.3M dof-pair keys where a
+    sort takes 0.1 s."""
+    ordered = np.sort(keys)
+    return ordered[np.r_[True, ordered[1:] != ordered[:-1]]]
+
+
 @numba.njit(inline="always")
 def cross3(a, b):
     """a x b of two 3-vectors inside a compiled kernel, the products and differences of `cross`."""
