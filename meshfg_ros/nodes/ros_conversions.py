@@ -47,6 +47,8 @@ TOOL_POSE_QOS_FIX = "publish it reliable, or set tool_pose_reliable:=false"
 def tool_pose_qos(params: dict) -> QoSProfile:
     """The tool_pose subscription's QoS that parameter tool_pose_reliable asks for."""
     return STREAM_QOS if params["tool_pose_reliable"] else BEST_EFFORT_POSE_QOS
+
+
 # numpy dtype -> array.array type code of the same item size (Linux), for primitive sequences.
 _TYPECODES = {
     np.dtype(np.float64): "d", np.dtype(np.float32): "f",
