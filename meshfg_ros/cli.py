@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 import time
 from collections.abc import Callable
@@ -283,6 +284,25 @@ def _accuracy_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--plot", type=Path, help="also write the PNG summary here (never overwritten)")
     parser.add_argument("--calibration-plot", type=Path, metavar="PNG",
                         help="also write the reliability diagrams of the published std here (never overwritten)")
+    _results_argument(parser, "accuracy")
+
+
+def _results_argument(parser: argparse.ArgumentParser, section: str) -> None:
+    parser.add_argument("--results", type=Path, metavar="MD",
+                        help=f"also write the printed tables into this markdown file's '{section}' section, with the "
+                             "machine and the commit (e.g. docs/results.md; created if missing, its other "
+                             "sections kept)")
+
+
+def _write_results(args: argparse.Namespace, section: str, report: str, markdown: bool) -> None:
+    """The printed report into --results' section (results_file.py), said on stdout."""
+    if args.results is None:
+        return
+    from meshfg_ros import results_file
+
+    command_line = getattr(args, "command_line", None) or f"meshfg {args.command}"
+    results_file.write_section(args.results, section, command_line, report, markdown=markdown)
+    print(f"wrote section '{section}' of {args.results}")
 
 
 def run_accuracy(args: argparse.Namespace) -> int:
@@ -303,6 +323,7 @@ def run_accuracy(args: argparse.Namespace) -> int:
         result = accuracy.run_accuracy_seeds(args.out, tuple(args.scenes), seeds, bundled_recording, progress)
         table, write_plot = accuracy.format_seeds_table(result), accuracy.write_seeds_plot
     print(table)
+    _write_results(args, "accuracy" if len(seeds) == 1 else "accuracy over seeds", table, markdown=True)
     outputs = [args.out / "accuracy.json", args.out / "accuracy.png", args.out / "calibration.png"]
     accuracy.save(result, outputs[0])
     write_plot(result, outputs[1])
@@ -335,6 +356,7 @@ def _bench_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--runs", type=_positive_integer, default=1,
                         help="measure this many times in a row and say in how many runs each target held "
                              "(default 1)")
+    _results_argument(parser, "bench")
 
 
 def run_bench(args: argparse.Namespace) -> int:
@@ -346,24 +368,27 @@ def run_bench(args: argparse.Namespace) -> int:
     organ_bag = None
     if "organ_live" in args.sections:
         organ_bag = args.organ_bag if args.organ_bag is not None else bench.organ_recording()
-    results = []
+    results, printed = [], []
     for number in range(1, args.runs + 1):
         if args.runs > 1:
             print(f"bench: run {number} of {args.runs}", file=sys.stderr)
         results.append(bench.run_bench(tuple(args.sections), bag, organ_bag=organ_bag))
         heading = f"Run {number} of {args.runs}:\n" if args.runs > 1 else ""
-        print(("\n" if number > 1 else "") + heading + bench.format_report(results[-1]), flush=True)
+        printed.append(("\n" if number > 1 else "") + heading + bench.format_report(results[-1]))
+        print(printed[-1], flush=True)
     if args.runs == 1:
         bench.save(results[0], args.json)
         if args.plot is not None:
             bench.write_plot(results[0], args.plot)
     else:
-        print("\n" + bench.format_tally(results))
+        printed.append("\n" + bench.format_tally(results))
+        print(printed[-1])
         bench.save({"runs": results, "tally": bench.tally(results)}, args.json)
         if args.plot is not None:
             bench.write_tally_plot(results, args.plot)
     if args.plot is not None:
         print(f"wrote {args.plot}")
+    _write_results(args, "bench", "\n".join(printed), markdown=False)
     return 0
 
 
@@ -615,7 +640,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the `meshfg` console script; returns the exit code."""
+    argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser().parse_args(argv)
+    args.command_line = "meshfg " + shlex.join(argv)  # what --results says made a section
     try:
         from meshfg_ros import blas
 
