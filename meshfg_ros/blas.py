@@ -27,7 +27,7 @@ One thread, always, unless MKL_NUM_THREADS says otherwise. The robot's computer 
 with perception, planning and control, and the two nodes of this package are two processes. A
 threaded BLAS makes every supernode a parallel region that waits for all its threads: with
 another process on a core, each region waits for that core's time slice (or spins for it), and
-an update that should take twice as long with half the CPU took 4-7 times as long (MKL, two
+an update that should take twice as long with half the CPU takes 4-7 times as long (MKL, two
 threads, one busy process per core). A single thread slows in proportion to the CPU it gets.
 Where the cores are the estimator's alone, MKL_NUM_THREADS=2 factors faster; see the README.
 MKL_THREADING_LAYER is honoured when set. MKL runs on the GNU OpenMP runtime that torch ships

@@ -31,10 +31,9 @@ reach, so its grown box holds the point and its cell lists it); ties go to the l
 index, as in the all-pairs search. libigl's AABB tree (a bounding-volume hierarchy over the
 triangles) answers the points the grid cannot: outside it, or farther than the reach.
 libigl has no search bounded to a distance from the surface and builds its tree anew for each
-state: on 2,089 points near the paper-scale surface (588 triangles) the grid took 0.17 ms to
-make and 0.4 ms to query, libigl 0.22 ms and 1.1-1.5 ms; on the organ-scale surface (5,292
-triangles, 20,000 points within 4 mm, the edges 4.8 mm long) the two are alike (about 15 ms).
-A k-d tree over centroids with an exact candidate screen took 9 ms at paper scale.
+state: near the paper-scale surface the grid answers in about half libigl's time, on the
+organ-scale surface the two are alike (docs/design-notes.md, "Where an update's time goes",
+with the alternatives measured).
 """
 
 from __future__ import annotations
@@ -155,9 +154,8 @@ def _project(points, vertices, triangles, index):
     """Closest point on triangle triangles[index[i]] of `vertices` to points[i]: (closest,
     barycentric, region, squared distance).
 
-    Compiled (numba) rather than numpy passes over all points, whose fixed cost was most of
-    their time on a window's clouds: 146 us against 8 us for 600 points, 293 against 23 us for
-    2,000, on the 2-core AMD EPYC VM."""
+    Compiled (numba) rather than numpy passes over all points, whose fixed cost would be most of
+    their time on a window's clouds (docs/design-notes.md, "Compiled kernels")."""
     count = points.shape[0]
     closest = np.empty((count, 3))
     barycentric = np.empty((count, 3))

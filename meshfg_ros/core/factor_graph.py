@@ -527,9 +527,8 @@ def _first_crossings(states, moves, tetrahedra, volumes, longest, ratio, grid_co
     1/grid_count then bisected `bisections` times from below: FactorGraph.step_fraction's
     bracketing (its docstring), before the check on exact volumes.
 
-    Compiled (numba): with these steps as numpy passes over the elements the bound cannot clear,
-    LM's inversion guard (step_fraction) took 258-277 us against 84-137 us on the small
-    window's steps, volumes made afresh."""
+    Compiled (numba): as numpy passes over the elements the bound cannot clear, LM's inversion
+    guard (step_fraction) costs two to three times as much (docs/design-notes.md, "Compiled kernels")."""
     fractions = np.ones(states.shape[0])
     for s in range(states.shape[0]):
         x, move = states[s], moves[s]

@@ -473,8 +473,8 @@ def _face_terms(vertices, triangles, triangle, barycentric, weight, face):
     each term is exactly symmetric.
 
     Compiled (numba): as numpy passes (a bincount per moment, gathers for the Kronecker
-    product), mostly fixed cost on a window's clouds, _distance_hessians took 390-660 us on a
-    small window's three states against 210-220 us with this loop, its terms bit-identical."""
+    product) its time on a window's clouds is mostly fixed cost (docs/design-notes.md, "Compiled kernels"); the terms are
+    bit-identical."""
     moments = np.zeros((triangles.shape[0], 6))
     seen = np.zeros(triangles.shape[0], dtype=np.bool_)
     for k in range(triangle.shape[0]):
@@ -626,8 +626,7 @@ class PointToSurfaceFactor(Factor):
         if initial_association is not None:
             # The points in the order of their closest triangles: every later association (LM's
             # trial costs) then reads the same grid cells' lists, or libigl's tree paths, for
-            # consecutive points. With libigl alone that made a query 9.5 against 12.6 ms on the
-            # organ-scale surface (median of 20), 1.34 against 1.61 ms at paper scale; the grid's
+            # consecutive points, which makes libigl's queries about a fifth faster; the grid's
             # searches near the paper-scale surface take the same time in either order.
             kept = kept[np.argsort(initial_association.triangle[kept], kind="stable")]
             initial_association = Association(*(getattr(initial_association, name)[kept] for name in (

@@ -186,8 +186,7 @@ def _newton_polar_rotations(f, min_det, tolerance, max_iterations):
     flat, not converged, NaN) are left for the SVD.
 
     Compiled (numba): as numpy passes over all elements at once every element iterated until
-    the slowest converged; element by element each stops where it converges. 2,000 and 55,000
-    elements (F = I + 0.2 N(0, 1)): 0.49 and 12.3 ms against 1.35-1.43 and 72-89 ms."""
+    the slowest converged; element by element each stops where it converges (docs/design-notes.md, "Compiled kernels")."""
     count = f.shape[2]
     rotations = np.empty((3, 3, count))
     converged = np.zeros(count, dtype=np.bool_)
@@ -301,8 +300,8 @@ def _deformation_gradients(state, tetrahedra, gradients):
     the state (N, 3), the tetrahedra (M, 4) and the shape-function gradients (4, 3, M). Edge
     vectors rather than positions keep a large rigid translation out of the rounding.
 
-    Compiled (numba): gathering the corners and contracting them as numpy passes takes 0.42 and
-    11.7 ms for 2,000 and 55,000 elements."""
+    Compiled (numba): gathering the corners and contracting them as numpy passes takes over ten
+    times as long (docs/design-notes.md, "Compiled kernels")."""
     elements = tetrahedra.shape[0]
     deformation = np.empty((3, 3, elements))
     edge = np.empty((3, 3))

@@ -85,8 +85,8 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def sorted_unique(keys: np.ndarray) -> np.ndarray:
     """The distinct values of integer `keys`, ascending: np.unique's, by a sort. np.unique hashes
-    integers (numpy 2.4), which took 1.2 s on an organ-scale mesh's 4.3M dof-pair keys where a
-    sort takes 0.1 s."""
+    integers (numpy 2.4), which takes about ten times as long as a sort on an organ-scale mesh's
+    4.3M dof-pair keys."""
     ordered = np.sort(keys)
     return ordered[np.r_[True, ordered[1:] != ordered[:-1]]]
 
@@ -123,9 +123,8 @@ def _volumes_and_longest_edges(states, tetrahedra):
     corner 0, ((u x v) . w) / 6, and the longest of the three, each (W, M).
 
     Compiled (numba): the estimator evaluates it at every trial of its volume barrier and
-    inversion guard. As numpy passes (two gathers per coordinate, then the products) it took
-    206-238 us against 30-32 us for three states of 216 vertices and 18.5-19.6 ms against
-    3.0-3.8 ms for five of 10,648 (55k elements), measured with random element indices."""
+    inversion guard, where numpy passes (two gathers per coordinate, then the products) cost
+    several times as much (docs/design-notes.md, "Compiled kernels")."""
     volumes = np.empty((states.shape[0], tetrahedra.shape[0]))
     longest = np.empty((states.shape[0], tetrahedra.shape[0]))
     for s in range(states.shape[0]):

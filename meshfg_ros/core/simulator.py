@@ -331,7 +331,7 @@ def _sweep_colour(state, vertices, segment_bounds, corners, rest_inverse, shape_
     share no element, so moving them one after the other is moving them together.
 
     Compiled (numba): as numpy passes over the colour's incidences (einsum contractions, the
-    cofactors, reduceat sums) the sweeps took half of a prediction's time at organ scale. Not
+    cofactors, reduceat sums) the sweeps take half of a prediction's time at organ scale. Not
     bounds-checked, unlike the package's other kernels (checks made it 2x slower): its indices
     are the rest mesh's elements, which TetMesh keeps within its vertices, and `state` and
     `held` have a row per vertex (ElasticSimulator.predict checks the state's shape)."""
@@ -410,7 +410,7 @@ def _elastic_energy(state, tetrahedra, rest_inverse, corner_volume_gradient, vol
     (M, 4, 3) holding V g_k, P = mu F + lambda' (J - gamma) cof F).
 
     Compiled (numba): as numpy passes (F, cof F, their contractions, a bincount per axis) the
-    energies and forces of the global steps took a sixth of a prediction at organ scale. Not
+    energies and forces of the global steps take a sixth of a prediction at organ scale. Not
     bounds-checked, as `_sweep_colour` (checks made it nearly 4x slower)."""
     energy = 0.0
     with_forces = forces.shape[0] > 0
