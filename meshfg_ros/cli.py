@@ -40,12 +40,12 @@ class Command:
 # so the error path never imports anything (the estimator's modules pull in torch).
 _USER_ERRORS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("meshfg_ros.io.recording", ("RecordingError",)),
-    ("meshfg_ros.core.mesh", ("MeshFileError", "InvalidMeshError", "DegenerateMeshError")),
-    ("meshfg_ros.core.patient_mesh", ("PatientMeshError",)),
+    ("meshfg_ros.core.geometry.mesh", ("MeshFileError", "InvalidMeshError", "DegenerateMeshError")),
+    ("meshfg_ros.core.inputs.patient_mesh", ("PatientMeshError",)),
     ("meshfg_ros.parameters", ("ParameterError",)),
     ("meshfg_ros.synthetic.scenarios", ("ScenarioError",)),
-    ("meshfg_ros.core.simulator", ("SimulatorConfigError", "SimulatorInputError")),
-    ("meshfg_ros.core.estimator", ("EstimatorConfigError",)),
+    ("meshfg_ros.core.physics.simulator", ("SimulatorConfigError", "SimulatorInputError")),
+    ("meshfg_ros.core.estimation.estimator", ("EstimatorConfigError",)),
     ("meshfg_ros.blas", ("BlasSettingError",)),
     ("meshfg_ros.replay", ("ReplayError",)),
     ("meshfg_ros.evaluation.evaluate", ("EvaluationError",)),
@@ -465,7 +465,7 @@ def run_mesh(args: argparse.Namespace) -> int:
 def run_mesh_info(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from meshfg_ros.core.patient_mesh import ORGAN_SIZE_RANGE_M, plausible_units, read_patient_mesh
+    from meshfg_ros.core.inputs.patient_mesh import ORGAN_SIZE_RANGE_M, plausible_units, read_patient_mesh
     from meshfg_ros.synthetic.mismatch_scenes import radius_ratios
 
     read = read_patient_mesh(args.file)
@@ -502,10 +502,10 @@ def run_mesh_info(args: argparse.Namespace) -> int:
 
 def _units_from_clouds(mesh, bag: Path, mesh_pose: list[float], clouds: int = 3) -> str:
     """Which units make `mesh` (file units) agree with the first `clouds` clouds of `bag`, as the
-    estimator node checks its first clouds (core/patient_mesh.py), and why the others do not."""
+    estimator node checks its first clouds (core/inputs/patient_mesh.py), and why the others do not."""
     import itertools
 
-    from meshfg_ros.core.patient_mesh import UNITS, PatientMeshError, check_against_clouds, place_mesh
+    from meshfg_ros.core.inputs.patient_mesh import UNITS, PatientMeshError, check_against_clouds, place_mesh
     from meshfg_ros.io.messages import PointCloudRecord
     from meshfg_ros.io.recording import RecordingReader
     from meshfg_ros.topics import POINTS_TOPIC
@@ -528,7 +528,7 @@ def _units_from_clouds(mesh, bag: Path, mesh_pose: list[float], clouds: int = 3)
 
 
 def run_mesh_export(args: argparse.Namespace) -> int:
-    from meshfg_ros.core.mesh import save_mesh
+    from meshfg_ros.core.geometry.mesh import save_mesh
     from meshfg_ros.io.messages import MeshState
     from meshfg_ros.io.recording import RecordingReader, TopicNotFoundError
     from meshfg_ros.topics import INITIAL_MESH_TOPIC

@@ -312,7 +312,7 @@ class UpdateCampaign:
     the stamp."""
 
     def __init__(self, seed: int, options: dict):
-        from meshfg_ros.core import estimator
+        from meshfg_ros.core.estimation import estimator
         from meshfg_ros.parameters import estimator_config
 
         self.seed, self.module = seed, estimator
@@ -499,7 +499,7 @@ class ReplayCampaign:
         self.seed, self.fixture = seed, _fixture(options["bag"])
 
     def case(self, index: int) -> Outcome:
-        from meshfg_ros.core.estimator import EstimatorInputError, EstimatorStepError
+        from meshfg_ros.core.estimation.estimator import EstimatorInputError, EstimatorStepError
         from meshfg_ros.io.recording import RecordingError
         from meshfg_ros.replay import ReplayError, iterate_replay, load_inputs, replay_parameters
 
@@ -551,7 +551,7 @@ def _hostile_recording(fixture: _Fixture, path: Path, rng) -> tuple[list[int], l
     """Write the fixture's recording with hostile messages added at random steps; returns the
     stamps of the clouds that must become steps, in order (by the stamp, frame and emptiness
     rules: an independent account of what the replay must keep), and the faults added."""
-    from meshfg_ros.core.input_checks import NS_PER_S
+    from meshfg_ros.core.inputs.input_checks import NS_PER_S
     from meshfg_ros.io.messages import PoseRecord
     from meshfg_ros.io.recording import RecordingReader, RecordingWriter
     from meshfg_ros.topics import CAMERA_POSE_TOPIC, INITIAL_MESH_TOPIC, POINTS_TOPIC, SCENARIO_TOPIC, TOOL_POSE_TOPIC

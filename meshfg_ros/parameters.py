@@ -15,7 +15,7 @@ for one node. config/meshfg.yaml lists every parameter of the pipeline with its 
 keeps the two in sync).
 
 `world_frame_inputs` builds the placement of clouds and tool poses into world_frame
-(core/world_frame.py) the nodes and the replay share: /tf, with the static `camera_pose` as the
+(core/inputs/world_frame.py) the nodes and the replay share: /tf, with the static `camera_pose` as the
 fallback for `camera_frame`; `placed_mesh_file` loads mesh_file as the mesh parameters place it.
 """
 
@@ -33,22 +33,22 @@ from typing import Any
 import numpy as np
 import yaml
 
-from meshfg_ros.core.estimator import EstimatorConfig
-from meshfg_ros.core.mesh import TetMesh
-from meshfg_ros.core.patient_mesh import Box, FixedSelection, Plane, prepare_mesh
-from meshfg_ros.core.pose_history import InvalidPoseError, as_pose, pose_matrix
-from meshfg_ros.core.frames import TransformBuffer
-from meshfg_ros.core.input_checks import DEFAULT_CLOCK_JUMP_THRESHOLD_S
+from meshfg_ros.core.estimation.estimator import EstimatorConfig
+from meshfg_ros.core.geometry.mesh import TetMesh
+from meshfg_ros.core.inputs.patient_mesh import Box, FixedSelection, Plane, prepare_mesh
+from meshfg_ros.core.inputs.pose_history import InvalidPoseError, as_pose, pose_matrix
+from meshfg_ros.core.inputs.frames import TransformBuffer
+from meshfg_ros.core.inputs.input_checks import DEFAULT_CLOCK_JUMP_THRESHOLD_S
 from meshfg_ros.core.scheduler import (
     MAX_PREDICTION_WAIT_S,
     PREDICTION_TIMES_KEPT,
     PREDICTION_WAIT_MARGIN,
     SchedulingTimeouts,
 )
-from meshfg_ros.core.world_frame import DEFAULT_TRANSFORM_WAIT_S, WorldFrameInputs
+from meshfg_ros.core.inputs.world_frame import DEFAULT_TRANSFORM_WAIT_S, WorldFrameInputs
 from meshfg_ros.core.settings import setting, settings_of
-from meshfg_ros.core.simulator import SimulatorConfig
-from meshfg_ros.core.tool_poses import DEFAULT_EXTRAPOLATION_HORIZON_S
+from meshfg_ros.core.physics.simulator import SimulatorConfig
+from meshfg_ros.core.inputs.tool_poses import DEFAULT_EXTRAPOLATION_HORIZON_S
 
 __all__ = [
     "NODE_CONFIGURATIONS",
@@ -207,7 +207,7 @@ class SimulationNodeConfig:
     blade_half_extents: tuple[float, ...] = setting(
         (0.0, 0.0, 0.0), "Half extents [x, y, z] in metres of the tool's blade, a box in the tool frame about "
         "blade_offset: at each tool pose the elements reaching into it, and the pieces that leaves hanging, are "
-        "cut away (core/topology.py); zeros: the tool does not cut.", range=(0.0, 1.0), length=3)
+        "cut away (core/geometry/topology.py); zeros: the tool does not cut.", range=(0.0, 1.0), length=3)
     blade_offset: tuple[float, ...] = setting(
         (0.0, 0.0, 0.0), "Centre [x, y, z] of the blade box in the tool frame, metres.", range=(-1.0, 1.0), length=3)
     tool_pose_timeout: float = setting(
@@ -529,7 +529,7 @@ def shared_settings(config, config_class: type) -> dict[str, Any]:
 # ------------------------------------------------------------------ the nodes' inputs and help
 def placed_mesh_file(params: Mapping[str, Any]) -> TetMesh:
     """The mesh of parameter mesh_file, scaled, placed and with the fixed vertices the parameters
-    select (core/patient_mesh.py); the errors of core.mesh and core.patient_mesh."""
+    select (core/inputs/patient_mesh.py); the errors of core.geometry.mesh and core.inputs.patient_mesh."""
     plane, box = params["fixed_plane"], params["fixed_box"]
     selection = FixedSelection(
         indices=tuple(params["fixed_vertices"]),
@@ -550,7 +550,7 @@ def load_mesh_file(params: Mapping[str, Any]) -> TetMesh:
 
 
 def world_frame_inputs(params: Mapping[str, Any]) -> WorldFrameInputs:
-    """The placement of inputs into world_frame (core/world_frame.py) of the nodes and the replay:
+    """The placement of inputs into world_frame (core/inputs/world_frame.py) of the nodes and the replay:
     /tf and /tf_static, with the static camera_pose as the fallback for camera_frame where the
     parameters have it (the estimator's); camera_frame's origin is then each cloud's viewpoint
     (the estimator's back-face test)."""

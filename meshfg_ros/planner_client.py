@@ -3,7 +3,7 @@
 Both classes answer `query(points, ...)` with a `SurfaceAnswer`: per point the closest surface
 point, the signed distance (negative inside the tissue), the outward unit normal and the
 distance's standard deviation, with the stamp and step of the estimate they were computed on
-(core/surface_query.py says how).
+(core/geometry/surface_query.py says how).
 
 - `SurfaceQueryClient(node)` calls the estimator node's `surface_query` service
   (meshfg_msgs/SurfaceQuery): points in any frame /tf knows, on the newest estimate.
@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from meshfg_ros.core.surface_query import SurfaceQuery
+from meshfg_ros.core.geometry.surface_query import SurfaceQuery
 from meshfg_ros.io.messages import MeshState, RclpyMessageFactory, header_msg, stamp_ns_from_msg
 from meshfg_ros.io.recording import RecordingReader
 from meshfg_ros.topics import ESTIMATED_MESH_TOPIC

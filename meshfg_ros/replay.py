@@ -5,7 +5,7 @@ Both run the same step loop (core/scheduler.py, connected synchronously by Offli
   parameters mesh_scale, mesh_pose and fixed_* as the nodes place mesh_file;
 - transforms (/tf, /tf_static), tool poses and clouds are taken in the order they were logged
   (the order the nodes receive them; at equal log times transforms, then poses, then clouds);
-  clouds and tool poses are moved into world_frame at their stamps (core/world_frame.py, with
+  clouds and tool poses are moved into world_frame at their stamps (core/inputs/world_frame.py, with
   the log time as the clock);
 - a cut (/meshfg/remove_elements, element slots) goes to both simulators when it was logged,
   and the estimator follows it with the next prediction (core/scheduler.py);
@@ -30,12 +30,12 @@ import numpy as np
 import yaml
 from rosbags.highlevel import AnyReader
 
-from meshfg_ros.core.input_checks import NS_PER_S, SceneError, check_initial_mesh
-from meshfg_ros.core.frames import StampedTransform
+from meshfg_ros.core.inputs.input_checks import NS_PER_S, SceneError, check_initial_mesh
+from meshfg_ros.core.inputs.frames import StampedTransform
 from meshfg_ros.core.scheduler import OfflinePipeline, PipelineStep, run_offline
-from meshfg_ros.core.world_frame import CLOUD, POSE, FramedInput
+from meshfg_ros.core.inputs.world_frame import CLOUD, POSE, FramedInput
 from meshfg_ros.io.tf_messages import TF_STATIC_TOPIC, TF_TOPIC, tf_message_to_transforms
-from meshfg_ros.core.mesh import TetMesh
+from meshfg_ros.core.geometry.mesh import TetMesh
 from meshfg_ros.parameters import (
     estimator_config,
     load_parameters,
@@ -45,7 +45,7 @@ from meshfg_ros.parameters import (
     simulator_config,
     world_frame_inputs,
 )
-from meshfg_ros.core.simulator import SimulatorConfig
+from meshfg_ros.core.physics.simulator import SimulatorConfig
 from meshfg_ros.io.messages import (
     MeshState,
     PointCloudRecord,
@@ -258,7 +258,7 @@ def iterate_replay(inputs: ReplayInputs, params: Mapping[str, Any],
 def _world_frame_events(inputs: ReplayInputs, params: Mapping[str, Any]) -> Iterator[tuple]:
     """("pose" | "cloud", stamp, world-frame array, cloud viewpoint or None) of the inputs the nodes would take, in arrival
     order: moved into world_frame through the recorded /tf and /tf_static (or camera_pose) as
-    the nodes do (core/world_frame.py, with the log time as the clock); clouds without points and
+    the nodes do (core/inputs/world_frame.py, with the log time as the clock); clouds without points and
     inputs that cannot be placed are dropped."""
     placer = world_frame_inputs(params)
     for log_ns, kind, record in inputs.events():

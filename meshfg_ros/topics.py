@@ -14,7 +14,7 @@ ESTIMATED_MESH_TOPIC = "/meshfg/estimated_mesh"      # meshfg_msgs/TetraMesh
 PREDICTED_MESH_TOPIC = "/meshfg/predicted_mesh"      # meshfg_msgs/TetraMesh
 MARKERS_TOPIC = "/meshfg/markers"                    # visualization_msgs/MarkerArray
 STATUS_TOPIC = "/meshfg/status"                      # meshfg_msgs/EstimatorStatus
-BODY_ACCELERATION_TOPIC = "/meshfg/body_acceleration"  # geometry_msgs/Vector3Stamped, m/s^2 (core/body_load.py)
+BODY_ACCELERATION_TOPIC = "/meshfg/body_acceleration"  # geometry_msgs/Vector3Stamped, m/s^2 (core/physics/body_load.py)
 # Offline replay only.
 SIMULATION_ONLY_MESH_TOPIC = "/meshfg/simulation_only_mesh"  # open-loop simulator, meshfg_msgs/TetraMesh
 COST_HISTORY_TOPIC = "/meshfg/cost_history"          # std_msgs/Float64MultiArray: LM cost per iteration

@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 from meshfg_ros.synthetic.meshing import cube_mesh
 from meshfg_ros.evaluation.metrics import sample_surface
 from meshfg_ros.synthetic.scenarios import FIRST_STAMP_NS, STEP_PERIOD_NS, Scenario, ScenarioStep, pose
-from meshfg_ros.core.simulator import ElasticSimulator, SimulatorConfig
+from meshfg_ros.core.physics.simulator import ElasticSimulator, SimulatorConfig
 
 SIDE = 0.02
 TOOL_RADIUS = 5e-3
@@ -34,7 +34,7 @@ BASE = np.array([0.3, -0.2, 0.1, *Rotation.from_euler("xyz", [0.0, 0.0, 40.0], d
 
 def robot_statics():
     """The /tf_static transforms of OPTICAL (ecm_link -> endoscope_optical_frame) and BASE (world -> psm1_base)."""
-    from meshfg_ros.core.frames import StampedTransform
+    from meshfg_ros.core.inputs.frames import StampedTransform
 
     return [StampedTransform("ecm_link", "endoscope_optical_frame", 0, OPTICAL[:3], OPTICAL[3:]),
             StampedTransform("world", "psm1_base", 0, BASE[:3], BASE[3:])]

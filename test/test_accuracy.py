@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from offline_helpers import BAGS, MESHFG
 
-from meshfg_ros.core.estimator import EstimatorConfig
+from meshfg_ros.core.estimation.estimator import EstimatorConfig
 from meshfg_ros.evaluation import accuracy
 from meshfg_ros.core.scheduler import OfflinePipeline, run_offline
 from meshfg_ros.parameters import estimator_config, load_parameters, simulator_config
@@ -64,7 +64,7 @@ def test_the_learnt_body_load_carries_the_correction_into_later_predictions(dome
     (0.75 of the simulation's error at the last step, measured); with it the later predictions
     carry the load learnt so far (0.57)."""
     truth = dome.steps[-1].truth
-    # The optimum is published at every step: with the persisting share (core/persistence.py) the
+    # The optimum is published at every step: with the persisting share (core/estimation/persistence.py) the
     # first of the three steps would publish its prediction and teach the load nothing.
     optimum = {"keep_persistent_correction": False}
     with_load, _ = run_defaults(dome, **optimum)[-1]

@@ -77,7 +77,7 @@ def test_benchmark_updates_run_the_estimator_node_step_loop_and_beat_the_predict
     import numpy as np
 
     from meshfg_ros.benchmarks.baselines import benchmark_update, mismatch_sequence
-    from meshfg_ros.core.estimator import EstimatorConfig
+    from meshfg_ros.core.estimation.estimator import EstimatorConfig
 
     mesh, sequence = mismatch_sequence(target_vertices=150, points_per_step=800, steps=6)
     result = benchmark_update(mesh, sequence, EstimatorConfig(measurement_sigma=1e-3))

@@ -21,9 +21,9 @@ import numpy as np, scipy.sparse
 from threadpoolctl import threadpool_info
 from meshfg_ros import blas
 backend = blas.configure()
-from meshfg_ros.core.fem import ElasticModel
+from meshfg_ros.core.physics.fem import ElasticModel
 from meshfg_ros.synthetic.meshing import box_mesh
-from meshfg_ros.core.sparse_cholesky import SparseCholesky
+from meshfg_ros.core.solvers.sparse_cholesky import SparseCholesky
 mesh = box_mesh(1331, (0.1, 0.1, 0.1))  # big enough for supernodal CHOLMOD (BLAS calls)
 matrix = ElasticModel(mesh.vertices, mesh.tetrahedra, 3e3, 0.45).stiffness(kind="linear")
 matrix = (matrix + 1e-2 * scipy.sparse.identity(matrix.shape[0])).tocsr()
@@ -49,10 +49,10 @@ import numpy as np, scipy.linalg, scipy.sparse
 from threadpoolctl import threadpool_info
 import meshfg_ros.core
 before = [(pool["filepath"], pool["num_threads"]) for pool in threadpool_info()]
-for module in pkgutil.iter_modules(meshfg_ros.core.__path__):
-    importlib.import_module(f"meshfg_ros.core.{module.name}")
+for module in pkgutil.walk_packages(meshfg_ros.core.__path__, prefix="meshfg_ros.core."):
+    importlib.import_module(module.name)
 from meshfg_ros import blas
-from meshfg_ros.core.sparse_cholesky import SparseCholesky
+from meshfg_ros.core.solvers.sparse_cholesky import SparseCholesky
 matrix = scipy.sparse.diags(np.arange(1.0, 2001.0)).tocsr()
 solution = SparseCholesky(matrix).solve(np.ones(2000))
 after = [(pool["filepath"], pool["num_threads"]) for pool in threadpool_info()]

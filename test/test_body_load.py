@@ -1,14 +1,14 @@
-"""Tests of core/body_load.py and its use by the prediction scheduler: the unmodelled uniform
-body load is recovered from corrections (core/model_fit.py), a local correction moves it little
+"""Tests of core/physics/body_load.py and its use by the prediction scheduler: the unmodelled uniform
+body load is recovered from corrections (core/physics/model_fit.py), a local correction moves it little
 and noise by its least-squares spread, the simulator applies it, and a new timeline forgets it."""
 
 import numpy as np
 import pytest
 
-from meshfg_ros.core.body_load import BodyLoadEstimate
-from meshfg_ros.core.model_fit import learn, surface_fit
+from meshfg_ros.core.physics.body_load import BodyLoadEstimate
+from meshfg_ros.core.physics.model_fit import learn, surface_fit
 from meshfg_ros.core.scheduler import PredictionScheduler
-from meshfg_ros.core.simulator import ElasticSimulator, SimulatorConfig, SimulatorInputError
+from meshfg_ros.core.physics.simulator import ElasticSimulator, SimulatorConfig, SimulatorInputError
 from meshfg_ros.synthetic.meshing import cube_mesh
 
 IDENTITY = np.array([0.0, 0.0, 0.0, 1.0])
@@ -65,7 +65,7 @@ def test_a_local_correction_moves_the_load_little_and_noise_by_its_least_squares
     """One vertex moved by ten times the sag moves the load by a tenth of it. White noise as
     large as the sag at every vertex moves it by the spread of a least-squares fit of three
     numbers to the surface's normal components, sigma sqrt(trace((A^T W A)^-1)): 15-45 % of the
-    load on this coarse cube. The persistence share (core/persistence.py) keeps most of a
+    load on this coarse cube. The persistence share (core/estimation/persistence.py) keeps most of a
     correction's noise from the estimates this learns from."""
     mesh = fixed_cube()
     model = ElasticSimulator(mesh, SimulatorConfig(youngs_modulus=STIFF))

@@ -1,7 +1,7 @@
-"""core.camera_check: the points a camera at a given centre cannot have seen (back faces, grazing rays)."""
+"""core.inputs.camera_check: the points a camera at a given centre cannot have seen (back faces, grazing rays)."""
 import numpy as np
 
-from meshfg_ros.core.camera_check import IMPLAUSIBLE_SHARE, implausible_view
+from meshfg_ros.core.inputs.camera_check import IMPLAUSIBLE_SHARE, implausible_view
 from meshfg_ros.synthetic.meshing import cube_mesh
 
 SIDE = 0.05

@@ -5,7 +5,7 @@ import pytest
 from offline_helpers import BAGS
 
 from meshfg_ros import cli
-from meshfg_ros.core.mesh import load_mesh, save_mesh
+from meshfg_ros.core.geometry.mesh import load_mesh, save_mesh
 from meshfg_ros.io.messages import MeshState
 from meshfg_ros.io.recording import RecordingReader
 from meshfg_ros.parameters import read_parameters_file

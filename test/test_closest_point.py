@@ -7,8 +7,8 @@ import pytest
 import torch
 from torch.func import jacrev, vmap
 
-from meshfg_ros.core import closest_point
-from meshfg_ros.core.closest_point import (
+from meshfg_ros.core.geometry import closest_point
+from meshfg_ros.core.geometry.closest_point import (
     GRID_MAX_REACH_EDGES,
     REGION_EDGE_AB,
     REGION_EDGE_AC,

@@ -1,4 +1,4 @@
-"""The published estimate's covariance (core/covariance.py): sampled marginals against dense
+"""The published estimate's covariance (core/estimation/covariance.py): sampled marginals against dense
 inverses, the mixing formula against a Monte Carlo of the linear-Gaussian model it describes,
 and the prior's error scale learnt from an innovation."""
 
@@ -7,7 +7,7 @@ import pytest
 import scipy.sparse
 from scipy.stats import chi2
 
-from meshfg_ros.core.covariance import (
+from meshfg_ros.core.estimation.covariance import (
     DENSE_MAX_DOFS,
     ForgettingMean,
     MarginalCovariance,
@@ -15,8 +15,8 @@ from meshfg_ros.core.covariance import (
     prior_error_scale,
     published_covariance,
 )
-from meshfg_ros.core.noise import NotPositiveDefiniteError
-from meshfg_ros.core.sparse_cholesky import SparseCholesky
+from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError
+from meshfg_ros.core.solvers.sparse_cholesky import SparseCholesky
 
 
 def _blocks(matrix: np.ndarray) -> np.ndarray:

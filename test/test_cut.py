@@ -7,11 +7,11 @@ simulation alone over the vertices left."""
 import numpy as np
 import pytest
 
-from meshfg_ros.core.estimator import EstimatorConfig, EstimatorInputError, SlidingWindowEstimator
-from meshfg_ros.core.mesh import InvalidMeshError, inverted_elements
+from meshfg_ros.core.estimation.estimator import EstimatorConfig, EstimatorInputError, SlidingWindowEstimator
+from meshfg_ros.core.geometry.mesh import InvalidMeshError, inverted_elements
 from meshfg_ros.core.scheduler import OfflinePipeline, run_offline
-from meshfg_ros.core.simulator import ElasticSimulator, SimulatorConfig
-from meshfg_ros.core.topology import cut_elements, detached_elements, elements_in_box
+from meshfg_ros.core.physics.simulator import ElasticSimulator, SimulatorConfig
+from meshfg_ros.core.geometry.topology import cut_elements, detached_elements, elements_in_box
 from meshfg_ros.evaluation.accuracy import scene_result
 from meshfg_ros.io.messages import MeshState, mesh_state_from_msg, mesh_state_to_msg
 from meshfg_ros.io.recording import RecordingReader

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from meshfg_ros.benchmarks.baselines import WhitenedProblem, freeze_associations, synthetic_sequence
-from meshfg_ros.core import estimator as estimator_module
-from meshfg_ros.core.covariance import DENSE_MAX_DOFS
-from meshfg_ros.core.estimator import (
+from meshfg_ros.core.estimation import estimator as estimator_module
+from meshfg_ros.core.estimation.covariance import DENSE_MAX_DOFS
+from meshfg_ros.core.estimation.estimator import (
     FACTOR_CONFIGURATIONS,
     EstimatorConfig,
     EstimatorConfigError,
@@ -27,7 +27,7 @@ def scene():
 
 # The tests of what the factor graph fuses look at its optimum: their sequences' prediction errors
 # turn to a random direction at every step, a correction the published estimate leaves out for
-# not persisting from one update to the next (core/persistence.py, tested below).
+# not persisting from one update to the next (core/estimation/persistence.py, tested below).
 OPTIMUM = dict(keep_persistent_correction=False)
 
 
@@ -139,7 +139,7 @@ def test_conditioning_window_against_growing_full_batch(scene):
 
 
 def test_position_covariance_is_the_published_optimums_from_dense_matrices(scene):
-    """With the optimum published (alpha = 1), Sigma = max(lambda^2, 1) S (core/covariance.py):
+    """With the optimum published (alpha = 1), Sigma = max(lambda^2, 1) S (core/estimation/covariance.py):
     S the newest state's posterior given the window's other states."""
     mesh, sequence = scene
     estimator, results = run(mesh, sequence, 2, factors="full", window_size=2, exact_lm=True,
@@ -270,8 +270,8 @@ def test_the_gate_reuses_the_innovation_tests_association(scene, monkeypatch):
     """Preparing an update queries the closest triangles of the cloud on the prediction once:
     the innovation test's association serves the measurement factor's gate, which keeps the
     same points as one that queries on its own."""
-    from meshfg_ros.core import closest_point
-    from meshfg_ros.core.factors import FactorError, PointToSurfaceFactor
+    from meshfg_ros.core.geometry import closest_point
+    from meshfg_ros.core.estimation.factors import FactorError, PointToSurfaceFactor
 
     mesh, sequence = scene
     estimator = SlidingWindowEstimator(mesh, EstimatorConfig())
@@ -298,7 +298,7 @@ def test_the_updates_factor_into_the_window_factors_reserved_when_the_estimator_
     """Building the estimator analyses its window's W block factors; the updates that fill the
     window and slide it on factor into them (and into the factors of states that left), so no
     update orders or analyses a pattern."""
-    from meshfg_ros.core import sparse_cholesky
+    from meshfg_ros.core.solvers import sparse_cholesky
 
     mesh, sequence = scene
     analyses = []

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from meshfg_ros.benchmarks.baselines import synthetic_sequence
-import meshfg_ros.core.estimator as estimator_module
-from meshfg_ros.core.estimator import (
+import meshfg_ros.core.estimation.estimator as estimator_module
+from meshfg_ros.core.estimation.estimator import (
     EstimatorConfig,
     EstimatorConfigError,
     EstimatorInputError,

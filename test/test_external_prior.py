@@ -1,4 +1,4 @@
-"""An external simulator's state and stiffness as the estimator's prior (core/external_prior.py):
+"""An external simulator's state and stiffness as the estimator's prior (core/physics/external_prior.py):
 the checks of an answer, the frame change, the information made of an indefinite, asymmetric
 stiffness with held dofs, and the estimator's use of it (the same estimate as its own K when it
 is given its own K)."""
@@ -7,8 +7,8 @@ import pytest
 import scipy.sparse
 from scipy.spatial.transform import Rotation
 
-from meshfg_ros.core.estimator import EstimatorConfig, SlidingWindowEstimator
-from meshfg_ros.core.external_prior import (
+from meshfg_ros.core.estimation.estimator import EstimatorConfig, SlidingWindowEstimator
+from meshfg_ros.core.physics.external_prior import (
     FIXED_DIAGONAL,
     REPAIR_SHIFTS,
     BridgeAnswer,
@@ -16,7 +16,7 @@ from meshfg_ros.core.external_prior import (
     ExternalStiffness,
     bridge_state,
 )
-from meshfg_ros.core.fem import ElasticModel
+from meshfg_ros.core.physics.fem import ElasticModel
 from meshfg_ros.synthetic.meshing import cube_mesh
 
 SIDE = 0.05
@@ -231,7 +231,7 @@ def test_a_cut_and_the_simulators_stiffness_reach_the_estimator_through_the_sche
 
 
 def test_a_kept_projection_gives_what_a_fresh_one_gives_answer_after_answer(mesh, model):
-    from meshfg_ros.core.external_prior import StiffnessProjection
+    from meshfg_ros.core.physics.external_prior import StiffnessProjection
 
     template, free = model.stiffness(None, kind="linear"), free_dofs(mesh)
     projection = StiffnessProjection(template, free)

@@ -8,8 +8,8 @@ import torch
 from torch.func import jacrev, vmap
 
 from meshfg_ros.benchmarks.baselines import WhitenedProblem, freeze_associations
-from meshfg_ros.core.factor_graph import FactorGraph
-from meshfg_ros.core.factors import (
+from meshfg_ros.core.estimation.factor_graph import FactorGraph
+from meshfg_ros.core.estimation.factors import (
     CURVATURE_FLOOR,
     Factor,
     FactorError,
@@ -18,11 +18,11 @@ from meshfg_ros.core.factors import (
     TemporalFactor,
     prior_scale,
 )
-from meshfg_ros.core.closest_point import REGION_FACE
-from meshfg_ros.core.fem import ElasticModel
+from meshfg_ros.core.geometry.closest_point import REGION_FACE
+from meshfg_ros.core.physics.fem import ElasticModel
 from meshfg_ros.synthetic.meshing import cube_mesh
 from meshfg_ros.evaluation.metrics import sample_surface
-from meshfg_ros.core.noise import (
+from meshfg_ros.core.estimation.noise import (
     IdentityNoise,
     InformationMatrixNoise,
     IsotropicNoise,
@@ -31,7 +31,7 @@ from meshfg_ros.core.noise import (
     PerPointNoise,
     RayNoise,
 )
-from meshfg_ros.core.robust import CauchyKernel, HuberKernel, RobustKernelError, make_robust_kernel
+from meshfg_ros.core.estimation.robust import CauchyKernel, HuberKernel, RobustKernelError, make_robust_kernel
 
 from test_closest_point import torch_closest_point
 
@@ -74,7 +74,7 @@ def test_point_to_surface_keeps_the_last_two_associations(cube, monkeypatch):
     """LM asks for the cost at a trial, at its extrapolation, and then (the extrapolation not
     taken) linearises at the trial: the second visit to a state reuses its exact association;
     a third state's pushes the oldest out."""
-    from meshfg_ros.core import closest_point
+    from meshfg_ros.core.geometry import closest_point
 
     first, second, third = (deformed(cube, seed=seed) for seed in (1, 2, 3))
     factor = PointToSurfaceFactor(0, noisy_points(first, cube.surface_triangles), cube.surface_triangles, first,
@@ -380,7 +380,7 @@ def test_association_follows_the_surface_exactly(cube):
     points = noisy_points(deformed(cube, 2.0), cube.surface_triangles, 400, seed=6)
     factor = PointToSurfaceFactor(0, points, cube.surface_triangles, start)
     moved = deformed(cube, 3.0, seed=7)
-    from meshfg_ros.core.closest_point import brute_force_closest
+    from meshfg_ros.core.geometry.closest_point import brute_force_closest
 
     reference = brute_force_closest(points, moved, cube.surface_triangles)
     np.testing.assert_allclose(factor.associate({0: moved}).distance, reference.distance, atol=1e-15)
@@ -536,8 +536,8 @@ def test_volume_barrier_gradient_hessian_and_bounds(cube):
     """Zero on states that keep half their reference volume; its gradient is the derivative of
     its cost (finite differences) and its Gauss-Newton term the outer product of the residual's
     Jacobian; infinite once an element inverts."""
-    from meshfg_ros.core.factors import BARRIER_VOLUME_RATIO, VolumeBarrierFactor
-    from meshfg_ros.core.mesh import signed_volumes
+    from meshfg_ros.core.estimation.factors import BARRIER_VOLUME_RATIO, VolumeBarrierFactor
+    from meshfg_ros.core.geometry.mesh import signed_volumes
 
     reference = signed_volumes(cube.vertices, cube.tetrahedra)
     barrier = VolumeBarrierFactor(0, cube.tetrahedra, reference, 2.0)
@@ -577,8 +577,9 @@ def test_volume_barrier_gradient_hessian_and_bounds(cube):
 def test_volume_barrier_keeps_the_last_states_volumes(cube, monkeypatch):
     """LM evaluates a trial's cost and then linearises there: the barrier computes that state's
     volumes once. Another state, or the same array changed in place, is computed afresh."""
-    from meshfg_ros.core import factors, mesh
-    from meshfg_ros.core.mesh import signed_volumes
+    from meshfg_ros.core.estimation import factors
+    from meshfg_ros.core.geometry import mesh
+    from meshfg_ros.core.geometry.mesh import signed_volumes
 
     barrier = factors.VolumeBarrierFactor(0, cube.tetrahedra, signed_volumes(cube.vertices, cube.tetrahedra), 2.0)
     computed = []
@@ -596,8 +597,9 @@ def test_volume_barrier_keeps_the_last_states_volumes(cube, monkeypatch):
 def test_barriers_and_the_inversion_guard_share_the_window_volumes(cube, monkeypatch):
     """The barriers of a window's states evaluate their volumes in one call, and the graph's
     inversion guard at the same x reuses them; the values are those of signed_volumes."""
-    from meshfg_ros.core import factors, mesh
-    from meshfg_ros.core.mesh import signed_volumes
+    from meshfg_ros.core.estimation import factors
+    from meshfg_ros.core.geometry import mesh
+    from meshfg_ros.core.geometry.mesh import signed_volumes
 
     graph = FactorGraph(cube.vertex_count, cube.tetrahedra, cube.surface_triangles, cube.fixed_vertices,
                         cube.vertices)

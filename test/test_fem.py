@@ -1,4 +1,4 @@
-"""Tests of core/fem.py: K0 against scikit-fem, corotational invariance, Neo-Hookean Hessian and
+"""Tests of core/physics/fem.py: K0 against scikit-fem, corotational invariance, Neo-Hookean Hessian and
 forces against torch autograd, SPD projection and the definiteness check."""
 
 from itertools import permutations
@@ -9,8 +9,8 @@ import pytest
 import scipy.linalg
 import torch
 
-from meshfg_ros.core import fem
-from meshfg_ros.core.fem import (
+from meshfg_ros.core.physics import fem
+from meshfg_ros.core.physics.fem import (
     DegenerateElementError,
     ElasticModel,
     InvalidMaterialError,
@@ -63,7 +63,7 @@ def cube_model():
 
 @pytest.fixture(scope="module")
 def liver_arrays():
-    from meshfg_ros.core.mesh import load_mesh
+    from meshfg_ros.core.geometry.mesh import load_mesh
 
     mesh = load_mesh(LIVER_PATH)
     return np.asarray(mesh.vertices), np.asarray(mesh.tetrahedra)

@@ -37,7 +37,7 @@ from test_nodes import (  # noqa: F401 - probe and processes are fixtures
 )
 
 from meshfg_msgs.msg import PredictionFailure, TetraMesh
-from meshfg_ros.core.mesh import save_mesh
+from meshfg_ros.core.geometry.mesh import save_mesh
 from meshfg_ros.nodes.estimator_node import PREDICTION_QOS
 from meshfg_ros.nodes.runtime import unmatched_parameter_files
 

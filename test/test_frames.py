@@ -1,10 +1,10 @@
-"""core.frames: a ROS-free tf buffer (chains, interpolation, bounded history, lookup errors)."""
+"""core.inputs.frames: a ROS-free tf buffer (chains, interpolation, bounded history, lookup errors)."""
 import numpy as np
 import pytest
 from pytransform3d.transform_manager import TransformManager
 from scipy.spatial.transform import Rotation
 
-from meshfg_ros.core.frames import FrameLookupError, InvalidTransformError, StampedTransform, TransformBuffer
+from meshfg_ros.core.inputs.frames import FrameLookupError, InvalidTransformError, StampedTransform, TransformBuffer
 
 EPOCH_NS = 1_700_000_000_000_000_000  # stamps of a real clock: precision must survive them
 NS = 1_000_000_000

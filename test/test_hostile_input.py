@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from offline_helpers import BAGS, tiny_scenario
 
-import meshfg_ros.core.estimator as estimator_module
-from meshfg_ros.core.closest_point import ClosestPointIndex, InvalidGeometryError
-from meshfg_ros.core.estimator import (
+import meshfg_ros.core.estimation.estimator as estimator_module
+from meshfg_ros.core.geometry.closest_point import ClosestPointIndex, InvalidGeometryError
+from meshfg_ros.core.estimation.estimator import (
     EstimatorConfig,
     EstimatorConfigError,
     EstimatorInputError,
@@ -18,8 +18,8 @@ from meshfg_ros.core.estimator import (
     EstimatorStepError,
     SlidingWindowEstimator,
 )
-from meshfg_ros.core.fem import ElasticModel, InvalidStateError, polar_rotations
-from meshfg_ros.core.input_checks import (
+from meshfg_ros.core.physics.fem import ElasticModel, InvalidStateError, polar_rotations
+from meshfg_ros.core.inputs.input_checks import (
     INVALID,
     JUMP_BACK,
     NEWER,
@@ -33,7 +33,7 @@ from meshfg_ros.core.input_checks import (
     rejections_in,
     stamp_order,
 )
-from meshfg_ros.core.levenberg_marquardt import NonFiniteCostError
+from meshfg_ros.core.solvers.levenberg_marquardt import NonFiniteCostError
 from meshfg_ros.parameters import estimator_config, load_parameters
 from meshfg_ros.synthetic.scenarios import FIRST_STAMP_NS, STEP_PERIOD_NS
 from meshfg_ros.io.messages import MeshState, PointCloudRecord, PoseRecord

@@ -4,8 +4,8 @@ equilibrium under body load, sticky sphere contact, errors."""
 import numpy as np
 import pytest
 
-from meshfg_ros.core.fem import ElasticModel
-from meshfg_ros.core.mesh import signed_volumes
+from meshfg_ros.core.physics.fem import ElasticModel
+from meshfg_ros.core.geometry.mesh import signed_volumes
 from meshfg_ros.synthetic.meshing import structured_box_mesh
 from meshfg_ros.synthetic import hyperelastic
 from meshfg_ros.synthetic.hyperelastic import (

@@ -7,11 +7,11 @@ import scipy.optimize
 import scipy.sparse
 
 from meshfg_ros.benchmarks.baselines import compare_single_update
-from meshfg_ros.core.factor_graph import MIN_VOLUME_RATIO_PER_STEP, FactorGraph
-from meshfg_ros.core.factors import PhysicsPriorFactor, prior_scale
-from meshfg_ros.core.fem import ElasticModel
-from meshfg_ros.core.levenberg_marquardt import LevenbergMarquardtConfig, levenberg_marquardt
-from meshfg_ros.core.linear_solvers import (
+from meshfg_ros.core.estimation.factor_graph import MIN_VOLUME_RATIO_PER_STEP, FactorGraph
+from meshfg_ros.core.estimation.factors import PhysicsPriorFactor, prior_scale
+from meshfg_ros.core.physics.fem import ElasticModel
+from meshfg_ros.core.solvers.levenberg_marquardt import LevenbergMarquardtConfig, levenberg_marquardt
+from meshfg_ros.core.solvers.linear_solvers import (
     BORROWED_ITERATIONS,
     CholeskySolver,
     FallbackSolver,
@@ -21,9 +21,9 @@ from meshfg_ros.core.linear_solvers import (
     SuperLUSolver,
     make_linear_solver,
 )
-from meshfg_ros.core.linear_system import WindowSystem
-from meshfg_ros.core.mesh import signed_volumes
-from meshfg_ros.core import sparse_cholesky
+from meshfg_ros.core.solvers.linear_system import WindowSystem
+from meshfg_ros.core.geometry.mesh import signed_volumes
+from meshfg_ros.core.solvers import sparse_cholesky
 from meshfg_ros.synthetic.meshing import cube_mesh
 
 from test_factors import build_window, cube, model  # noqa: F401  (fixtures)
@@ -556,7 +556,7 @@ def test_fallback_solver_says_what_failed(cube, model):  # noqa: F811
 
 def test_estimator_window_problem_matches_scipy():
     from meshfg_ros.benchmarks.baselines import pending_window, synthetic_sequence
-    from meshfg_ros.core.estimator import EstimatorConfig
+    from meshfg_ros.core.estimation.estimator import EstimatorConfig
 
     mesh, sequence = synthetic_sequence(target_vertices=64, points_per_step=200, steps=4, noise_sigma=5e-4,
                                         prediction_error=2e-3, seed=2)

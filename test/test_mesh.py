@@ -1,4 +1,4 @@
-"""Tests for meshfg_ros.core.mesh: validation, orientation, surface topology and file IO."""
+"""Tests for meshfg_ros.core.geometry.mesh: validation, orientation, surface topology and file IO."""
 
 from pathlib import Path
 
@@ -6,7 +6,7 @@ import meshio
 import numpy as np
 import pytest
 
-from meshfg_ros.core.mesh import (
+from meshfg_ros.core.geometry.mesh import (
     DegenerateMeshError,
     InvalidMeshError,
     MeshFileError,
@@ -224,7 +224,7 @@ def test_inverted_elements_are_the_flat_flipped_and_non_finite_ones():
 
 
 def test_sorted_unique_is_numpys_unique():
-    from meshfg_ros.core.mesh import sorted_unique
+    from meshfg_ros.core.geometry.mesh import sorted_unique
 
     keys = np.random.default_rng(3).integers(0, 500, 5000)
     np.testing.assert_array_equal(sorted_unique(keys), np.unique(keys))

@@ -6,9 +6,9 @@ from dataclasses import asdict
 import numpy as np
 import pytest
 
-from meshfg_ros.core.mesh import signed_volumes
+from meshfg_ros.core.geometry.mesh import signed_volumes
 from meshfg_ros.synthetic.scenarios import MISMATCH_SCENARIOS, SCENARIOS, ScenarioError, generate
-from meshfg_ros.core.simulator import ElasticSimulator, SimulatorConfig
+from meshfg_ros.core.physics.simulator import ElasticSimulator, SimulatorConfig
 from meshfg_ros.replay import scenario_parameters
 from meshfg_ros.synthetic.recordings import scenario_metadata
 from meshfg_ros.synthetic import mismatch_scenes

@@ -1,13 +1,13 @@
-"""Tests of core/model_fit.py: the body load and the Poisson ratio are fitted jointly to the
+"""Tests of core/physics/model_fit.py: the body load and the Poisson ratio are fitted jointly to the
 normal components of a correction at the surface, each vertex weighted by the estimate's
 information about it."""
 
 import numpy as np
 
-from meshfg_ros.core.body_load import BodyLoadEstimate
-from meshfg_ros.core.model_fit import learn, surface_fit
-from meshfg_ros.core.poisson_ratio import PoissonRatioEstimate
-from meshfg_ros.core.simulator import ElasticSimulator, SimulatorConfig
+from meshfg_ros.core.physics.body_load import BodyLoadEstimate
+from meshfg_ros.core.physics.model_fit import learn, surface_fit
+from meshfg_ros.core.physics.poisson_ratio import PoissonRatioEstimate
+from meshfg_ros.core.physics.simulator import ElasticSimulator, SimulatorConfig
 from meshfg_ros.synthetic.meshing import cube_mesh
 
 FAR_AWAY = np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 1.0])  # a tool that touches nothing

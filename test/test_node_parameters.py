@@ -27,7 +27,7 @@ from test_nodes import (  # noqa: F401 - probe and processes are fixtures
     top_points,
 )
 
-from meshfg_ros.core.mesh import save_mesh
+from meshfg_ros.core.geometry.mesh import save_mesh
 from meshfg_ros.parameters import node_parameters
 
 pytestmark = pytest.mark.slow  # each test starts executables
@@ -139,7 +139,7 @@ def test_a_dynamic_parameter_set_while_running_reaches_the_estimator(probe, proc
 
     io.send(cloud_msg(top_points(seed=1), 2 * S), steps=2)
     assert spin_until(probe, lambda: len(io.statuses) == 2)
-    # The noise estimate stays within a factor 10 of its nominal value (core/weights.py): from
+    # The noise estimate stays within a factor 10 of its nominal value (core/estimation/weights.py): from
     # 1 mm before the change, from 200 mm after it.
     before, after = (weighted_sigma_mm(status) for status in io.statuses)
     assert before <= 10.0 and after >= 20.0, (before, after)

@@ -29,10 +29,10 @@ from meshfg_msgs.msg import EstimatorStatus, PredictionFailure, TetraMesh
 from meshfg_ros import blas
 from meshfg_ros.synthetic.meshing import cube_mesh
 from meshfg_ros.parameters import load_parameters, simulator_config
-from meshfg_ros.core.body_load import BodyLoadEstimate
-from meshfg_ros.core.model_fit import learn
-from meshfg_ros.core.poisson_ratio import PoissonRatioEstimate
-from meshfg_ros.core.simulator import ElasticSimulator
+from meshfg_ros.core.physics.body_load import BodyLoadEstimate
+from meshfg_ros.core.physics.model_fit import learn
+from meshfg_ros.core.physics.poisson_ratio import PoissonRatioEstimate
+from meshfg_ros.core.physics.simulator import ElasticSimulator
 from meshfg_ros.io.messages import (
     MeshState,
     MessageValidationError,
@@ -339,7 +339,7 @@ def test_simulation_node_predicts_from_the_latest_estimate(probe, processes, tmp
         return np.concatenate([position, [0.0, 0.0, 0.0, 1.0]])
 
     # The estimate's correction of its prediction teaches the body load and the Poisson ratio of
-    # the later predictions (core/model_fit.py); the restarted timeline forgets them and learns
+    # the later predictions (core/physics/model_fit.py); the restarted timeline forgets them and learns
     # them again from the same estimate.
     simulator = ElasticSimulator(mesh, simulator_config(params))
     body_load, poisson_ratio = BodyLoadEstimate(simulator), PoissonRatioEstimate(simulator)

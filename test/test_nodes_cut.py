@@ -13,7 +13,7 @@ from test_nodes import (KEEP, LATCHED, SIDE, S, Process, assert_clean_exit, clou
                         processes, pushed_cube, ros_args, spin_until, tool_pose_msg)
 
 from meshfg_msgs.msg import TetraMesh
-from meshfg_ros.core.topology import cut_elements
+from meshfg_ros.core.geometry.topology import cut_elements
 from meshfg_ros.io.messages import mesh_state_from_msg
 
 TOOL_RADIUS = 0.01

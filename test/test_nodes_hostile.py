@@ -34,7 +34,7 @@ from test_nodes import (  # noqa: F401 - probe and processes are fixtures
 )
 
 from meshfg_msgs.msg import TetraMesh
-from meshfg_ros.core.estimator import EstimatorStepError, SlidingWindowEstimator
+from meshfg_ros.core.estimation.estimator import EstimatorStepError, SlidingWindowEstimator
 from meshfg_ros.io.messages import MeshState, PoseRecord, header_msg, pose_to_msg
 
 

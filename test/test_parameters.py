@@ -9,9 +9,9 @@ import pytest
 import yaml
 from rcl_interfaces.msg import ParameterType
 
-from meshfg_ros.core.estimator import EstimatorConfig
+from meshfg_ros.core.estimation.estimator import EstimatorConfig
 from meshfg_ros.core.settings import setting
-from meshfg_ros.core.world_frame import CLOUD, FramedInput
+from meshfg_ros.core.inputs.world_frame import CLOUD, FramedInput
 from meshfg_ros.parameters import (
     PARAMETERS,
     ParameterError,
@@ -30,7 +30,7 @@ from meshfg_ros.parameters import (
     shared_settings,
     simulator_config,
 )
-from meshfg_ros.core.simulator import SimulatorConfig
+from meshfg_ros.core.physics.simulator import SimulatorConfig
 from meshfg_ros.nodes.ros_parameters import parameter_descriptor
 
 CONFIG = Path(__file__).resolve().parents[1] / "config" / "meshfg.yaml"
@@ -269,7 +269,7 @@ def test_a_mesh_file_that_cannot_be_read_is_a_parameter_error(tmp_path):
 
 
 def test_mesh_file_placement_and_fixed_vertices_come_from_the_parameters(tmp_path):
-    from meshfg_ros.core.mesh import save_mesh
+    from meshfg_ros.core.geometry.mesh import save_mesh
     from meshfg_ros.synthetic.meshing import cube_mesh
 
     cube = cube_mesh(side=0.02, divisions=3)

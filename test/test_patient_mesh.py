@@ -1,11 +1,11 @@
-"""core.patient_mesh: a user's own mesh (no fixed data, mm, CT frame) made ready for the simulator."""
+"""core.inputs.patient_mesh: a user's own mesh (no fixed data, mm, CT frame) made ready for the simulator."""
 import meshio
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from meshfg_ros.core.mesh import MeshFileError, load_mesh, save_mesh
-from meshfg_ros.core.patient_mesh import (
+from meshfg_ros.core.geometry.mesh import MeshFileError, load_mesh, save_mesh
+from meshfg_ros.core.inputs.patient_mesh import (
     Box,
     FixedSelection,
     PatientMeshError,

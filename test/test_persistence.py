@@ -1,11 +1,11 @@
-"""The share of a correction that persists between updates (core/persistence.py)."""
+"""The share of a correction that persists between updates (core/estimation/persistence.py)."""
 
 import numpy as np
 import pytest
 
 from meshfg_ros.benchmarks.baselines import synthetic_sequence
-from meshfg_ros.core.estimator import EstimatorConfig, EstimatorStepError, SlidingWindowEstimator
-from meshfg_ros.core.persistence import HORIZON, CorrectionPersistence
+from meshfg_ros.core.estimation.estimator import EstimatorConfig, EstimatorStepError, SlidingWindowEstimator
+from meshfg_ros.core.estimation.persistence import HORIZON, CorrectionPersistence
 
 SIZE = 600  # values per correction (200 vertices)
 

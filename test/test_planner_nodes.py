@@ -4,7 +4,7 @@ example planner `tool_clearance_node`, as separate processes (see test_nodes.py'
 Most estimates they answer on are published by the test on the estimator node's `estimated_mesh`
 (a deformed cube with a per-vertex covariance), so the expected answers are known: distances
 from a brute-force point-to-mesh distance, signs from the winding number, the rest from the
-core (core/surface_query.py) on the estimate as the message carries it. One test has the node
+core (core/geometry/surface_query.py) on the estimate as the message carries it. One test has the node
 estimate clouds and checks that the service answers on its newest estimate.
 """
 import time
@@ -21,7 +21,7 @@ from scipy.spatial.transform import Rotation
 from tf2_msgs.msg import TFMessage
 
 from meshfg_msgs.srv import SurfaceQuery as SurfaceQueryService
-from meshfg_ros.core.surface_query import SurfaceQuery
+from meshfg_ros.core.geometry.surface_query import SurfaceQuery
 from meshfg_ros.io.messages import MeshState, header_msg, mesh_state_from_msg, mesh_state_to_msg, stamp_ns_from_msg
 from meshfg_ros.nodes.planner_service import points_from_flat
 from meshfg_ros.planner_client import SurfaceQueryClient, SurfaceQueryError

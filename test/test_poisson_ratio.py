@@ -1,4 +1,4 @@
-"""Tests of core/poisson_ratio.py and its use by the prediction scheduler: the sensitivity is
+"""Tests of core/physics/poisson_ratio.py and its use by the prediction scheduler: the sensitivity is
 the derivative of the small-strain equilibrium, the ratio learnt from a truth's corrections is
 the truth's, less or more compressible, a changed ratio predicts as a simulator built with it,
 and a new timeline forgets it."""
@@ -6,11 +6,11 @@ and a new timeline forgets it."""
 import numpy as np
 import pytest
 
-from meshfg_ros.core.fem import ElasticModel
-from meshfg_ros.core.model_fit import learn
-from meshfg_ros.core.poisson_ratio import CEILING, FLOOR, PoissonRatioEstimate
+from meshfg_ros.core.physics.fem import ElasticModel
+from meshfg_ros.core.physics.model_fit import learn
+from meshfg_ros.core.physics.poisson_ratio import CEILING, FLOOR, PoissonRatioEstimate
 from meshfg_ros.core.scheduler import PredictionScheduler
-from meshfg_ros.core.simulator import ElasticSimulator, SimulatorConfig
+from meshfg_ros.core.physics.simulator import ElasticSimulator, SimulatorConfig
 from meshfg_ros.synthetic.meshing import cube_mesh
 
 START = np.array([0.05, 0.05, 0.1, 0.0, 0.0, 0.0, 1.0])

@@ -8,14 +8,14 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from offline_helpers import NOISE_SIGMA, TOOL_RADIUS, tiny_scenario
 
-from meshfg_ros.core.body_load import BodyLoadEstimate
-from meshfg_ros.core.model_fit import learn
-from meshfg_ros.core.poisson_ratio import PoissonRatioEstimate
-from meshfg_ros.core.estimator import SlidingWindowEstimator
-from meshfg_ros.core.mesh import MeshFileError, save_mesh
+from meshfg_ros.core.physics.body_load import BodyLoadEstimate
+from meshfg_ros.core.physics.model_fit import learn
+from meshfg_ros.core.physics.poisson_ratio import PoissonRatioEstimate
+from meshfg_ros.core.estimation.estimator import SlidingWindowEstimator
+from meshfg_ros.core.geometry.mesh import MeshFileError, save_mesh
 from meshfg_ros.parameters import ParameterError, estimator_config, simulator_config
 from meshfg_ros.synthetic.scenarios import FIRST_STAMP_NS, STEP_PERIOD_NS
-from meshfg_ros.core.simulator import ElasticSimulator
+from meshfg_ros.core.physics.simulator import ElasticSimulator
 from meshfg_ros.io.messages import MeshState, PointCloudRecord, PoseRecord, StatusRecord, stamp_ns_from_msg
 from meshfg_ros.io.recording import RecordingExistsError, RecordingReader, RecordingWriter
 from meshfg_ros.markers import MAX_ELLIPSOIDS, NAMESPACE_ELLIPSOIDS, NAMESPACE_LEGEND
@@ -45,7 +45,7 @@ from meshfg_ros.topics import (
 )
 
 # The truth of the tiny scene is the nominal model, so every correction is noise and none persists:
-# the published estimates would be the predictions (core/persistence.py), and the closed loop the
+# the published estimates would be the predictions (core/estimation/persistence.py), and the closed loop the
 # open one. Publishing the optimum keeps the loop's semantics visible.
 FAST = {"max_iterations": 3, "keep_persistent_correction": False}
 

@@ -16,10 +16,10 @@ from offline_helpers import BASE, robot_statics
 from scipy.spatial.transform import Rotation, Slerp
 
 from meshfg_ros.benchmarks.latency import LIVE_OVERRIDES, run_live_pipeline
-from meshfg_ros.core.frames import StampedTransform, TransformBuffer
-from meshfg_ros.core.mesh import save_mesh
-from meshfg_ros.core.pose_history import pose_matrix
-from meshfg_ros.core.world_frame import pose_in
+from meshfg_ros.core.inputs.frames import StampedTransform, TransformBuffer
+from meshfg_ros.core.geometry.mesh import save_mesh
+from meshfg_ros.core.inputs.pose_history import pose_matrix
+from meshfg_ros.core.inputs.world_frame import pose_in
 from meshfg_ros.io.messages import MeshState, PointCloudRecord, PoseRecord
 from meshfg_ros.io.recording import RecordingWriter
 from meshfg_ros.io.tf_messages import TF_STATIC_TOPIC, TF_TOPIC, transforms_to_tf_message

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from offline_helpers import NOISE_SIGMA, TOOL_RADIUS, tiny_scenario
 
-from meshfg_ros.core.estimator import EstimatorConfig
+from meshfg_ros.core.estimation.estimator import EstimatorConfig
 from meshfg_ros.core.scheduler import (
     EstimationScheduler,
     OfflinePipeline,
@@ -12,7 +12,7 @@ from meshfg_ros.core.scheduler import (
     PredictionScheduler,
     SchedulingTimeouts,
 )
-from meshfg_ros.core.simulator import SimulatorConfig
+from meshfg_ros.core.physics.simulator import SimulatorConfig
 from meshfg_ros.synthetic.scenarios import FIRST_STAMP_NS
 
 S = 1_000_000_000

@@ -24,8 +24,8 @@ from test_nodes import (  # noqa: F401 - probe and processes are fixtures
 from geometry_msgs.msg import PoseStamped
 from tf2_msgs.msg import TFMessage
 
-from meshfg_ros.core.frames import StampedTransform
-from meshfg_ros.core.mesh import save_mesh
+from meshfg_ros.core.inputs.frames import StampedTransform
+from meshfg_ros.core.geometry.mesh import save_mesh
 from meshfg_ros.evaluation.metrics import vertex_rmse
 from meshfg_ros.io.messages import PoseRecord, pose_to_msg
 from meshfg_ros.io.tf_messages import TF_STATIC_TOPIC, transforms_to_tf_message

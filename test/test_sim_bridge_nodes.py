@@ -34,12 +34,12 @@ from test_nodes import (  # noqa: F401 - probe and processes are fixtures
 )
 from tf2_msgs.msg import TFMessage
 
-from meshfg_ros.core.external_prior import FIXED_DIAGONAL, bridge_state
-from meshfg_ros.core.fem import ElasticModel
-from meshfg_ros.core.frames import StampedTransform
-from meshfg_ros.core.mesh import save_mesh
+from meshfg_ros.core.physics.external_prior import FIXED_DIAGONAL, bridge_state
+from meshfg_ros.core.physics.fem import ElasticModel
+from meshfg_ros.core.inputs.frames import StampedTransform
+from meshfg_ros.core.geometry.mesh import save_mesh
 from meshfg_ros.core.scheduler import EstimationScheduler, Prediction, SchedulingTimeouts
-from meshfg_ros.core.world_frame import CLOUD, FramedInput
+from meshfg_ros.core.inputs.world_frame import CLOUD, FramedInput
 from meshfg_ros.io.messages import PoseRecord, pose_to_msg
 from meshfg_ros.io.tf_messages import TF_STATIC_TOPIC, transforms_to_tf_message
 from meshfg_ros.nodes.frame_inputs import TF_STATIC_QOS

@@ -1,4 +1,4 @@
-"""Tests of core/simulator.py: small-load agreement with linear FEM, tool push safety and
+"""Tests of core/physics/simulator.py: small-load agreement with linear FEM, tool push safety and
 reproducibility, rigid grasp motion, gravity, colourings and input validation."""
 
 from dataclasses import replace
@@ -9,11 +9,11 @@ import pytest
 import scipy.sparse.linalg
 from scipy.spatial.transform import Rotation
 
-from meshfg_ros.core.fem import ElasticModel, free_dofs
-from meshfg_ros.core.mesh import signed_volumes
+from meshfg_ros.core.physics.fem import ElasticModel, free_dofs
+from meshfg_ros.core.geometry.mesh import signed_volumes
 from meshfg_ros.synthetic.meshing import cube_mesh, structured_box_mesh
-from meshfg_ros.core import simulator as simulator_module
-from meshfg_ros.core.simulator import (
+from meshfg_ros.core.physics import simulator as simulator_module
+from meshfg_ros.core.physics.simulator import (
     FLAT_VOLUME_RATIO,
     ElasticSimulator,
     ElementInversionError,
@@ -472,7 +472,7 @@ def test_a_prediction_that_would_flatten_an_element_to_nothing_slips_instead(mon
     would invert). A prediction below FLAT_VOLUME_RATIO is run again with slipping, and keeps
     every element above it."""
     assert min(_deep_oblique_push()) >= FLAT_VOLUME_RATIO
-    monkeypatch.setattr("meshfg_ros.core.simulator.FLAT_VOLUME_RATIO", 1e-300)  # slip only on inversion
+    monkeypatch.setattr("meshfg_ros.core.physics.simulator.FLAT_VOLUME_RATIO", 1e-300)  # slip only on inversion
     assert 0.0 < _deep_oblique_push()[-1] < FLAT_VOLUME_RATIO
 
 

@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 import scipy.sparse
 
-from meshfg_ros.core.fem import ElasticModel
+from meshfg_ros.core.physics.fem import ElasticModel
 from meshfg_ros.synthetic.meshing import box_mesh
-from meshfg_ros.core.noise import NotPositiveDefiniteError
-from meshfg_ros.core import sparse_cholesky
-from meshfg_ros.core.sparse_cholesky import SparseCholesky, nested_dissection
+from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError
+from meshfg_ros.core.solvers import sparse_cholesky
+from meshfg_ros.core.solvers.sparse_cholesky import SparseCholesky, nested_dissection
 
 
 @pytest.fixture(scope="module")

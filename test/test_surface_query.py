@@ -1,6 +1,6 @@
-"""The planner's surface queries (core/surface_query.py), the client without ROS
-(planner_client.py) and the newest-stamp lookups they place points with (core/frames.py,
-core/world_frame.py).
+"""The planner's surface queries (core/geometry/surface_query.py), the client without ROS
+(planner_client.py) and the newest-stamp lookups they place points with (core/inputs/frames.py,
+core/inputs/world_frame.py).
 
 Distances are checked against an exact point-to-mesh distance computed here by brute force over
 every triangle (the plane projection where it falls inside the triangle, else the nearest of the
@@ -17,11 +17,11 @@ import numpy as np
 import pytest
 import yaml
 
-from meshfg_ros.core.closest_point import InvalidGeometryError
-from meshfg_ros.core.frames import FrameLookupError, StampedTransform, TransformBuffer
-from meshfg_ros.core.mesh import TetMesh
-from meshfg_ros.core.surface_query import SurfaceQuery
-from meshfg_ros.core.world_frame import WorldFrameInputs
+from meshfg_ros.core.geometry.closest_point import InvalidGeometryError
+from meshfg_ros.core.inputs.frames import FrameLookupError, StampedTransform, TransformBuffer
+from meshfg_ros.core.geometry.mesh import TetMesh
+from meshfg_ros.core.geometry.surface_query import SurfaceQuery
+from meshfg_ros.core.inputs.world_frame import WorldFrameInputs
 from meshfg_ros.io.messages import MeshState
 from meshfg_ros.io.recording import RecordingWriter
 from meshfg_ros.parameters import default_parameters, load_parameters

@@ -11,7 +11,7 @@ import rclpy.executors
 from rclpy.serialization import deserialize_message, serialize_message
 from scipy.spatial.transform import Rotation
 
-from meshfg_ros.core.frames import StampedTransform, TransformBuffer
+from meshfg_ros.core.inputs.frames import StampedTransform, TransformBuffer
 from meshfg_ros.io.messages import RclpyMessageFactory, meshfg_typestore
 from meshfg_ros.io.recording import RecordingReader, RecordingWriter
 from meshfg_ros.io.tf_messages import (

@@ -1,10 +1,10 @@
-"""core.tool_poses: tool poses interpolated to cloud stamps, bounded extrapolation, countable reasons."""
+"""core.inputs.tool_poses: tool poses interpolated to cloud stamps, bounded extrapolation, countable reasons."""
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
-from meshfg_ros.core.pose_history import InvalidPoseError
-from meshfg_ros.core.tool_poses import PoseUnavailable, ToolPoseBuffer
+from meshfg_ros.core.inputs.pose_history import InvalidPoseError
+from meshfg_ros.core.inputs.tool_poses import PoseUnavailable, ToolPoseBuffer
 
 EPOCH_NS = 1_700_000_000_000_000_000
 PERIOD_NS = 100_000_000  # 10 Hz

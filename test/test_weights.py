@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from meshfg_ros.core.weights import MIN_POINTS, MeasurementNoise, WeightError
+from meshfg_ros.core.estimation.weights import MIN_POINTS, MeasurementNoise, WeightError
 
 
 def half_normal(sigma, count, seed=0):

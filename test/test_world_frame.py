@@ -1,13 +1,13 @@
 """Inputs in any frame: clouds from a camera moving on a /tf chain and tool poses in a robot base
-frame give the same estimates as the same inputs in world_frame (core/world_frame.py, replay)."""
+frame give the same estimates as the same inputs in world_frame (core/inputs/world_frame.py, replay)."""
 import numpy as np
 import pytest
 from offline_helpers import BASE, NOISE_SIGMA, OPTICAL, TOOL_RADIUS, robot_statics, tiny_scenario
 from scipy.spatial.transform import Rotation
 
-from meshfg_ros.core.frames import StampedTransform, TransformBuffer
-from meshfg_ros.core.pose_history import pose_matrix
-from meshfg_ros.core.world_frame import CLOUD, POSE, FramedInput, WorldFrameInputs, pose_in
+from meshfg_ros.core.inputs.frames import StampedTransform, TransformBuffer
+from meshfg_ros.core.inputs.pose_history import pose_matrix
+from meshfg_ros.core.inputs.world_frame import CLOUD, POSE, FramedInput, WorldFrameInputs, pose_in
 from meshfg_ros.io.messages import MeshState, PointCloudRecord, PoseRecord
 from meshfg_ros.io.recording import RecordingWriter
 from meshfg_ros.io.tf_messages import TF_STATIC_TOPIC, TF_TOPIC, transforms_to_tf_message

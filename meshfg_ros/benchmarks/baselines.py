@@ -28,12 +28,12 @@ import numpy as np
 import scipy.optimize
 import scipy.sparse
 
-from meshfg_ros.core.closest_point import REGION_FACE, project_onto_triangles, projection_jacobian
-from meshfg_ros.core.factor_graph import FactorGraph
-from meshfg_ros.core.factors import PhysicsPriorFactor, PointToSurfaceFactor, TemporalFactor, VolumeBarrierFactor
-from meshfg_ros.core.levenberg_marquardt import LevenbergMarquardtConfig, levenberg_marquardt
-from meshfg_ros.core.linear_solvers import make_linear_solver
-from meshfg_ros.core.mesh import TetMesh
+from meshfg_ros.core.geometry.closest_point import REGION_FACE, project_onto_triangles, projection_jacobian
+from meshfg_ros.core.estimation.factor_graph import FactorGraph
+from meshfg_ros.core.estimation.factors import PhysicsPriorFactor, PointToSurfaceFactor, TemporalFactor, VolumeBarrierFactor
+from meshfg_ros.core.solvers.levenberg_marquardt import LevenbergMarquardtConfig, levenberg_marquardt
+from meshfg_ros.core.solvers.linear_solvers import make_linear_solver
+from meshfg_ros.core.geometry.mesh import TetMesh
 from meshfg_ros.synthetic.meshing import box_mesh
 from meshfg_ros.evaluation.metrics import sample_surface
 
@@ -439,9 +439,9 @@ def benchmark_update(mesh: TetMesh, sequence, config, warmup: int | None = None)
     one linear solve over all updates, from StepResult.linear_solve_ms), final_costs, rmse_m
     (vertex RMSE of each update against the truth), converged_share (of the timed updates) and
     the last measurement sigma estimate, and stage_ms: per stage of the update
-    (core.estimator.STAGES), its time in each timed update.
+    (core.estimation.estimator.STAGES), its time in each timed update.
     """
-    from meshfg_ros.core.estimator import STAGES
+    from meshfg_ros.core.estimation.estimator import STAGES
     from meshfg_ros.core.scheduler import EstimationScheduler, Prediction  # the scheduler imports the estimator
 
     scheduler = EstimationScheduler(mesh, config)
@@ -486,7 +486,7 @@ def pending_window(mesh: TetMesh, sequence, config):
     estimator runs over all steps but the last, then adds the last one without optimising.
     Returns (estimator, graph) with the association frozen at the initial guess, ready for
     `compare_single_update`."""
-    from meshfg_ros.core.estimator import SlidingWindowEstimator  # avoids an import cycle
+    from meshfg_ros.core.estimation.estimator import SlidingWindowEstimator  # avoids an import cycle
 
     estimator = SlidingWindowEstimator(mesh, config)
     for step in sequence[:-1]:

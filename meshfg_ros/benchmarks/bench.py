@@ -2,7 +2,7 @@
 
 Sections (each can be skipped):
 - core: time to assemble K (linear, corotational), one simulator step and learning the load
-  and the Poisson ratio from an estimate (core/model_fit.py), on the liver, the airway phantom
+  and the Poisson ratio from an estimate (core/physics/model_fit.py), on the liver, the airway phantom
   and a ~10,000-vertex box; and the planner service's surface query (1,000 points, ~1,000
   vertices, target 20 ms);
 - estimator: per-update latency (median, p95), LM iterations and one linear solve at paper
@@ -64,7 +64,7 @@ def _median_time(function, repeats: int) -> tuple[float, object]:
 
 def bench_core(repeats: int = 5, progress: bool = True) -> dict:
     """K assembly and one simulator step on the liver, the airway tumour and a 10k box."""
-    from meshfg_ros.core.fem import ElasticModel
+    from meshfg_ros.core.physics.fem import ElasticModel
     from meshfg_ros.synthetic.meshing import airway_phantom, box_mesh
     from meshfg_ros.synthetic.scenarios import liver_mesh
 
@@ -87,12 +87,12 @@ def bench_core(repeats: int = 5, progress: bool = True) -> dict:
 def simulator_times(mesh, repeats: int) -> tuple[float, float]:
     """Median wall times (ms) of one simulator step on `mesh` (the tool, a tenth of the mesh's
     extent in radius, pressing 2 % of the extent into its highest free surface vertex along y)
-    and of learning from an estimate when the Poisson ratio changes (core/model_fit.py, less its
+    and of learning from an estimate when the Poisson ratio changes (core/physics/model_fit.py, less its
     small least-squares solve: the sensitivity to the ratio, the new ratio with the moduli
     rescaled and K0 refactored, and the load's responses at it)."""
-    from meshfg_ros.core.body_load import BodyLoadEstimate
-    from meshfg_ros.core.poisson_ratio import PoissonRatioEstimate
-    from meshfg_ros.core.simulator import ElasticSimulator, SimulatorConfig
+    from meshfg_ros.core.physics.body_load import BodyLoadEstimate
+    from meshfg_ros.core.physics.poisson_ratio import PoissonRatioEstimate
+    from meshfg_ros.core.physics.simulator import ElasticSimulator, SimulatorConfig
     from meshfg_ros.synthetic.scenarios import pose
 
     extent = np.ptp(mesh.vertices, axis=0)
@@ -146,9 +146,9 @@ def messaging_ms(mesh, repeats: int) -> float:
 
 
 def bench_planner(repeats: int = 20) -> dict:
-    """The planner service's geometry (core/surface_query.py) on a ~1,000-vertex box: building the
+    """The planner service's geometry (core/geometry/surface_query.py) on a ~1,000-vertex box: building the
     query structure for an estimate, and one query of 1,000 points around it (median ms)."""
-    from meshfg_ros.core.surface_query import query_timing
+    from meshfg_ros.core.geometry.surface_query import query_timing
     from meshfg_ros.synthetic.meshing import box_mesh
 
     mesh = box_mesh(1000, (0.05, 0.05, 0.05))
@@ -161,7 +161,7 @@ def bench_planner(repeats: int = 20) -> dict:
 def bench_estimator(scale: dict, progress: bool = True) -> dict:
     """Per-update latency of the sliding-window estimator on a synthetic deforming box."""
     from meshfg_ros.benchmarks.baselines import benchmark_update, mismatch_sequence
-    from meshfg_ros.core.estimator import STAGES, EstimatorConfig
+    from meshfg_ros.core.estimation.estimator import STAGES, EstimatorConfig
 
     mesh, sequence = mismatch_sequence(scale["target_vertices"], scale["points_per_step"], scale["steps"])
     config = EstimatorConfig(window_size=scale["window_size"])
@@ -199,7 +199,7 @@ BASELINE_TOLERANCE = 1e-8  # relative cost decrease at which every solver stops
 
 def _single_update_problem(scale: dict):
     from meshfg_ros.benchmarks.baselines import mismatch_sequence, pending_window
-    from meshfg_ros.core.estimator import LINEAR_TOLERANCE, EstimatorConfig
+    from meshfg_ros.core.estimation.estimator import LINEAR_TOLERANCE, EstimatorConfig
 
     mesh, sequence = mismatch_sequence(scale["target_vertices"], scale["points_per_step"], scale["window_size"] + 1)
     _, graph = pending_window(mesh, sequence, EstimatorConfig(window_size=scale["window_size"], **BASELINE_ESTIMATOR))
@@ -220,7 +220,7 @@ def _compare(graph, solvers, repeats: int, progress: bool, label: str) -> dict:
     slow spell of a shared machine falls on both sides of a speed-up instead of on one solver's
     block of runs; GTSAM (seconds per run) runs once, last."""
     from meshfg_ros.benchmarks.baselines import compare_single_update
-    from meshfg_ros.core.estimator import LINEAR_TOLERANCE
+    from meshfg_ros.core.estimation.estimator import LINEAR_TOLERANCE
 
     def run(name):
         result = compare_single_update(graph, solvers=(name,), tolerance=BASELINE_TOLERANCE,

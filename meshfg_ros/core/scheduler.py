@@ -6,7 +6,7 @@ Two schedulers share the work, as the two nodes do:
   tool pose of a timeline resets the simulator. Every cloud the estimator accepts asks for a
   prediction at the cloud's stamp t (`request`): the simulator moves the tool from its pose at the
   previous request (or the first pose) to the tool pose at t, interpolated from the buffered tool
-  poses (core/tool_poses.py), starting from the estimate of the previous request. A request waits
+  poses (core/inputs/tool_poses.py), starting from the estimate of the previous request. A request waits
   for that estimate (estimate_timeout) and for a tool pose at or after t (tool_pose_timeout); then
   it is answered with a prediction, or with a failure and its reason.
 - `EstimationScheduler` (the estimator node's side) queues the clouds and pairs each with the
@@ -26,7 +26,7 @@ A cut (`PredictionScheduler.remove_elements`, from the simulation node's blade o
 changes the simulator's mesh at once; each answer carries the element slots removed so far, and
 the estimator follows them before it runs the step the answer belongs to.
 
-Both apply the stamp rule of core/input_checks.py to their streams (a stale or invalid stamp is
+Both apply the stamp rule of core/inputs/input_checks.py to their streams (a stale or invalid stamp is
 dropped, a jump back restarts from the initial mesh) and return a `Rejection` (a counter name and
 a one-line reason) for every input they set aside, so that the nodes count and log it.
 
@@ -44,14 +44,14 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from meshfg_ros.core.estimator import (
+from meshfg_ros.core.estimation.estimator import (
     EstimatorConfig,
     EstimatorInputError,
     EstimatorStepError,
     SlidingWindowEstimator,
     StepResult,
 )
-from meshfg_ros.core.input_checks import (
+from meshfg_ros.core.inputs.input_checks import (
     DEFAULT_CLOCK_JUMP_THRESHOLD_S,
     INVALID,
     JUMP_BACK,
@@ -60,17 +60,17 @@ from meshfg_ros.core.input_checks import (
     check_initial_mesh,
     stamp_order,
 )
-from meshfg_ros.core.body_load import BodyLoadEstimate
-from meshfg_ros.core.external_prior import ExternalPriorError, ExternalStiffness, StiffnessProjection
-from meshfg_ros.core.model_fit import learn
-from meshfg_ros.core.poisson_ratio import PoissonRatioEstimate
-from meshfg_ros.core.mesh import TetMesh
-from meshfg_ros.core.patient_mesh import PatientMeshError, check_against_clouds
-from meshfg_ros.core.pose_history import InvalidPoseError, PoseHistory, as_pose
-from meshfg_ros.core.simulator import SimulatorConfig, ElasticSimulator
-from meshfg_ros.core.weights import MIN_POINTS
-from meshfg_ros.core.tool_poses import DEFAULT_EXTRAPOLATION_HORIZON_S as TOOL_POSE_HORIZON_S
-from meshfg_ros.core.tool_poses import PoseUnavailable, ToolPoseBuffer
+from meshfg_ros.core.physics.body_load import BodyLoadEstimate
+from meshfg_ros.core.physics.external_prior import ExternalPriorError, ExternalStiffness, StiffnessProjection
+from meshfg_ros.core.physics.model_fit import learn
+from meshfg_ros.core.physics.poisson_ratio import PoissonRatioEstimate
+from meshfg_ros.core.geometry.mesh import TetMesh
+from meshfg_ros.core.inputs.patient_mesh import PatientMeshError, check_against_clouds
+from meshfg_ros.core.inputs.pose_history import InvalidPoseError, PoseHistory, as_pose
+from meshfg_ros.core.physics.simulator import SimulatorConfig, ElasticSimulator
+from meshfg_ros.core.estimation.weights import MIN_POINTS
+from meshfg_ros.core.inputs.tool_poses import DEFAULT_EXTRAPOLATION_HORIZON_S as TOOL_POSE_HORIZON_S
+from meshfg_ros.core.inputs.tool_poses import PoseUnavailable, ToolPoseBuffer
 
 # Bounds on what a scheduler holds while it waits: beyond them the oldest entry goes.
 MAX_QUEUED_CLOUDS = 100
@@ -113,7 +113,7 @@ class Prediction:
     # pipeline is behind): the estimator drops the cloud instead of running it without physics.
     superseded: bool = False
     # An external simulator's stiffness at `positions` (world frame), the prior's information
-    # for the step (core/external_prior.py); None: the estimator's own model.
+    # for the step (core/physics/external_prior.py); None: the estimator's own model.
     stiffness: ExternalStiffness | None = None
     # slots of the uncut mesh's elements the simulator has removed (TetMesh.without_elements);
     # None: the simulator says nothing of its topology (the uncut mesh)
@@ -272,7 +272,7 @@ class PredictionScheduler:
         (a stalled stream) is not even that: the physics of the tool's motion is missing from it
         (the hidden tissue stays where it was), so the simulator stays at the state it had and the
         tool passes that stamp on its way to the next one (_catch_up). `position_std` (N,): the
-        estimate's posterior std, which weighs their fit (core/model_fit.py); without it they learn
+        estimate's posterior std, which weighs their fit (core/physics/model_fit.py); without it they learn
         nothing from this estimate."""
         if self._start_ns is None or not self._start_ns <= stamp_ns <= self._previous_ns:
             return None  # not a stamp this timeline predicted (a looped recording, or no pose yet)
@@ -295,7 +295,7 @@ class PredictionScheduler:
 
     def _learn(self, predicted: np.ndarray, estimate: np.ndarray, position_std: np.ndarray | None) -> None:
         """What the model misses, from an estimate's correction of its prediction: the body
-        load's and the Poisson ratio's increments, fitted jointly (core/model_fit.py)."""
+        load's and the Poisson ratio's increments, fitted jointly (core/physics/model_fit.py)."""
         if position_std is not None and np.shape(position_std) == (len(estimate),):
             learn(self.mesh, self.body_load, self.poisson_ratio, predicted, estimate, position_std)
 
@@ -510,7 +510,7 @@ class EstimationScheduler:
 
     def _registration(self, stamp_ns: int, points: np.ndarray) -> Rejection | None:
         """Until a cloud of MIN_POINTS points or more has agreed with the mesh in size and place
-        (core/patient_mesh.py), each cloud is compared with it; one that disagrees is rejected
+        (core/inputs/patient_mesh.py), each cloud is compared with it; one that disagrees is rejected
         with the reason (a mesh in millimetres, a missing registration)."""
         near = points[~self.scene.far(points)]  # far points are the estimator's to drop and count
         if len(near) < MIN_POINTS:
@@ -646,7 +646,7 @@ class EstimationScheduler:
 
     def _prior_stiffness(self, step: CloudStep) -> tuple:
         """(the prior's information made of the step's external stiffness or None, notes): a
-        stiffness refused leaves the step on the estimator's own (core/external_prior.py)."""
+        stiffness refused leaves the step on the estimator's own (core/physics/external_prior.py)."""
         model = self.estimator.model
         if step.stiffness is None or step.predicted is None or model is None:
             return None, ()

@@ -13,7 +13,7 @@ import sys
 
 from tqdm import tqdm
 
-from meshfg_ros.core.estimator import EstimatorConfig
+from meshfg_ros.core.estimation.estimator import EstimatorConfig
 from meshfg_ros.core.scheduler import OfflinePipeline, run_offline
 from meshfg_ros.evaluation.metrics import summarise, unobserved_external_vertices, vertex_rmse
 from meshfg_ros.parameters import shared_settings

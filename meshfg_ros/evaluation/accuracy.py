@@ -17,7 +17,7 @@ the p50 / p95 solve time; and, to say why a ratio is what it is, how each step's
 its prediction compares with the one the truth needed (evaluation.metrics.correction_alignment,
 mean over steps) on the observed surface along its normal and across it, and on the unobserved
 surface; in the JSON also the body load the simulator had learnt by the last step
-(core/body_load.py). The calibration of the factor graph's published position_std
+(core/physics/body_load.py). The calibration of the factor graph's published position_std
 (evaluation.metrics.calibration: mean NEES and 95 % coverage, all free vertices and unobserved
 external ones, final step and pooled over the steps from evaluate.CALIBRATION_POOLED_FROM_STEP
 on; the median std of the observed and unobserved external vertices) says whether a planner can
@@ -48,7 +48,7 @@ from meshfg_ros.evaluation.evaluate import (
     CORRECTION_SETS,
     evaluate_recordings,
 )
-from meshfg_ros.core.mesh import inverted_elements
+from meshfg_ros.core.geometry.mesh import inverted_elements
 from meshfg_ros.io.messages import MeshState, StatusRecord
 from meshfg_ros.io.recording import RecordingReader
 from meshfg_ros.replay import write_replay

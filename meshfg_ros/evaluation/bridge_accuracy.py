@@ -17,12 +17,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from meshfg_ros.core.estimator import EstimatorConfig
-from meshfg_ros.core.external_prior import FIXED_DIAGONAL, BridgeAnswer, bridge_state
-from meshfg_ros.core.fem import ElasticModel
-from meshfg_ros.core.mesh import inverted_elements
+from meshfg_ros.core.estimation.estimator import EstimatorConfig
+from meshfg_ros.core.physics.external_prior import FIXED_DIAGONAL, BridgeAnswer, bridge_state
+from meshfg_ros.core.physics.fem import ElasticModel
+from meshfg_ros.core.geometry.mesh import inverted_elements
 from meshfg_ros.core.scheduler import EstimationScheduler, Prediction
-from meshfg_ros.core.simulator import ElasticSimulator
+from meshfg_ros.core.physics.simulator import ElasticSimulator
 from meshfg_ros.evaluation.metrics import vertex_rmse
 from meshfg_ros.parameters import config_changes, shared_settings
 

@@ -10,7 +10,7 @@ Methods compared, per step and at the final step (the paper evaluates "the final
 
 Surface metrics are the paper's d_CD, d_RMSE and d_H95 with one refinement: `samples` points
 drawn by area on each surface are measured against the *other surface* (exact closest point on
-its triangles, core.closest_point) instead of against the other surface's samples: the
+its triangles, core.geometry.closest_point) instead of against the other surface's samples: the
 dense-cloud limit of the paper's nearest-neighbour definition, without its sampling floor
 (between two 10 000-point clouds, about 0.1 mm on the 2 cm tumour and 1 cm on the 1 m cube).
 The measured cloud, not being a surface, is the target of nearest-point queries in the
@@ -38,8 +38,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from meshfg_ros.core.closest_point import ClosestPointIndex
-from meshfg_ros.core.mesh import TetMesh
+from meshfg_ros.core.geometry.closest_point import ClosestPointIndex
+from meshfg_ros.core.geometry.mesh import TetMesh
 from meshfg_ros.evaluation.metrics import (
     Calibration,
     calibration,

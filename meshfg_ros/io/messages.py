@@ -20,8 +20,8 @@ import numpy as np
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
-from meshfg_ros.core.input_checks import NS_PER_S
-from meshfg_ros.core.mesh import TetMesh
+from meshfg_ros.core.inputs.input_checks import NS_PER_S
+from meshfg_ros.core.geometry.mesh import TetMesh
 
 TETRA_MESH = "meshfg_msgs/msg/TetraMesh"
 ESTIMATOR_STATUS = "meshfg_msgs/msg/EstimatorStatus"
@@ -500,7 +500,7 @@ def mesh_state_from_msg(msg: Any) -> MeshState:
 
 
 def status_record(result: Any, frame_id: str) -> StatusRecord:
-    """The EstimatorStatus record of one update (a core.estimator.StepResult; shared by the
+    """The EstimatorStatus record of one update (a core.estimation.estimator.StepResult; shared by the
     replay and the estimator node)."""
     return StatusRecord(
         stamp_ns=result.stamp_ns, frame_id=frame_id, step=result.step, iterations=result.iterations,

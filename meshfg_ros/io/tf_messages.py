@@ -1,4 +1,4 @@
-"""tf2_msgs/TFMessage (/tf, /tf_static) <-> the StampedTransforms of core.frames.
+"""tf2_msgs/TFMessage (/tf, /tf_static) <-> the StampedTransforms of core.inputs.frames.
 
 Fields are read by name, so both rosbags' classes and the rosidl-generated ones of rclpy work;
 building a message takes a MessageFactory of io.messages (rosbags by default). Nothing here
@@ -10,7 +10,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 from typing import Any
 
-from meshfg_ros.core.frames import StampedTransform
+from meshfg_ros.core.inputs.frames import StampedTransform
 from meshfg_ros.io.messages import MessageFactory, RosbagsMessageFactory, header_msg, stamp_ns_from_msg
 
 __all__ = ["TF_MESSAGE", "TF_STATIC_TOPIC", "TF_TOPIC", "tf_message_to_transforms", "transforms_to_tf_message"]

@@ -31,7 +31,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 
-from meshfg_ros.core.input_checks import NS_PER_S
+from meshfg_ros.core.inputs.input_checks import NS_PER_S
 from meshfg_ros.io.recording import RecordingError, RecordingReader
 from meshfg_ros.nodes.ros_conversions import RCLPY_FACTORY, rclpy_message
 from meshfg_ros.nodes.ros_parameters import declare_parameters

@@ -2,7 +2,7 @@
 
 The counters say what happened to the input (clouds received and rejected, and why; stamps
 out of order or invalid; clock jumps; input far outside the scene or contradicted by the cloud,
-core/input_checks.py) and to the steps (degraded, failed, non-finite, points gated out, the time
+core/inputs/input_checks.py) and to the steps (degraded, failed, non-finite, points gated out, the time
 of each stage), so that a robot's diagnostic aggregator shows why estimates are missing or poor.
 `EstimatorHealth` turns them into a level and a one-line reason (the README's "Wire it to your
 robot" lists them): it is OK only while recent steps are estimated from most of their points,
@@ -18,9 +18,9 @@ from typing import NamedTuple
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
-from meshfg_ros.core.camera_check import GRAZING_LIMIT_DEGREES, IMPLAUSIBLE_SHARE
-from meshfg_ros.core.input_checks import rejections_in
-from meshfg_ros.core.weights import NOISE_BOUNDS
+from meshfg_ros.core.inputs.camera_check import GRAZING_LIMIT_DEGREES, IMPLAUSIBLE_SHARE
+from meshfg_ros.core.inputs.input_checks import rejections_in
+from meshfg_ros.core.estimation.weights import NOISE_BOUNDS
 from meshfg_ros.io.messages import RclpyMessageFactory, header_msg
 
 _RCLPY = RclpyMessageFactory()
@@ -55,7 +55,7 @@ class EstimatorCounters(Counters):
     predictions_received: int = 0
     predictions_rejected: int = 0
     predictions_failed: int = 0  # the simulator reported it could not predict a stamp
-    # Steps whose input the estimator set aside (the keys of core.input_checks.REJECTIONS).
+    # Steps whose input the estimator set aside (the keys of core.inputs.input_checks.REJECTIONS).
     clouds_with_far_points: int = 0
     predictions_rejected_far: int = 0
     predictions_rejected_inverted: int = 0
@@ -63,7 +63,7 @@ class EstimatorCounters(Counters):
     tool_poses_ignored_far: int = 0
     inputs_held_before_mesh: int = 0    # clouds and tool poses kept until the mesh came
     inputs_dropped_before_mesh: int = 0  # the oldest of those, beyond what is kept (nodes/held_inputs.py)
-    # prediction_source sim_bridge (nodes/sim_bridge_client.py, core/external_prior.py): calls made,
+    # prediction_source sim_bridge (nodes/sim_bridge_client.py, core/physics/external_prior.py): calls made,
     # answers missing or refused (the step runs without a prediction), stiffness repaired or refused.
     sim_bridge_calls: int = 0
     sim_bridge_unavailable: int = 0
@@ -91,7 +91,7 @@ class EstimatorCounters(Counters):
     median_latency_ms: float = float("nan")
 
     def record_step(self, result, wait_ms: float, publish_ms: float, latencies_ms: list[float]) -> None:
-        """Count a published step (a core.estimator.StepResult) and its stage times."""
+        """Count a published step (a core.estimation.estimator.StepResult) and its stage times."""
         self.steps += 1
         self.degraded_steps += int(result.degraded)
         self.unconverged_steps += int(not result.converged)
@@ -128,7 +128,7 @@ class SimulatorCounters(Counters):
     tool_poses_rejected_malformed: int = 0
     tool_poses_rejected_frame: int = 0
     tool_poses_rejected_stamp: int = 0  # out of order, repeated or invalid (negative) stamps
-    tool_poses_rejected_far: int = 0    # far outside the scene (core/input_checks.py)
+    tool_poses_rejected_far: int = 0    # far outside the scene (core/inputs/input_checks.py)
     clock_jumps_back: int = 0
     requests: int = 0                   # prediction requests (one per accepted cloud)
     predictions: int = 0
@@ -136,18 +136,18 @@ class SimulatorCounters(Counters):
     predictions_superseded: int = 0     # requests skipped for a newer cloud's while behind (core/scheduler.py)
     estimates_ignored: int = 0          # wrong vertex count, not finite, or far outside the scene
     estimate_std_ignored: int = 0       # an estimate's position_std malformed (count, NaN, < 0): not learnt from
-    elements_removed: int = 0           # element slots cut away so far (blade or remove_elements; core/topology.py)
+    elements_removed: int = 0           # element slots cut away so far (blade or remove_elements; core/geometry/topology.py)
     cuts_rejected: int = 0              # remove_elements requests or blade cuts the simulator could not take
     inputs_held_before_mesh: int = 0    # tool poses, requests and estimates kept until the mesh came
     inputs_dropped_before_mesh: int = 0  # the oldest of those, beyond what is kept (nodes/held_inputs.py)
     last_prediction_ms: float = float("nan")
-    # the unmodelled uniform body load the predictions apply, m/s^2 (core/body_load.py; 0 when off)
+    # the unmodelled uniform body load the predictions apply, m/s^2 (core/physics/body_load.py; 0 when off)
     body_acceleration_x: float = 0.0
     body_acceleration_y: float = 0.0
     body_acceleration_z: float = 0.0
-    # the Poisson ratio the predictions use (core/poisson_ratio.py; NaN until a mesh is set)
+    # the Poisson ratio the predictions use (core/physics/poisson_ratio.py; NaN until a mesh is set)
     poisson_ratio: float = float("nan")
-    # requests answered without a prediction for want of a tool pose, by reason (core/tool_poses.py)
+    # requests answered without a prediction for want of a tool pose, by reason (core/inputs/tool_poses.py)
     tool_pose_unavailable_empty: int = 0
     tool_pose_unavailable_before_first: int = 0
     tool_pose_unavailable_beyond_horizon: int = 0
@@ -235,7 +235,7 @@ class EstimatorHealth:
     def record(self, degraded: bool, converged: bool, points_used: int, points_set_aside: int,
                noise_off_nominal: bool = False, view_implausible: bool = False) -> None:
         """One step's outcome (view_implausible: more than IMPLAUSIBLE_SHARE of its cloud at angles
-        no camera at camera_frame's origin sees, core/camera_check.py)."""
+        no camera at camera_frame's origin sees, core/inputs/camera_check.py)."""
         self._recent.append(_StepOutcome(degraded, converged, points_used, points_set_aside, noise_off_nominal,
                                          view_implausible))
 

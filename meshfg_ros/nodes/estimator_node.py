@@ -39,8 +39,8 @@ from meshfg_ros.core.scheduler import (
     StepOutcome,
     cloud_queued,
 )
-from meshfg_ros.core.tool_poses import DEFAULT_MAX_SAMPLES
-from meshfg_ros.core.world_frame import CLOUD, POSE, FramedInput, Unplaceable
+from meshfg_ros.core.inputs.tool_poses import DEFAULT_MAX_SAMPLES
+from meshfg_ros.core.inputs.world_frame import CLOUD, POSE, FramedInput, Unplaceable
 from meshfg_ros.io.messages import MessageValidationError, header_msg, pose_from_msg, stamp_ns_from_msg
 from meshfg_ros.io.pointcloud import PointCloudError, cloud_record_from_msg
 from meshfg_ros.nodes.estimator_outputs import EstimatorOutputs

@@ -22,8 +22,8 @@ from rclpy.node import Node
 from visualization_msgs.msg import MarkerArray
 
 from meshfg_msgs.msg import EstimatorStatus, TetraMesh
-from meshfg_ros.core.camera_check import IMPLAUSIBLE_SHARE, implausible_view
-from meshfg_ros.core.mesh import TetMesh
+from meshfg_ros.core.inputs.camera_check import IMPLAUSIBLE_SHARE, implausible_view
+from meshfg_ros.core.geometry.mesh import TetMesh
 from meshfg_ros.core.scheduler import CloudStep, Rejection, StepOutcome
 from meshfg_ros.io.messages import MeshState, status_record, status_to_msg
 from meshfg_ros.markers import mesh_markers, spread_surface_sample, surface_edges
@@ -135,7 +135,7 @@ class EstimatorOutputs:
 
     def _view_implausible(self, step: CloudStep, result) -> bool:
         """Whether more than IMPLAUSIBLE_SHARE of the step's cloud lies at angles no camera at its
-        viewpoint sees (core/camera_check.py); after the estimate is out, so it adds no latency."""
+        viewpoint sees (core/inputs/camera_check.py); after the estimate is out, so it adds no latency."""
         if step.viewpoint is None or step.points is None:
             return False
         state = self._mesh[0]

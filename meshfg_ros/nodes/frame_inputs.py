@@ -1,6 +1,6 @@
 """The nodes' listener of /tf and /tf_static: inputs in any frame, handed on in world_frame.
 
-A thin shell over core.world_frame.WorldFrameInputs (the replay uses the same placement through
+A thin shell over core.inputs.world_frame.WorldFrameInputs (the replay uses the same placement through
 parameters.world_frame_inputs): it subscribes tf2_msgs/TFMessage on /tf and /tf_static (static
 transforms latched, as tf2_ros publishes them), feeds the transform buffer, and hands each
 placed input to `on_placed(FramedInput)` and each one that cannot be placed to
@@ -17,7 +17,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from tf2_msgs.msg import TFMessage
 
-from meshfg_ros.core.world_frame import FramedInput, Unplaceable, WorldFrameInputs
+from meshfg_ros.core.inputs.world_frame import FramedInput, Unplaceable, WorldFrameInputs
 from meshfg_ros.io.tf_messages import TF_STATIC_TOPIC, TF_TOPIC, tf_message_to_transforms
 
 TF_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)

@@ -4,7 +4,7 @@ For points in any frame (placed in world_frame through /tf at the request's stam
 newest transforms for a zero stamp, as tf2's time zero) it answers, on the newest estimate
 published on `estimated_mesh`, each point's closest surface point, signed distance (negative
 inside the tissue), outward normal and the distance's standard deviation from the estimate's
-per-vertex covariance (core/surface_query.py), with the estimate's stamp and step. Points and
+per-vertex covariance (core/geometry/surface_query.py), with the estimate's stamp and step. Points and
 normals come back in the request's frame.
 
 The service reads the estimates from the node's own latched `estimated_mesh`, so it answers on
@@ -25,10 +25,10 @@ from rclpy.node import Node
 
 from meshfg_msgs.msg import TetraMesh
 from meshfg_msgs.srv import SurfaceQuery as SurfaceQueryService
-from meshfg_ros.core.closest_point import InvalidGeometryError
-from meshfg_ros.core.frames import FrameLookupError, transform_points
-from meshfg_ros.core.surface_query import SurfaceQuery
-from meshfg_ros.core.world_frame import WorldFrameInputs
+from meshfg_ros.core.geometry.closest_point import InvalidGeometryError
+from meshfg_ros.core.inputs.frames import FrameLookupError, transform_points
+from meshfg_ros.core.geometry.surface_query import SurfaceQuery
+from meshfg_ros.core.inputs.world_frame import WorldFrameInputs
 from meshfg_ros.io.messages import MeshState, MessageValidationError, header_msg, mesh_state_from_msg, stamp_ns_from_msg
 from meshfg_ros.nodes.diagnostics import Counters, diagnostic_array
 from meshfg_ros.nodes.ros_conversions import LATCHED_QOS, RCLPY_FACTORY, STREAM_QOS

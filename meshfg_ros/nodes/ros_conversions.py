@@ -15,7 +15,7 @@ import numpy as np
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
-from meshfg_ros.core.mesh import TetMesh
+from meshfg_ros.core.geometry.mesh import TetMesh
 from meshfg_ros.parameters import ParameterError, load_mesh_file
 from meshfg_ros.io.messages import (
     TETRA_MESH,
@@ -132,7 +132,7 @@ def positions_from_msg(msg: Any, vertex_count: int) -> np.ndarray | None:
 def position_std_from_msg(msg: Any, vertex_count: int) -> np.ndarray | None:
     """Posterior std (N,) of a TetraMesh, or None when it has none (empty) or is malformed (a
     wrong count, entries NaN or negative). An infinite entry is taken: a vertex the estimate knows
-    nothing of, which the model's fit weighs by zero (core/model_fit.py)."""
+    nothing of, which the model's fit weighs by zero (core/physics/model_fit.py)."""
     std = np.asarray(msg.position_std, dtype=np.float64)
     return std if std.shape == (vertex_count,) and np.all(std >= 0.0) else None  # NaN fails >= too
 

@@ -35,9 +35,9 @@ import numpy as np
 from rclpy.node import Node
 from sim_bridge.srv import FactorGraphState
 
-from meshfg_ros.core.external_prior import BridgeAnswer, ExternalPriorError, bridge_state
-from meshfg_ros.core.frames import FrameLookupError, TransformBuffer
-from meshfg_ros.core.mesh import TetMesh
+from meshfg_ros.core.physics.external_prior import BridgeAnswer, ExternalPriorError, bridge_state
+from meshfg_ros.core.inputs.frames import FrameLookupError, TransformBuffer
+from meshfg_ros.core.geometry.mesh import TetMesh
 from meshfg_ros.core.scheduler import MAX_PREDICTION_WAIT_S, Prediction, Rejection
 
 __all__ = ["MAX_IN_FLIGHT", "SIM_FRAME", "SimBridgeClient", "answer_from_msg"]

@@ -3,14 +3,14 @@ service, to try and test the estimator's prediction_source sim_bridge without th
 
 Like the authors' simulator it runs on its own, driven by the tool: each `tool_pose`
 (geometry_msgs/PoseStamped in its world_frame; others are ignored and counted) moves its state
-(core.simulator.ElasticSimulator, the simulation node's model and parameters, from the initial
+(core.physics.simulator.ElasticSimulator, the simulation node's model and parameters, from the initial
 mesh of mesh_file or `initial_mesh`), and the service `/sim/factor_graph_state`
 (sim_bridge/srv/FactorGraphState; remap it with -r) answers with its current state in
 world_frame (run it with -p world_frame:=sim/world for the authors' frame) and, when asked,
 the corotational FEM stiffness at that state as a full symmetric COO matrix in float32 with the
 fixed vertices' dofs at FIXED_DOF_STIFFNESS on the diagonal, as the authors' bridge sends them.
 It cuts on `remove_elements` (std_msgs/UInt32MultiArray: element slots, as the simulation node
-takes them; core/topology.py): the answers then keep every slot, list the removed elements and
+takes them; core/geometry/topology.py): the answers then keep every slot, list the removed elements and
 the vertices left without one in `invalid_indices`, and the stiffness is the remaining
 elements'.
 
@@ -30,9 +30,9 @@ from std_msgs.msg import UInt32MultiArray
 from rclpy.node import Node
 from sim_bridge.srv import FactorGraphState
 
-from meshfg_ros.core.fem import ElasticModel
-from meshfg_ros.core.mesh import TetMesh
-from meshfg_ros.core.simulator import ElasticSimulator
+from meshfg_ros.core.physics.fem import ElasticModel
+from meshfg_ros.core.geometry.mesh import TetMesh
+from meshfg_ros.core.physics.simulator import ElasticSimulator
 from meshfg_ros.io.messages import MessageValidationError, header_msg, pose_from_msg
 from meshfg_ros.nodes.ros_conversions import RCLPY_FACTORY, REQUEST_QOS, STREAM_QOS, InitialMeshSource
 from meshfg_ros.nodes.ros_parameters import declare_parameters

@@ -4,7 +4,7 @@ Subscribes `tool_pose` (geometry_msgs/PoseStamped, any rate, any frame placed th
 /tf_static), `prediction_request`
 (std_msgs/Header: the stamp of each cloud the estimator accepted), `estimated_mesh` and
 `initial_mesh` (meshfg_msgs/TetraMesh; or parameter mesh_file) and `remove_elements`
-(std_msgs/UInt32MultiArray: element slots to cut away, core/topology.py; the tool's blade, when
+(std_msgs/UInt32MultiArray: element slots to cut away, core/geometry/topology.py; the tool's blade, when
 blade_half_extents is set, cuts too, at each tool pose). For each request it publishes
 `predicted_mesh` (TetraMesh at the cloud's stamp: the simulator moved from the estimate of the
 previous request to the tool pose interpolated at the cloud's stamp), or `prediction_failed`
@@ -13,8 +13,8 @@ at once without one. A predicted_mesh is on the simulator's topology: after a cu
 and surface are the remaining ones and it lists removed_elements and invalid_vertices, which the
 estimator follows. After each estimate it takes it publishes `body_acceleration`
 (geometry_msgs/Vector3Stamped at the estimate's stamp, m/s^2): the unmodelled body load learnt so
-far (core/body_load.py; not published with estimate_body_load off). The Poisson ratio the
-predictions use (core/poisson_ratio.py) is in the diagnostics. The waits and the stamp rule
+far (core/physics/body_load.py; not published with estimate_body_load off). The Poisson ratio the
+predictions use (core/physics/poisson_ratio.py) is in the diagnostics. The waits and the stamp rule
 are the scheduler's; counters go to /diagnostics.
 Tool poses, requests and estimates that arrive before the mesh are held until it comes
 (nodes/held_inputs.py).
@@ -37,11 +37,11 @@ from std_msgs.msg import Header, UInt32MultiArray
 
 from meshfg_msgs.msg import PredictionFailure, TetraMesh
 from meshfg_ros.core.scheduler import MAX_QUEUED_CLOUDS, PredictionScheduler, SchedulingTimeouts
-from meshfg_ros.core.noise import NotPositiveDefiniteError
-from meshfg_ros.core.mesh import InvalidMeshError
-from meshfg_ros.core.tool_poses import DEFAULT_MAX_SAMPLES
-from meshfg_ros.core.topology import cut_elements
-from meshfg_ros.core.world_frame import POSE, FramedInput, Unplaceable
+from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError
+from meshfg_ros.core.geometry.mesh import InvalidMeshError
+from meshfg_ros.core.inputs.tool_poses import DEFAULT_MAX_SAMPLES
+from meshfg_ros.core.geometry.topology import cut_elements
+from meshfg_ros.core.inputs.world_frame import POSE, FramedInput, Unplaceable
 from meshfg_ros.io.messages import (MeshState, MessageValidationError, header_msg, pose_from_msg, stamp_ns_from_msg,
                                     vector_msg)
 from meshfg_ros.nodes.diagnostics import (SimulatorCounters, diagnostic_array, waiting_for_mesh_message,

@@ -9,7 +9,7 @@
 
 The truth is the static equilibrium of a heterogeneous (smooth +-30 % Young's modulus)
 compressible neo-Hookean solid (`hyperelastic.py`) with that pre-stress and load, cut by
-removing the elements the blade reaches (core/topology.py: cut_elements, the pieces left hanging
+removing the elements the blade reaches (core/geometry/topology.py: cut_elements, the pieces left hanging
 removed too). The estimator's nominal model knows the cut (the recording's
 /meshfg/remove_elements at the step's stamp: its simulator made it) but neither the pre-stress
 nor the load: its simulator's rest shape is the sheet as the camera first sees it, so the
@@ -26,7 +26,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from meshfg_ros.core.topology import cut_elements
+from meshfg_ros.core.geometry.topology import cut_elements
 from meshfg_ros.synthetic.camera import CaptureOptions, PinholeCamera
 from meshfg_ros.synthetic.hyperelastic import NeoHookeanSolid, StickySphereContact
 from meshfg_ros.synthetic.mismatch_scenes import (

@@ -6,7 +6,7 @@ Continuum Mechanics for FEA, eq. 6.27), per element with its own (mu, lambda):
     P(F)   = mu (F - F^-T) + lambda ln J F^-T                  (first Piola-Kirchhoff stress),
     dP[dF] = mu dF + (mu - lambda ln J) F^-T dF^T F^-T + lambda (F^-T : dF) F^-T.
 At F = I the tangent is small-strain elasticity with Lame parameters (mu, lambda). This is not
-the estimator's stable Neo-Hookean energy (core/simulator.py, core/fem.py): its volumetric
+the estimator's stable Neo-Hookean energy (core/physics/simulator.py, core/physics/fem.py): its volumetric
 term grows without bound as J -> 0 (no element can invert at finite energy) and differs from
 the estimator's at finite strain, so the mismatch scenes' truth departs from the estimator's
 model in its constitutive law as well as in its parameters.
@@ -53,7 +53,7 @@ import scipy.sparse.linalg
 import skfem
 from skfem.helpers import ddot, det, grad, identity, inv, mul, transpose
 
-from meshfg_ros.core.mesh import TetMesh, inverted_elements, signed_volumes
+from meshfg_ros.core.geometry.mesh import TetMesh, inverted_elements, signed_volumes
 
 __all__ = [
     "Equilibrium",

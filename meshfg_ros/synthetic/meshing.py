@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from meshfg_ros.core.mesh import TetMesh
+from meshfg_ros.core.geometry.mesh import TetMesh
 
 __all__ = [
     "AirwayPhantom",

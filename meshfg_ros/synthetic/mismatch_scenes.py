@@ -44,10 +44,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from meshfg_ros.synthetic.camera import CaptureOptions, PinholeCamera, capture
-from meshfg_ros.core.mesh import TetMesh, signed_volumes
+from meshfg_ros.core.geometry.mesh import TetMesh, signed_volumes
 from meshfg_ros.synthetic.meshing import MeshingError, compact_tetrahedra, gmsh_model
 from meshfg_ros.synthetic.scenarios import Scenario, ScenarioError, ScenarioStep, _stamp, liver_mesh, pose
-from meshfg_ros.core.simulator import SimulatorConfig
+from meshfg_ros.core.physics.simulator import SimulatorConfig
 
 from meshfg_ros.synthetic.hyperelastic import NeoHookeanSolid, StickySphereContact
 
@@ -213,7 +213,7 @@ def _assemble(name: str, seed: int, rng: np.random.Generator, scene_mesh: _Scene
               nominal_youngs_modulus: float, summary: str, truths: list[np.ndarray] | None = None,
               removed: list[np.ndarray] | None = None) -> Scenario:
     """Simulate the truth (unless `truths` gives it), capture a cloud per step and package the
-    Scenario; `removed`: each step's element slots a cut has removed (core/topology.py), whose
+    Scenario; `removed`: each step's element slots a cut has removed (core/geometry/topology.py), whose
     surface the camera sees then."""
     mesh = scene_mesh.mesh
     truths = _simulate_truth(scene_mesh, loading) if truths is None else truths

@@ -18,10 +18,10 @@ from pathlib import Path
 import numpy as np
 
 from meshfg_ros.synthetic.camera import CaptureOptions, PinholeCamera, capture
-from meshfg_ros.core.mesh import TetMesh, load_mesh
+from meshfg_ros.core.geometry.mesh import TetMesh, load_mesh
 from meshfg_ros.synthetic.meshing import airway_phantom, cube_mesh
 from meshfg_ros.evaluation.metrics import sample_surface
-from meshfg_ros.core.simulator import ElasticSimulator, SimulatorConfig
+from meshfg_ros.core.physics.simulator import ElasticSimulator, SimulatorConfig
 
 MISMATCH_SCENARIOS = ("slab-inclusion", "dome-tilted", "liver-gravity", "kidney-drag", "flap-bend")
 CUT_SCENARIOS = ("sheet-cut",)  # meshfg_ros.synthetic.cut_scene

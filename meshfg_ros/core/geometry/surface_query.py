@@ -2,7 +2,7 @@
 distance (negative inside the tissue), the outward normal and the distance's standard deviation.
 
 `SurfaceQuery(vertices, surface_triangles, position_covariance)` answers for one mesh state.
-The closest point is the exact closest point on the surface triangles (core/closest_point.py:
+The closest point is the exact closest point on the surface triangles (core/geometry/closest_point.py:
 its surface grid and libigl's AABB tree find the triangle, Ericson's closed form projects on it).
 
 Inside or outside: the sign of (p - c) . n, with n the angle-weighted pseudo-normal of the
@@ -42,7 +42,7 @@ from dataclasses import dataclass
 import igl
 import numpy as np
 
-from meshfg_ros.core.closest_point import (
+from meshfg_ros.core.geometry.closest_point import (
     REGION_EDGE_AB,
     REGION_EDGE_AC,
     REGION_EDGE_BC,
@@ -52,7 +52,7 @@ from meshfg_ros.core.closest_point import (
     ClosestPointIndex,
     InvalidGeometryError,
 )
-from meshfg_ros.core.mesh import cross
+from meshfg_ros.core.geometry.mesh import cross
 
 __all__ = ["SurfaceDistances", "SurfaceQuery", "query_timing"]
 

@@ -15,12 +15,13 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse
 
+from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError
+
 __all__ = [
     "IdentityNoise",
     "InformationMatrixNoise",
     "IsotropicNoise",
     "NoiseModelError",
-    "NotPositiveDefiniteError",
     "PerPointNoise",
     "PointNoise",
     "RAY_NOISE_FLOOR",
@@ -34,10 +35,6 @@ RAY_NOISE_FLOOR = 0.5
 
 class NoiseModelError(ValueError):
     """A non-positive or non-finite sigma, or an information matrix of the wrong shape."""
-
-
-class NotPositiveDefiniteError(ValueError):
-    """An information matrix without a Cholesky square root (indefinite or singular)."""
 
 
 class PointNoise:

@@ -1,8 +1,8 @@
 """What the tissue model misses, fitted to what the measurements see of each correction.
 
 After each update the simulator learns from the estimate's correction of its prediction,
-c = estimate - prediction: the unmodelled body load (core/body_load.py) and the tissue's
-compressibility (core/poisson_ratio.py). Each is a few numbers p whose small-strain responses
+c = estimate - prediction: the unmodelled body load (core/physics/body_load.py) and the tissue's
+compressibility (core/physics/poisson_ratio.py). Each is a few numbers p whose small-strain responses
 R = dX/dp (one (N, 3) field per number) are known. They are fitted jointly, by weighted least
 squares, to the normal components of c at the surface vertices:
 
@@ -27,9 +27,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from meshfg_ros.core.body_load import BodyLoadEstimate
-from meshfg_ros.core.mesh import TetMesh
-from meshfg_ros.core.poisson_ratio import PoissonRatioEstimate
+from meshfg_ros.core.physics.body_load import BodyLoadEstimate
+from meshfg_ros.core.geometry.mesh import TetMesh
+from meshfg_ros.core.physics.poisson_ratio import PoissonRatioEstimate
 
 __all__ = ["learn", "surface_fit"]
 

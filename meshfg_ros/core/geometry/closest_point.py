@@ -45,8 +45,8 @@ import numba
 import numpy as np
 from numba.types import float64, int64
 
-from meshfg_ros.core.kernel_types import read_only
-from meshfg_ros.core.mesh import cross
+from meshfg_ros.core.geometry.kernel_types import read_only
+from meshfg_ros.core.geometry.mesh import cross
 
 __all__ = [
     "REGION_EDGE_AB",

@@ -17,10 +17,10 @@ import numpy as np
 import scipy.sparse
 from numba.types import float64, int64
 
-from meshfg_ros.core.factors import Factor, FactorError, FactorLinearization, checked_state
-from meshfg_ros.core.kernel_types import read_only, writable
-from meshfg_ros.core.linear_system import WindowSystem, diagonal_positions
-from meshfg_ros.core.mesh import ElementVolumes, cross3, dot3, sorted_unique
+from meshfg_ros.core.estimation.factors import Factor, FactorError, FactorLinearization, checked_state
+from meshfg_ros.core.geometry.kernel_types import read_only, writable
+from meshfg_ros.core.solvers.linear_system import WindowSystem, diagonal_positions
+from meshfg_ros.core.geometry.mesh import ElementVolumes, cross3, dot3, sorted_unique
 
 __all__ = ["MIN_VOLUME_RATIO_PER_STEP", "FactorGraph"]
 

@@ -22,7 +22,7 @@ import numpy as np
 import scipy.sparse
 from numba.types import boolean, float64, int64
 
-from meshfg_ros.core.closest_point import (
+from meshfg_ros.core.geometry.closest_point import (
     REGION_FACE,
     Association,
     ClosestPointIndex,
@@ -30,10 +30,10 @@ from meshfg_ros.core.closest_point import (
     projection_jacobian,
     triangle_corners,
 )
-from meshfg_ros.core.kernel_types import read_only
-from meshfg_ros.core.mesh import ElementVolumes, cross, cross3, dot3
-from meshfg_ros.core.noise import IdentityNoise, InformationMatrixNoise, PointNoise
-from meshfg_ros.core.robust import RobustKernel
+from meshfg_ros.core.geometry.kernel_types import read_only
+from meshfg_ros.core.geometry.mesh import ElementVolumes, cross, cross3, dot3
+from meshfg_ros.core.estimation.noise import IdentityNoise, InformationMatrixNoise, PointNoise
+from meshfg_ros.core.estimation.robust import RobustKernel
 
 __all__ = [
     "BARRIER_VOLUME_RATIO",
@@ -205,7 +205,7 @@ def prior_scale(stiffness, simulation_sigma: float, free_dofs=None) -> float:
 class PhysicsPriorFactor(Factor):
     """r = Xhat - X with information Lambda(X) = scale * K(X) + ridge * I.
 
-    model: an ElasticModel (core.fem); kind / spd_projection select K. K depends on X and is
+    model: an ElasticModel (core.physics.fem); kind / spd_projection select K. K depends on X and is
     treated as the information matrix, not differentiated. It is evaluated at the first
     linearisation and kept until `invalidate_information()` (the estimator calls it once per
     update, see estimator.py), so each update optimises one fixed objective. `cost` uses the

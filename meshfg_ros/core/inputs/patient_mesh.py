@@ -35,7 +35,7 @@ import numpy as np
 import scipy.sparse
 from scipy.sparse.csgraph import connected_components
 
-from meshfg_ros.core.mesh import (
+from meshfg_ros.core.geometry.mesh import (
     DegenerateMeshError,
     InvalidMeshError,
     MeshFileError,
@@ -43,9 +43,9 @@ from meshfg_ros.core.mesh import (
     _is_gmsh_v1,  # the legacy format meshio cannot read, which load_mesh reads itself
     load_mesh,
 )
-from meshfg_ros.core.frames import transform_points
-from meshfg_ros.core.input_checks import flat_elements
-from meshfg_ros.core.pose_history import InvalidPoseError, as_pose, pose_matrix
+from meshfg_ros.core.inputs.frames import transform_points
+from meshfg_ros.core.inputs.input_checks import flat_elements
+from meshfg_ros.core.inputs.pose_history import InvalidPoseError, as_pose, pose_matrix
 
 __all__ = [
     "Box",
@@ -136,7 +136,7 @@ class PatientMeshFile:
 
 def read_patient_mesh(path: str | Path) -> PatientMeshFile:
     """Read a tetrahedral mesh with meshio (.msh, .vtu, .vtk, ... ; legacy Gmsh v1 through
-    core.mesh.load_mesh, without groups). Only tetrahedra are kept, vertices of no tetrahedron
+    core.geometry.mesh.load_mesh, without groups). Only tetrahedra are kept, vertices of no tetrahedron
     are dropped; the `fixed` point data and the named groups follow the kept vertices."""
     path = Path(path)
     if not path.is_file():

@@ -24,8 +24,8 @@ from collections import Counter
 
 import numpy as np
 
-from meshfg_ros.core.input_checks import NS_PER_S
-from meshfg_ros.core.pose_history import OutsideHistory, PoseHistory, seconds
+from meshfg_ros.core.inputs.input_checks import NS_PER_S
+from meshfg_ros.core.inputs.pose_history import OutsideHistory, PoseHistory, seconds
 
 __all__ = ["DEFAULT_EXTRAPOLATION_HORIZON_S", "PoseUnavailable", "ToolPoseBuffer"]
 

@@ -47,7 +47,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from meshfg_ros.core.linear_solvers import LinearSolveError, LinearSolver, NotPositiveDefiniteError, make_linear_solver
+from meshfg_ros.core.solvers.linear_solvers import LinearSolveError, LinearSolver, NotPositiveDefiniteError, make_linear_solver
 
 # An accepted full step whose true decrease exceeds the model's by this factor is extended along
 # its direction to the minimiser of the parabola through the costs (at most MAX_EXTRAPOLATION

@@ -23,9 +23,8 @@ import numpy as np
 import scipy.sparse
 import scipy.sparse.linalg
 
-from meshfg_ros.core.linear_system import WindowSystem, diagonal_positions
-from meshfg_ros.core.noise import NotPositiveDefiniteError
-from meshfg_ros.core.sparse_cholesky import SparseCholesky
+from meshfg_ros.core.solvers.linear_system import WindowSystem, diagonal_positions
+from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError, SparseCholesky
 
 __all__ = [
     "BORROWED_ITERATIONS",

@@ -28,7 +28,7 @@ API; how a sub-step moves the tissue is a strategy chosen by SimulatorConfig.sol
     settling depends on the physical time scale sqrt(density / E) * size.
 
 lambda' and kappa make both energies linearise to linear elasticity with the Lame parameters
-(mu, lambda) of (E, nu): core.fem's linear K0 is their small-strain Hessian. Gauss-Seidel is
+(mu, lambda) of (E, nu): core.physics.fem's linear K0 is their small-strain Hessian. Gauss-Seidel is
 sequential, so vertices (vbd) or elements (xpbd) are coloured at set-up and each colour is one
 batch (vbd: a compiled loop, xpbd: numpy passes). Runs are bit-reproducible (fixed order, no
 threads, no randomness).
@@ -44,11 +44,11 @@ import scipy.sparse
 from numba.types import boolean, float64, int64
 from scipy.spatial.transform import Rotation, Slerp
 
-from meshfg_ros.core.fem import ElasticModel
-from meshfg_ros.core.kernel_types import read_only, writable
-from meshfg_ros.core.sparse_cholesky import SparseCholesky
-from meshfg_ros.core.mesh import TetMesh, name_elements, signed_volumes
-from meshfg_ros.core.pose_history import InvalidPoseError, as_pose
+from meshfg_ros.core.physics.fem import ElasticModel
+from meshfg_ros.core.geometry.kernel_types import read_only, writable
+from meshfg_ros.core.solvers.sparse_cholesky import SparseCholesky
+from meshfg_ros.core.geometry.mesh import TetMesh, name_elements, signed_volumes
+from meshfg_ros.core.inputs.pose_history import InvalidPoseError, as_pose
 from meshfg_ros.core.settings import Setting, check_settings, setting
 
 __all__ = [
@@ -165,10 +165,10 @@ class SimulatorConfig:
     estimate_body_load: bool = setting(
         True, "Estimate a uniform body load the tissue model does not know (a change of gravity, a pull) "
               "from each estimate's correction of its prediction, and apply it in the next predictions "
-              "(core/body_load.py).")
+              "(core/physics/body_load.py).")
     estimate_poisson_ratio: bool = setting(
         True, "Learn the model's Poisson ratio online from the estimates' corrections of the surface, jointly "
-              "with the body load (poisson_ratio is where it starts; core/poisson_ratio.py, core/model_fit.py).")
+              "with the body load (poisson_ratio is where it starts; core/physics/poisson_ratio.py, core/physics/model_fit.py).")
 
     def __post_init__(self):
         check_settings(self, SimulatorConfigError)
@@ -865,7 +865,7 @@ class ElasticSimulator:
     that ends with an element flattened below FLAT_VOLUME_RATIO of its rest volume is run once
     more with stuck vertices slipping where carrying them would flatten an element (`predict`).
     `body_acceleration` adds a uniform load to the configured gravity (the unmodelled load of
-    core/body_load.py). In "grasp" mode `grasped_vertices` follow the tool rigidly: at pose T
+    core/physics/body_load.py). In "grasp" mode `grasped_vertices` follow the tool rigidly: at pose T
     they sit at T T0^-1 applied to their rest positions, T0 being the first tool pose (set by
     `reset`, or by the first `predict`).
     """
@@ -923,7 +923,7 @@ class ElasticSimulator:
         and stuck sets; the load, the Poisson ratio and the tool's poses are kept. Returns
         whether the topology changed. Raises, and changes nothing, InvalidMeshError for a slot
         out of range and NotPositiveDefiniteError for a cut that leaves a piece with rigid modes
-        (core/topology.py: cut_elements removes such pieces too)."""
+        (core/geometry/topology.py: cut_elements removes such pieces too)."""
         mesh = self.rest_mesh.without_elements(removed_elements)
         if mesh is self.rest_mesh:
             return False
@@ -946,7 +946,7 @@ class ElasticSimulator:
     @property
     def body_acceleration(self) -> np.ndarray:
         """Uniform body acceleration (3,) in m/s^2 applied on top of the configured gravity: a
-        load the model does not know, estimated from the estimates (core/body_load.py)."""
+        load the model does not know, estimated from the estimates (core/physics/body_load.py)."""
         return self._body_acceleration.copy()
 
     @body_acceleration.setter
@@ -960,7 +960,7 @@ class ElasticSimulator:
     @property
     def poisson_ratio(self) -> float:
         """The Poisson ratio the simulator uses (config.poisson_ratio, or what
-        core/poisson_ratio.py set)."""
+        core/physics/poisson_ratio.py set)."""
         return float(self.config.poisson_ratio)
 
     @poisson_ratio.setter

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from meshfg_ros.core.closest_point import ClosestPointIndex, triangle_corners
+from meshfg_ros.core.geometry.closest_point import ClosestPointIndex, triangle_corners
 
 __all__ = ["GRAZING_LIMIT_DEGREES", "IMPLAUSIBLE_SHARE", "implausible_view"]
 

@@ -12,7 +12,7 @@ Selected inversion (Takahashi's recursion on L) would be exact at about a factor
 but neither CHOLMOD through cvxopt nor any kept Python package exposes it.
 
 The published estimate's covariance. The estimator publishes m = Xhat + alpha (X* - Xhat): the
-prediction plus the persisting share alpha of the MAP's correction (core/persistence.py). In a
+prediction plus the persisting share alpha of the MAP's correction (core/estimation/persistence.py). In a
 linear-Gaussian model with the prior's information A (the FEM stiffness, weighted by the
 simulation sigma), the measurements' information B, the MAP's posterior S = (A + B)^-1, and a
 prediction whose real error is N(0, lambda^2 A^-1), the error of m has the covariance
@@ -65,10 +65,10 @@ import scipy.linalg
 import scipy.sparse
 from scipy.stats import chi2
 
-from meshfg_ros.core.input_checks import innovation_spread
-from meshfg_ros.core.noise import NotPositiveDefiniteError
-from meshfg_ros.core.sparse_cholesky import SparseCholesky
-from meshfg_ros.core.weights import MIN_POINTS
+from meshfg_ros.core.inputs.input_checks import innovation_spread
+from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError
+from meshfg_ros.core.solvers.sparse_cholesky import SparseCholesky
+from meshfg_ros.core.estimation.weights import MIN_POINTS
 
 __all__ = ["DENSE_MAX_DOFS", "MARGINAL_SAMPLES", "PRIOR_ERROR_MEMORY", "ForgettingMean", "MarginalCovariance",
            "clipped_inverse", "prior_error_scale", "published_covariance"]

@@ -7,7 +7,7 @@ arrive in, and answers the pose at any stamp between its oldest and newest sampl
 translation linear, rotation spherical-linear (slerp), between the two neighbours, as tf2's
 buffer does. Past the newest sample it continues the last two samples' motion (constant linear
 and angular velocity); how far a caller lets it do so is the caller's extrapolation horizon
-(`core.frames`, `core.tool_poses`). Memory is bounded twice: samples older than the newest by
+(`core.inputs.frames`, `core.inputs.tool_poses`). Memory is bounded twice: samples older than the newest by
 more than `duration_ns` are dropped, and so are the oldest beyond `max_samples`.
 """
 
@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from meshfg_ros.core.input_checks import NS_PER_S, StampError, check_stamp
+from meshfg_ros.core.inputs.input_checks import NS_PER_S, StampError, check_stamp
 
 __all__ = ["InvalidPoseError", "OutsideHistory", "PoseHistory", "as_pose", "as_stamp", "pose_matrix", "seconds"]
 
@@ -72,7 +72,7 @@ def pose_matrix(poses: np.ndarray) -> np.ndarray:
 
 
 def as_stamp(stamp_ns) -> int:
-    """`stamp_ns` as an int in [0, 2**63) (the project's stamp rule, core.input_checks), or InvalidPoseError."""
+    """`stamp_ns` as an int in [0, 2**63) (the project's stamp rule, core.inputs.input_checks), or InvalidPoseError."""
     try:
         return check_stamp(stamp_ns)
     except StampError as error:

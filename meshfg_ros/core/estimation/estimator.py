@@ -46,7 +46,7 @@ Design decisions (see also factors.py, factor_graph.py, levenberg_marquardt.py, 
   robust spreads (the spread clipped to [1, 10] sigmas) are gated, and the rest go through a
   Cauchy kernel of scale 2.4 sigma.
 - Published: the prediction plus the share alpha of the correction (optimum - prediction) that
-  persists from one update to the next (core/persistence.py, keep_persistent_correction): the
+  persists from one update to the next (core/estimation/persistence.py, keep_persistent_correction): the
   lag-one correlation of the corrections over their mean energy, 0 at the first update. The
   newest state is moved there, so the next update's window starts from what was published.
 - The physics prior's scale makes mean(diag(scale K_rest)) = 1 / simulation_sigma^2 on the
@@ -67,7 +67,7 @@ Design decisions (see also factors.py, factor_graph.py, levenberg_marquardt.py, 
   and the same vertex RMSE to 0.2 %, and the accuracy suite's ratios move by at most 0.01, its
   LM iterations per update by at most 0.1.
 - Published covariance (position_covariance (N, 3, 3), position_std = sqrt(trace / 3), 0 on
-  fixed vertices): the covariance of the published mean, not of the optimum (core/covariance.py):
+  fixed vertices): the covariance of the published mean, not of the optimum (core/estimation/covariance.py):
   the newest state's marginal posterior at its last linearisation (given the window's other
   states, tied to it only by the weak temporal factors), mixed with the prior's covariance by the
   share of the correction published, with the prior's real error scale learnt from each cloud's
@@ -87,8 +87,8 @@ from dataclasses import dataclass, field, fields, replace
 import numpy as np
 import scipy.sparse
 
-from meshfg_ros.core.closest_point import ClosestPointIndex
-from meshfg_ros.core.covariance import (
+from meshfg_ros.core.geometry.closest_point import ClosestPointIndex
+from meshfg_ros.core.estimation.covariance import (
     PRIOR_ERROR_MEMORY,
     ForgettingMean,
     MarginalCovariance,
@@ -96,8 +96,8 @@ from meshfg_ros.core.covariance import (
     prior_error_scale,
     published_covariance,
 )
-from meshfg_ros.core.factor_graph import FactorGraph
-from meshfg_ros.core.factors import (
+from meshfg_ros.core.estimation.factor_graph import FactorGraph
+from meshfg_ros.core.estimation.factors import (
     MAX_BACK_FACING_SHARE,
     PhysicsPriorFactor,
     PointToSurfaceFactor,
@@ -105,8 +105,8 @@ from meshfg_ros.core.factors import (
     VolumeBarrierFactor,
     prior_scale,
 )
-from meshfg_ros.core.fem import STIFFNESS_KINDS, ElasticModel
-from meshfg_ros.core.input_checks import (
+from meshfg_ros.core.physics.fem import STIFFNESS_KINDS, ElasticModel
+from meshfg_ros.core.inputs.input_checks import (
     REJECTIONS,
     Scene,
     StampError,
@@ -115,20 +115,20 @@ from meshfg_ros.core.input_checks import (
     innovation_sample,
     innovation_spread,
 )
-from meshfg_ros.core.levenberg_marquardt import LevenbergMarquardtConfig, levenberg_marquardt
-from meshfg_ros.core.linear_solvers import LINEAR_SOLVERS, LinearSolveError, NotPositiveDefiniteError, make_linear_solver
-from meshfg_ros.core.mesh import InvalidMeshError, TetMesh, signed_volumes
-from meshfg_ros.core.noise import RayNoise
-from meshfg_ros.core.persistence import CorrectionPersistence
-from meshfg_ros.core.robust import ROBUST_KERNELS, make_robust_kernel
+from meshfg_ros.core.solvers.levenberg_marquardt import LevenbergMarquardtConfig, levenberg_marquardt
+from meshfg_ros.core.solvers.linear_solvers import LINEAR_SOLVERS, LinearSolveError, NotPositiveDefiniteError, make_linear_solver
+from meshfg_ros.core.geometry.mesh import InvalidMeshError, TetMesh, signed_volumes
+from meshfg_ros.core.estimation.noise import RayNoise
+from meshfg_ros.core.estimation.persistence import CorrectionPersistence
+from meshfg_ros.core.estimation.robust import ROBUST_KERNELS, make_robust_kernel
 from meshfg_ros.core.settings import check_settings, dynamic_fields, setting
-from meshfg_ros.core.simulator import (
+from meshfg_ros.core.physics.simulator import (
     POISSON_RATIO_SETTING,
     TOOL_MODE_SETTING,
     TOOL_RADIUS_SETTING,
     YOUNGS_MODULUS_SETTING,
 )
-from meshfg_ros.core.weights import MIN_POINTS, PRIOR_NOISE_RATIO, MeasurementNoise
+from meshfg_ros.core.estimation.weights import MIN_POINTS, PRIOR_NOISE_RATIO, MeasurementNoise
 
 __all__ = [
     "FACTOR_CONFIGURATIONS",
@@ -161,7 +161,7 @@ LM_CONFIG = LevenbergMarquardtConfig(cost_tolerance=1e-9, absolute_cost_toleranc
 LINEAR_TOLERANCE = 1e-1
 # The physics prior's ridge, relative to its mean information: a free body's rigid modes get a tiny information.
 PRIOR_RIDGE = 1e-6
-# Draws for the prior's marginal covariance, made once per estimator (core/covariance.py):
+# Draws for the prior's marginal covariance, made once per estimator (core/estimation/covariance.py):
 # a 5 % relative spread of its variances, 65 MB of draws at organ scale (32k unknowns).
 PRIOR_MARGINAL_SAMPLES = 256
 # Data-driven defaults (robust_scale = 0, gating_distance = 0), in estimated sigmas: the Cauchy
@@ -206,7 +206,7 @@ class EstimatorInputError(ValueError):
 
 class EstimatorStampError(EstimatorInputError):
     """A stamp that is not an integer number of nanoseconds in [0, 2**63), or not newer than the
-    last update's (the callers' rule for repeated and backward stamps: core/input_checks.py)."""
+    last update's (the callers' rule for repeated and backward stamps: core/inputs/input_checks.py)."""
 
 
 class EstimatorStepError(RuntimeError):
@@ -261,7 +261,7 @@ class EstimatorConfig:
     simulation_sigma: float = setting(
         1e-3, "Expected simulator error per vertex in metres; scales the FEM-stiffness information of the "
         "physics prior. Used with estimate_weights false; with estimate_weights the prior follows the "
-        "estimated measurement sigma (a tenth of it, core/weights.py).", range=_LENGTH_RANGE, dynamic=True)
+        "estimated measurement sigma (a tenth of it, core/estimation/weights.py).", range=_LENGTH_RANGE, dynamic=True)
     temporal_sigma: float = setting(  # a weak random walk: up to ~1 cm per 1 Hz step (Table I: see README)
         1e-2, "Standard deviation of a vertex's motion between two steps beyond the simulator's prediction, "
         "metres.", range=_LENGTH_RANGE, dynamic=True)
@@ -281,10 +281,10 @@ class EstimatorConfig:
         range=(0.0, 10.0), dynamic=True)
     estimate_weights: bool = setting(
         True, "Estimate the measurement noise online from the residuals and weight the physics prior with a "
-        "tenth of it (core/weights.py); false: use measurement_sigma and simulation_sigma as given.")
+        "tenth of it (core/estimation/weights.py); false: use measurement_sigma and simulation_sigma as given.")
     keep_persistent_correction: bool = setting(
         True, "Publish the prediction plus only the share of the factor graph's correction that persists "
-        "from one update to the next (core/persistence.py): noise fitted through the prior is left out; "
+        "from one update to the next (core/estimation/persistence.py): noise fitted through the prior is left out; "
         "false: publish the optimum as it is.")
     # In sphere mode, points inside the tool sphere (plus a margin) are leaks (see _outside_tool).
     tool_radius: float = setting(5e-3, TOOL_RADIUS_SETTING)
@@ -356,10 +356,10 @@ class PendingStep:
     # measurement factor's gate reuses when the vertices are the prediction's.
     association: tuple | None = None
     prepare_ms: float = 0.0  # wall time of `prepare` (the "association" stage)
-    # The share of the correction published (core/persistence.py): 1 when the optimum is published.
+    # The share of the correction published (core/estimation/persistence.py): 1 when the optimum is published.
     published_share: float = 1.0
     # (3N, 3N) csr on the model's stiffness pattern [N/m]: an external simulator's stiffness used
-    # instead of the model's K as the prior's information (core/external_prior.py); None: the model's.
+    # instead of the model's K as the prior's information (core/physics/external_prior.py); None: the model's.
     prior_stiffness: object | None = None
 
 
@@ -415,7 +415,7 @@ class SlidingWindowEstimator:
             # kappa V_e per element: the prior's volume barrier in the prior's own units
             self.bulk_energy_scale = (self.model.lam + 2.0 * self.model.mu / 3.0) * self.model.volumes
             # The prior's covariance blocks at the rest shape for a unit simulation sigma
-            # (core/covariance.py): scaled by simulation_sigma^2 at each update.
+            # (core/estimation/covariance.py): scaled by simulation_sigma^2 at each update.
             free = self.graph.free_dofs
             unit_information = (self.unit_prior_scale * scipy.sparse.csr_matrix(rest_stiffness)[free][:, free]
                                 + PRIOR_RIDGE * scipy.sparse.identity(free.size, format="csr"))
@@ -424,7 +424,7 @@ class SlidingWindowEstimator:
                 unit_information)
         self.marginals = MarginalCovariance()
         # lambda^2: the prediction's real error over the prior's model of it, learnt from each
-        # update's innovation (core/covariance.py); 1 until the first.
+        # update's innovation (core/estimation/covariance.py); 1 until the first.
         self.prior_error_scale = 1.0
         self._prior_error_memory = ForgettingMean(PRIOR_ERROR_MEMORY, initial=self.prior_error_scale)
         self.noise = MeasurementNoise(self.config.measurement_sigma)
@@ -436,7 +436,7 @@ class SlidingWindowEstimator:
         self.anchor = initial_mesh.vertices.copy()
         self.step = 0
         self.last_estimate = initial_mesh.vertices.copy()
-        self.scene = Scene.of(initial_mesh.vertices)  # what is far (core/input_checks.py)
+        self.scene = Scene.of(initial_mesh.vertices)  # what is far (core/inputs/input_checks.py)
         self.last_stamp_ns: int | None = None
         self.deadline: float | None = None  # perf_counter() at which the update's time budget ends
         self._pending_changes = _PendingChanges()
@@ -552,7 +552,7 @@ class SlidingWindowEstimator:
 
     def _far_input(self, points, predicted, tool_pose, messages):
         """Far cloud points dropped, a far or inverted prediction and a far tool pose set aside
-        (core/input_checks.py), each reported in `messages`: (points, predicted, tool pose, count
+        (core/inputs/input_checks.py), each reported in `messages`: (points, predicted, tool pose, count
         of points dropped)."""
         scene, dropped = self.scene, 0
         if points is not None:
@@ -590,7 +590,7 @@ class SlidingWindowEstimator:
         of the predicted surface (PointToSurfaceFactor).
         prior_stiffness (optional): (3N, 3N) csr on the model's stiffness pattern, positive
         definite on the free dofs, [N/m]: the prior's information instead of the model's K (an
-        external simulator's, core/external_prior.py), scaled like it; unused without `predicted`.
+        external simulator's, core/physics/external_prior.py), scaled like it; unused without `predicted`.
 
         Raises only EstimatorInputError (EstimatorStampError: stamps must be integer nanoseconds
         in [0, 2**63), each newer than the last update's) and EstimatorStepError; after either,
@@ -718,7 +718,7 @@ class SlidingWindowEstimator:
 
     def _learn_prior_error_scale(self, predicted: np.ndarray, association) -> None:
         """lambda^2 from the cloud's distances to the predicted surface against the prior's
-        variance along each point's normal (core/covariance.py); kept when too few points tell."""
+        variance along each point's normal (core/estimation/covariance.py); kept when too few points tell."""
         if "simulation" not in self.enabled:
             return
         found = association.triangle >= 0
@@ -833,7 +833,7 @@ class SlidingWindowEstimator:
 
     def _keep_persistent_correction(self, pending: PendingStep) -> None:
         """Move the newest state to its prediction plus the persisting share of its correction
-        (core/persistence.py), for an update with a simulator prediction and a cloud."""
+        (core/estimation/persistence.py), for an update with a simulator prediction and a cloud."""
         if (not self.config.keep_persistent_correction or "simulation" not in self.enabled or pending.degraded
                 or not pending.num_points):
             return
@@ -893,7 +893,7 @@ class SlidingWindowEstimator:
     # ------------------------------------------------------------------------- covariance
     def _position_covariance(self, pending: PendingStep, messages) -> np.ndarray:
         """(N, 3, 3) covariance blocks of the published estimate's vertices, zero on fixed ones
-        (core/covariance.py): the newest state's marginal posterior at its last linearisation
+        (core/estimation/covariance.py): the newest state's marginal posterior at its last linearisation
         (conditioned on the window's other states, which the weak temporal factors tie to it),
         mixed with the prior's covariance by the share of the correction published and scaled
         by the prior's learnt error."""

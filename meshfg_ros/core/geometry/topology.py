@@ -19,7 +19,7 @@ import numpy as np
 import scipy.sparse
 from scipy.sparse.csgraph import connected_components
 
-from meshfg_ros.core.mesh import TetMesh
+from meshfg_ros.core.geometry.mesh import TetMesh
 
 __all__ = ["MIN_HELD_VERTICES", "cut_elements", "detached_elements", "elements_in_box"]
 

@@ -24,9 +24,7 @@ import numpy as np
 import scipy.sparse
 import pymetis
 
-from meshfg_ros.core.noise import NotPositiveDefiniteError
-
-__all__ = ["SparseCholesky", "nested_dissection"]
+__all__ = ["NotPositiveDefiniteError", "SparseCholesky", "nested_dissection"]
 
 # Below this many nodes AMD (CHOLMOD's own choice) is nearly as good and METIS's call costs
 # more than it saves: on the 512-vertex paper-scale block METIS takes 2.3 ms and saves 0.4 ms
@@ -60,6 +58,10 @@ def _cvxopt():
     import cvxopt.cholmod
 
     return cvxopt
+
+
+class NotPositiveDefiniteError(ValueError):
+    """An information matrix without a Cholesky square root (indefinite or singular)."""
 
 
 class SparseCholesky:

@@ -9,7 +9,7 @@ same correction to its prediction again, and the physics prior holds most of it 
 `BodyLoadEstimate` holds the uniform body acceleration the simulator applies on top of its
 gravity and gives the small-strain responses to it; after each update the prediction scheduler
 fits its increment, jointly with the Poisson ratio's, to the correction's normal components at
-the surface (core/model_fit.py) and adds it. It is an integrator: the next correction measures
+the surface (core/physics/model_fit.py) and adds it. It is an integrator: the next correction measures
 what the load still misses. The responses, K0^-1 F (F the lumped masses, K0 the rest stiffness
 on the movable dofs, the other vertices held), take three solves with K0's factor, again when
 the Poisson ratio changes.
@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from meshfg_ros.core.simulator import ElasticSimulator
+from meshfg_ros.core.physics.simulator import ElasticSimulator
 
 __all__ = ["BodyLoadEstimate"]
 

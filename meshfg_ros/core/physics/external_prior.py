@@ -11,7 +11,7 @@ simulator holds carry FIXED_DIAGONAL-sized entries (it writes 1e9) on the diagon
 same elements) and moves it into the world frame: positions (N, 3) and, when given, the
 stiffness as an `ExternalStiffness` (COO, rotated: K_world = B K B^T with B = diag(R, ..., R)),
 with the element slots the simulator removed (a cut) as slots of the mesh's own elements, which
-the estimator follows (SlidingWindowEstimator.remove_elements, core/topology.py).
+the estimator follows (SlidingWindowEstimator.remove_elements, core/geometry/topology.py).
 Each failure is an `ExternalPriorError` with the diagnostics counter it counts in.
 
 `ExternalStiffness.information(template, free_dofs)` makes the prior's information of it, on the
@@ -44,9 +44,9 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse
 
-from meshfg_ros.core.mesh import TetMesh
-from meshfg_ros.core.noise import NotPositiveDefiniteError
-from meshfg_ros.core.sparse_cholesky import SparseCholesky
+from meshfg_ros.core.geometry.mesh import TetMesh
+from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError
+from meshfg_ros.core.solvers.sparse_cholesky import SparseCholesky
 
 __all__ = ["FIXED_DIAGONAL", "REPAIR_SHIFTS", "BridgeAnswer", "ExternalPriorError", "ExternalStiffness",
            "StiffnessInformation", "StiffnessProjection", "bridge_state"]
@@ -215,7 +215,7 @@ def bridge_state(answer: BridgeAnswer, mesh: TetMesh, to_world: np.ndarray
     """(positions (N, 3) in the world frame, the stiffness or None, the removed element slots
     or None) of a sim_bridge answer for `mesh` (the estimator's initial mesh, before any cut, in
     the simulator's vertex order); `to_world` (4, 4): the simulator frame's points into the world
-    frame. The removed slots are those of `mesh.all_tetrahedra` (core/topology.py), the
+    frame. The removed slots are those of `mesh.all_tetrahedra` (core/geometry/topology.py), the
     simulator's element slots matched to them once by their vertices; a removed vertex's slot is
     given its initial position (the estimator holds it). ExternalPriorError with the counter
     "sim_bridge_rejected_malformed" (sizes, indices, non-finite values) or

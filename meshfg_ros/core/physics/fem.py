@@ -41,9 +41,9 @@ import scipy.sparse
 import scipy.sparse.linalg
 from numba.types import float64, int64
 
-from meshfg_ros.core.kernel_types import read_only
-from meshfg_ros.core.mesh import DegenerateMeshError as DegenerateElementError  # one error for degenerate rest elements
-from meshfg_ros.core.mesh import sorted_unique
+from meshfg_ros.core.geometry.kernel_types import read_only
+from meshfg_ros.core.geometry.mesh import DegenerateMeshError as DegenerateElementError  # one error for degenerate rest elements
+from meshfg_ros.core.geometry.mesh import sorted_unique
 
 __all__ = [
     "STIFFNESS_KINDS",
@@ -63,7 +63,7 @@ __all__ = [
 
 STIFFNESS_KINDS = ("linear", "corotational", "neo_hookean")
 
-# |volume| below this times (mean edge length)^3 is a degenerate element (as in core/mesh.py).
+# |volume| below this times (mean edge length)^3 is a degenerate element (as in core/geometry/mesh.py).
 DEGENERATE_VOLUME_TOLERANCE = 1e-12
 
 # Eigenvalues below -tolerance * max|eigenvalue| make a matrix indefinite; above +tolerance

@@ -2,7 +2,7 @@
 
 A camera on a moving arm (an endoscope) gives clouds in its optical frame and a robot gives tool
 poses in its base frame; /tf and /tf_static say where those frames are over time
-(core/frames.py). `WorldFrameInputs` releases each input moved into world_frame as soon as the
+(core/inputs/frames.py). `WorldFrameInputs` releases each input moved into world_frame as soon as the
 transform buffer can place it at its stamp. An input whose frame is not known yet, or whose
 stamp lies beyond the newest transform of a moving frame, waits (at most `wait_s` of the
 caller's clock, or until `flush`); after that it is set aside with the lookup's reason. Inputs
@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from meshfg_ros.core.frames import FrameLookupError, TransformBuffer, transform_points
+from meshfg_ros.core.inputs.frames import FrameLookupError, TransformBuffer, transform_points
 
 CLOUD, POSE = "cloud", "pose"
 

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from meshfg_ros.core.mesh import inverted_elements
+from meshfg_ros.core.geometry.mesh import inverted_elements
 
 __all__ = [
     "FAR_DIAGONALS",

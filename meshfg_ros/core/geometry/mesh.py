@@ -18,7 +18,7 @@ import numba
 import numpy as np
 from numba.types import float64, int64
 
-from meshfg_ros.core.kernel_types import read_only
+from meshfg_ros.core.geometry.kernel_types import read_only
 
 __all__ = [
     "DegenerateMeshError",

@@ -33,8 +33,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from meshfg_ros.core.input_checks import DEFAULT_CLOCK_JUMP_THRESHOLD_S, JUMP_BACK, NS_PER_S, stamp_order
-from meshfg_ros.core.pose_history import (
+from meshfg_ros.core.inputs.input_checks import DEFAULT_CLOCK_JUMP_THRESHOLD_S, JUMP_BACK, NS_PER_S, stamp_order
+from meshfg_ros.core.inputs.pose_history import (
     InvalidPoseError,
     OutsideHistory,
     PoseHistory,
