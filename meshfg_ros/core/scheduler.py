@@ -60,14 +60,12 @@ from meshfg_ros.core.inputs.input_checks import (
     check_initial_mesh,
     stamp_order,
 )
-from meshfg_ros.core.physics.body_load import BodyLoadEstimate
 from meshfg_ros.core.physics.external_prior import ExternalPriorError, ExternalStiffness, StiffnessProjection
-from meshfg_ros.core.physics.model_fit import learn
-from meshfg_ros.core.physics.poisson_ratio import PoissonRatioEstimate
+from meshfg_ros.core.physics.learning_simulator import LearningSimulator
 from meshfg_ros.core.geometry.mesh import TetMesh
 from meshfg_ros.core.inputs.patient_mesh import PatientMeshError, check_against_clouds
 from meshfg_ros.core.inputs.pose_history import InvalidPoseError, PoseHistory, as_pose
-from meshfg_ros.core.physics.simulator import SimulatorConfig, ElasticSimulator
+from meshfg_ros.core.physics.simulator import SimulatorConfig
 from meshfg_ros.core.estimation.weights import MIN_POINTS
 from meshfg_ros.core.inputs.tool_poses import DEFAULT_EXTRAPOLATION_HORIZON_S as TOOL_POSE_HORIZON_S
 from meshfg_ros.core.inputs.tool_poses import PoseUnavailable, ToolPoseBuffer
@@ -159,11 +157,7 @@ class PredictionScheduler:
         self.mesh = mesh
         self.newest_first = newest_first
         self.scene = check_initial_mesh(mesh.vertices)
-        self.simulator = ElasticSimulator(mesh, model, grasped_vertices)
-        self.body_load = (BodyLoadEstimate(self.simulator)
-                          if model.estimate_body_load and self.simulator.movable_vertices.size else None)
-        self.poisson_ratio = (PoissonRatioEstimate(self.simulator)
-                              if model.estimate_poisson_ratio and self.simulator.movable_vertices.size else None)
+        self.simulator = LearningSimulator(mesh, model, grasped_vertices)
         self.timeouts = timeouts
         self._jump_ns = _jump_ns(clock_jump_threshold)
         self._poses = ToolPoseBuffer(extrapolation_horizon_s=tool_pose_extrapolation)
@@ -173,22 +167,17 @@ class PredictionScheduler:
 
     def remove_elements(self, removed_elements) -> bool:
         """Cut: predict on the mesh without the element slots `removed_elements` from now on
-        (ElasticSimulator.remove_elements; the body load and Poisson ratio learnt are kept).
-        Returns whether the topology changed; InvalidMeshError or NotPositiveDefiniteError, and
-        nothing changed, for a cut the simulator cannot take."""
+        (LearningSimulator.remove_elements: what it learnt is kept). Returns whether the topology
+        changed; InvalidMeshError or NotPositiveDefiniteError, and nothing changed, for a cut the
+        simulator cannot take."""
         if not self.simulator.remove_elements(removed_elements):
             return False
         self.mesh = self.simulator.rest_mesh
-        if self.body_load is not None:
-            self.body_load = BodyLoadEstimate(self.simulator)
-        if self.poisson_ratio is not None:
-            nominal = self.poisson_ratio.nominal
-            self.poisson_ratio = PoissonRatioEstimate(self.simulator)
-            self.poisson_ratio.nominal = nominal
         return True
 
     def _restart_timeline(self) -> None:
-        """Forget poses, requests and estimates: the next tool pose starts a new timeline."""
+        """Forget poses, requests and estimates: the next tool pose starts a new timeline (and
+        resets the simulator, which forgets what it learnt)."""
         self._poses.clear()
         self._requests.clear()
         self._start_ns: int | None = None       # stamp of the timeline's first tool pose
@@ -203,10 +192,6 @@ class PredictionScheduler:
         self._state_ns: int | None = None       # stamp of the estimate self._state is
         self._skipped_ns: int | None = None     # newest stamp the estimator will not answer
         self._predicted: Prediction | None = None  # the last prediction, for its estimate's correction
-        if self.body_load is not None:
-            self.body_load.reset()
-        if self.poisson_ratio is not None:
-            self.poisson_ratio.reset()
 
     @property
     def state(self) -> np.ndarray:
@@ -290,14 +275,8 @@ class PredictionScheduler:
         if self._state_ns is None or stamp_ns > self._state_ns:
             self._state, self._state_ns = positions, stamp_ns
             if not degraded and self._predicted is not None and self._predicted.stamp_ns == stamp_ns:
-                self._learn(self._predicted.positions, positions, position_std)
+                self.simulator.learn(self._predicted.positions, positions, position_std)
         return None
-
-    def _learn(self, predicted: np.ndarray, estimate: np.ndarray, position_std: np.ndarray | None) -> None:
-        """What the model misses, from an estimate's correction of its prediction: the body
-        load's and the Poisson ratio's increments, fitted jointly (core/physics/model_fit.py)."""
-        if position_std is not None and np.shape(position_std) == (len(estimate),):
-            learn(self.mesh, self.body_load, self.poisson_ratio, predicted, estimate, position_std)
 
     def poll(self, now_s: float = 0.0, flush: bool = False) -> list[Prediction]:
         """Answer the requests that are ready, oldest first (module docstring)."""
@@ -379,15 +358,10 @@ class PredictionScheduler:
             self._tool_ns, self._tool_pose = skipped, skipped_pose
 
     def _restart_simulator(self, pose: np.ndarray) -> None:
-        """After a failed prediction: the tool restarts at `pose`, and the body load learnt so far
-        is forgotten, since it may be what failed; kept, every later prediction could fail alike,
-        each step would run degraded, and degraded estimates teach the load nothing."""
+        """After a failed prediction: the tool restarts at `pose` and the simulator forgets what it
+        learnt, which may be what failed (LearningSimulator.reset)."""
         self._tool_pose = pose
         self.simulator.reset(pose)
-        if self.body_load is not None:
-            self.body_load.reset()
-        if self.poisson_ratio is not None:
-            self.poisson_ratio.reset()
 
     def _previous_settled(self) -> bool:
         """Whether the state to predict from is known: the previous request's estimate has come,
@@ -755,10 +729,9 @@ class OfflinePipeline:
                                              degraded=result is not None and result.degraded,
                                              position_std=None if result is None else _as_sent(result.position_std))
                 if outcome.result is not None:
-                    load = self.simulation.body_load
                     steps.append(PipelineStep(step.stamp_ns, step.points, step.predicted,
                                               self._open_loop_states.pop(step.stamp_ns, None), outcome.result,
-                                              None if load is None else load.acceleration,
+                                              self.simulation.simulator.body_acceleration,
                                               self.estimation.estimator.mesh))
                 for old in [s for s in self._open_loop_states if s < step.stamp_ns]:
                     del self._open_loop_states[old]

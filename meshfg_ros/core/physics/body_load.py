@@ -7,9 +7,9 @@ estimate back to the model's equilibrium, so without that load each update has t
 same correction to its prediction again, and the physics prior holds most of it back.
 
 `BodyLoadEstimate` holds the uniform body acceleration the simulator applies on top of its
-gravity and gives the small-strain responses to it; after each update the prediction scheduler
-fits its increment, jointly with the Poisson ratio's, to the correction's normal components at
-the surface (core/physics/model_fit.py) and adds it. It is an integrator: the next correction measures
+gravity and gives the small-strain responses to it; after each update the learning simulator
+(core/physics/learning_simulator.py) fits its increment, jointly with the Poisson ratio's, to the
+correction's normal components at the surface (core/physics/model_fit.py) and adds it. It is an integrator: the next correction measures
 what the load still misses. The responses, K0^-1 F (F the lumped masses, K0 the rest stiffness
 on the movable dofs, the other vertices held), take three solves with K0's factor, again when
 the Poisson ratio changes.
@@ -26,7 +26,7 @@ __all__ = ["BodyLoadEstimate"]
 
 class BodyLoadEstimate:
     """The unmodelled uniform body load of `simulator`, applied as its `body_acceleration`; the
-    prediction scheduler fits the increments (module docstring)."""
+    learning simulator fits the increments (module docstring)."""
 
     def __init__(self, simulator: ElasticSimulator):
         self.simulator = simulator

@@ -15,9 +15,9 @@ compressibility moves the hidden side right.
 u the prediction's displacement from rest, f the dofs of the vertices that move freely (neither
 fixed, grasped nor stuck to the tool, whose positions the boundary prescribes), K the rest
 stiffness (linear in the Lame parameters, so dK/dnu is exact). After each update the
-prediction scheduler fits the ratio's increment, jointly with the body load's, to the
-correction's normal components at the surface (core/physics/model_fit.py). As the load, it is an
-integrator: the next correction measures what nu still misses. The ratio stays within
+learning simulator (core/physics/learning_simulator.py) fits the ratio's increment, jointly with
+the body load's, to the correction's normal components at the surface (core/physics/model_fit.py).
+As the load, it is an integrator: the next correction measures what nu still misses. The ratio stays within
 [FLOOR, CEILING]; the simulator rescales its moduli and refactors K0 at each new value
 (ElasticSimulator.poisson_ratio).
 """
