@@ -46,14 +46,21 @@ from meshfg_ros.core.scheduler import (
     SchedulingTimeouts,
 )
 from meshfg_ros.core.inputs.world_frame import DEFAULT_TRANSFORM_WAIT_S, WorldFrameInputs
-from meshfg_ros.core.settings import setting, settings_of
+from meshfg_ros.core.settings import (
+    SETTING_TYPES,
+    Setting,
+    bound_text,
+    checked_value,
+    setting,
+    setting_type,
+    settings_of,
+)
 from meshfg_ros.core.physics.simulator import SimulatorConfig
 from meshfg_ros.core.inputs.tool_poses import DEFAULT_EXTRAPOLATION_HORIZON_S
 
 __all__ = [
     "NODE_CONFIGURATIONS",
     "PARAMETERS",
-    "PARAMETER_TYPES",
     "EstimatorNodeConfig",
     "Parameter",
     "ParameterError",
@@ -79,8 +86,6 @@ __all__ = [
     "simulator_config",
 ]
 
-# ROS parameter type names (rcl_interfaces/ParameterType without the PARAMETER_ prefix).
-PARAMETER_TYPES = ("double", "integer", "string", "bool", "double_array", "integer_array")
 # Parameters every rclpy node declares itself: accepted in a parameters file and ignored.
 _ROS_OWN_PARAMETERS = frozenset({"use_sim_time", "start_type_description_service"})
 _PARAMS_KEY = "ros__parameters"
@@ -95,7 +100,7 @@ class ParameterError(ValueError):
 
 @dataclass(frozen=True)
 class Parameter:
-    """One parameter: name, default, description, type (see PARAMETER_TYPES) and valid range.
+    """One parameter: name, default, description, type (core.settings.SETTING_TYPES) and valid range.
 
     range: inclusive (low, high) of the value (of each element for arrays); None = unbounded
     (either bound may be None). choices: the allowed strings. length: required array length.
@@ -112,17 +117,16 @@ class Parameter:
     dynamic: bool = False
 
     def __post_init__(self) -> None:
-        if self.type not in PARAMETER_TYPES:
+        if self.type not in SETTING_TYPES:
             raise ParameterError(f"{self.name}: unknown parameter type {self.type!r}")
 
     def validate(self, value: Any) -> Any:
-        """`value` converted to this parameter's canonical Python type, or ParameterError.
+        """`value` converted to this parameter's canonical Python type, or ParameterError: the
+        settings' validator (core.settings.checked_value), which the configurations use too.
 
         An integer is accepted for a double (also in arrays): `-p measurement_sigma:=1` means 1.0.
         """
-        if self.type.endswith("_array"):
-            return self._validate_array(value)
-        return self._validate_scalar(value, self.type, self.name)
+        return checked_value(self.name, value, self.type, self.range, self.choices, self.length, ParameterError)
 
     def summary(self) -> str:
         """Type, default, range or choices, and whether dynamic, for --help."""
@@ -130,52 +134,13 @@ class Parameter:
         parts = [self.type, f"default {default!r}" if self.type == "string" else f"default {default}"]
         if self.range is not None:
             low, high = self.range
-            parts.append(f"range [{_bound(low, '-inf')}, {_bound(high, 'inf')}]")
+            parts.append(f"range [{bound_text(low, '-inf')}, {bound_text(high, 'inf')}]")
         if self.choices is not None:
             parts.append(f"one of: {', '.join(self.choices)}")
         if self.length is not None:
             parts.append(f"{self.length} values")
         parts.append("dynamic" if self.dynamic else "read-only")
         return ", ".join(parts)
-
-    def _validate_scalar(self, value: Any, kind: str, label: str) -> Any:
-        if kind == "bool":
-            if not isinstance(value, (bool, np.bool_)):
-                raise ParameterError(f"{label} must be a bool, got {value!r}")
-            return bool(value)
-        if kind == "string":
-            if not isinstance(value, str):
-                raise ParameterError(f"{label} must be a string, got {value!r}")
-            if self.choices is not None and value not in self.choices:
-                raise ParameterError(f"{label} must be one of {', '.join(self.choices)}; got {value!r}")
-            return value
-        is_integer = isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
-        if kind == "integer":
-            if not is_integer:
-                raise ParameterError(f"{label} must be an integer, got {value!r}")
-            number = int(value)
-        else:
-            if not (is_integer or isinstance(value, (float, np.floating))):
-                raise ParameterError(f"{label} must be a number, got {value!r}")
-            number = float(value)
-            if not np.isfinite(number):
-                raise ParameterError(f"{label} must be finite, got {value!r}")
-        if self.range is not None:
-            low, high = self.range
-            if (low is not None and number < low) or (high is not None and number > high):
-                raise ParameterError(f"{label} = {number} is outside [{_bound(low, '-inf')}, {_bound(high, 'inf')}]")
-        return number
-
-    def _validate_array(self, value: Any) -> tuple:
-        if isinstance(value, (str, bytes, Mapping)) or not hasattr(value, "__iter__"):
-            raise ParameterError(f"{self.name} must be a list, got {value!r}")
-        items = list(value)
-        if self.length is not None and len(items) != self.length:
-            raise ParameterError(f"{self.name} must have {self.length} values, got {len(items)}")
-        element_type = self.type.removesuffix("_array")
-        return tuple(
-            self._validate_scalar(item, element_type, f"{self.name}[{index}]") for index, item in enumerate(items)
-        )
 
 
 def _check_quaternion(name: str, pose: tuple[float, ...]) -> None:
@@ -184,10 +149,6 @@ def _check_quaternion(name: str, pose: tuple[float, ...]) -> None:
         as_pose(pose)
     except InvalidPoseError as error:
         raise ParameterError(f"{name}: {error}") from None
-
-
-def _bound(value: float | None, unbounded: str) -> str:
-    return unbounded if value is None else f"{value:g}"
 
 
 # ------------------------------------------------------------------ the nodes' own settings
@@ -353,40 +314,29 @@ NODE_CONFIGURATIONS: dict[str, tuple[type, ...]] = {
 _PIPELINE_CONFIGURATIONS = (SimulatorConfig, SimulationNodeConfig, EstimatorConfig, EstimatorNodeConfig,
                             SharedNodeConfig)
 
-_PYTHON_TYPES = ((bool, "bool"), (int, "integer"), (float, "double"), (str, "string"))
-
-
-def _parameter_type(name: str, default: Any, declared: str | None) -> str:
-    if declared is not None:
-        return declared
-    if isinstance(default, tuple) and default:
-        return f"{_parameter_type(name, default[0], None)}_array"
-    for python_type, parameter_type in _PYTHON_TYPES:
-        if isinstance(default, python_type):
-            return parameter_type
-    raise ParameterError(f"{name}: give the parameter type of default {default!r}")
-
-
 @functools.cache
-def _fields_and_parameters(config_class: type) -> tuple[tuple[str, Parameter], ...]:
-    """(field name, parameter) of each field of `config_class` that is a parameter."""
+def _fields_and_parameters(config_class: type) -> tuple[tuple[str, Setting, Parameter], ...]:
+    """(field name, its Setting, parameter) of each field of `config_class` that is a parameter."""
     return tuple(
-        (field_name, Parameter(
+        (field_name, spec, Parameter(
             name=spec.parameter or field_name, default=default, description=spec.description,
-            type=_parameter_type(field_name, default, spec.type), range=spec.range, choices=spec.choices,
+            type=setting_type(field_name, default, spec.type), range=spec.range, choices=spec.choices,
             length=spec.length, dynamic=spec.dynamic))
         for field_name, default, spec in settings_of(config_class))
 
 
 def _merged(configurations: Iterable[type]) -> tuple[Parameter, ...]:
-    """The parameters of `configurations`, each once; a parameter of several must be described alike."""
-    by_name: dict[str, Parameter] = {}
+    """The parameters of `configurations`, each once. A parameter of several configurations is one
+    field they inherit (the tissue model and the tool: core/physics/tissue_and_tool.py), never a
+    field declared again: one declaration, one default, one description."""
+    by_name: dict[str, tuple[Setting, Parameter]] = {}
     for config_class in configurations:
-        for _, parameter in _fields_and_parameters(config_class):
-            known = by_name.setdefault(parameter.name, parameter)
-            if known != parameter:
-                raise ParameterError(f"parameter {parameter.name} is described differently in {config_class.__name__}")
-    return tuple(by_name.values())
+        for _, spec, parameter in _fields_and_parameters(config_class):
+            declared, _ = by_name.setdefault(parameter.name, (spec, parameter))
+            if declared is not spec:
+                raise ParameterError(f"parameter {parameter.name} is declared again in {config_class.__name__}: "
+                                     "declare it once, on a configuration that both inherit")
+    return tuple(parameter for _, parameter in by_name.values())
 
 
 PARAMETERS: tuple[Parameter, ...] = _merged(_PIPELINE_CONFIGURATIONS)
@@ -490,7 +440,7 @@ def parameters_yaml(params: Mapping[str, Any]) -> str:
 # ------------------------------------------------------------------ configurations <-> parameters
 def parameter_names(config_class: type) -> dict[str, str]:
     """Field name -> parameter name of each field of `config_class` that is a parameter."""
-    return {field_name: parameter.name for field_name, parameter in _fields_and_parameters(config_class)}
+    return {field_name: parameter.name for field_name, _, parameter in _fields_and_parameters(config_class)}
 
 
 def config_from_parameters(config_class: type, params: Mapping[str, Any]):

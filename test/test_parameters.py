@@ -205,14 +205,17 @@ def test_each_node_declares_the_parameters_of_the_configurations_it_reads():
         "rate", "wait_for_subscribers", "subscribers", "clock_frequency", "delay", "loop"]
 
 
-def test_a_parameter_of_two_configurations_must_be_described_alike():
+def test_a_parameter_of_two_configurations_is_declared_once():
+    """The tissue model and the tool are one field each, which both configurations inherit; a
+    configuration that declares one of them again is refused, even alike."""
     from meshfg_ros import parameters
 
     @dataclass(frozen=True)
     class Other:
-        youngs_modulus: float = setting(3e3, "Another description of the same parameter.")
+        youngs_modulus: float = setting(3e3, "Young's modulus of the tissue model in pascals.", range=(1.0, 1e9))
 
-    with pytest.raises(ParameterError, match="youngs_modulus is described differently in Other"):
+    assert parameters._merged((SimulatorConfig, EstimatorConfig))
+    with pytest.raises(ParameterError, match="parameter youngs_modulus is declared again in Other"):
         parameters._merged((SimulatorConfig, Other))
 
 

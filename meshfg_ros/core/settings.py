@@ -6,19 +6,40 @@ parameter's name where it differs from the field's, whether it may change while 
 Fields without one are internal. meshfg_ros.parameters derives the parameters of the nodes and
 of the replay, and the configurations made from parameter values, from these fields; the
 estimator reads `dynamic_fields` to know what `SlidingWindowEstimator.reconfigure` may change.
+
+`checked_value` is the one validator of a setting's value: the configurations check their
+fields with it (`check_settings`), and meshfg_ros.parameters checks and converts parameter
+values with it, so a value means and fails the same way in code, in a parameters file and on
+the command line.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-import numbers
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["Setting", "check_settings", "dynamic_fields", "setting", "settings_of"]
+import numpy as np
+
+__all__ = [
+    "SETTING_TYPES",
+    "Setting",
+    "bound_text",
+    "check_settings",
+    "checked_value",
+    "dynamic_fields",
+    "setting",
+    "setting_type",
+    "settings_of",
+]
 
 _METADATA_KEY = "meshfg_setting"
+# The types of a setting's value: ROS parameter type names (rcl_interfaces/ParameterType without
+# the PARAMETER_ prefix), since every setting is a parameter.
+SETTING_TYPES = ("double", "integer", "string", "bool", "double_array", "integer_array")
+_PYTHON_TYPES = ((bool, "bool"), (int, "integer"), (float, "double"), (str, "string"))
 
 
 @dataclass(frozen=True)
@@ -28,9 +49,9 @@ class Setting:
     description: what the field does, in sentences ending with a full stop. range: inclusive
     (low, high) of the value (of each element of an array); either bound may be None
     (unbounded). choices: the allowed strings. parameter: the parameter's name (None: the
-    field's). type: a parameter type name of meshfg_ros.parameters.PARAMETER_TYPES (None: the
-    default value's type). length: the required length of an array. dynamic: may change while
-    running; otherwise it is read once at start-up.
+    field's). type: one of SETTING_TYPES (None: the default value's type, `setting_type`).
+    length: the required length of an array. dynamic: may change while running; otherwise it is
+    read once at start-up.
     """
 
     description: str
@@ -42,13 +63,10 @@ class Setting:
     dynamic: bool = False
 
 
-def setting(default: Any, description: str | Setting, **options: Any) -> Any:
-    """A dataclass field with `default` that users set: described by `description` and `options`
-    (the other fields of Setting), or by a Setting that several configurations share."""
-    if isinstance(description, Setting):
-        if options:
-            raise TypeError("a shared Setting takes no further options")
-        return dataclasses.field(default=default, metadata={_METADATA_KEY: description})
+def setting(default: Any, description: str, **options: Any) -> Any:
+    """A dataclass field with `default` that users set, described by `description` and `options`
+    (the other fields of Setting). A setting of several configurations is declared once, on a
+    configuration they inherit."""
     return dataclasses.field(default=default, metadata={_METADATA_KEY: Setting(description, **options)})
 
 
@@ -63,27 +81,78 @@ def dynamic_fields(config_class: type) -> frozenset[str]:
     return frozenset(name for name, _, spec in settings_of(config_class) if spec.dynamic)
 
 
+def setting_type(name: str, default: Any, declared: str | None = None) -> str:
+    """The type (SETTING_TYPES) of the setting `name`: `declared` (Setting.type), else its
+    default's (a tuple: an array of its first element's type)."""
+    if declared is not None:
+        return declared
+    if isinstance(default, tuple) and default:
+        return f"{setting_type(name, default[0])}_array"
+    for python_type, type_name in _PYTHON_TYPES:
+        if isinstance(default, python_type):
+            return type_name
+    raise TypeError(f"{name}: give the setting type of default {default!r}")
+
+
+def checked_value(name: str, value: Any, kind: str, range: tuple[float | None, float | None] | None = None,
+                  choices: tuple[str, ...] | None = None, length: int | None = None,
+                  error: type[Exception] = ValueError) -> Any:
+    """`value` of the setting `name`, of type `kind` (SETTING_TYPES), converted to its canonical
+    Python type (float, int, str, bool, a tuple of them), or `error` naming the setting (an
+    array's element by its index): a bool, a string among `choices`, an integer, a finite number
+    (an integer is accepted for a double) within the inclusive `range`, an array of `length`
+    such elements."""
+    if kind.endswith("_array"):
+        if isinstance(value, (str, bytes, Mapping)) or not hasattr(value, "__iter__"):
+            raise error(f"{name} must be a list, got {value!r}")
+        items = list(value)
+        if length is not None and len(items) != length:
+            raise error(f"{name} must have {length} values, got {len(items)}")
+        element_kind = kind.removesuffix("_array")
+        return tuple(_checked_scalar(f"{name}[{index}]", item, element_kind, range, choices, error)
+                     for index, item in enumerate(items))
+    return _checked_scalar(name, value, kind, range, choices, error)
+
+
+def _checked_scalar(label: str, value: Any, kind: str, range, choices, error: type[Exception]) -> Any:
+    if kind == "bool":
+        if not isinstance(value, (bool, np.bool_)):
+            raise error(f"{label} must be a bool, got {value!r}")
+        return bool(value)
+    if kind == "string":
+        if not isinstance(value, str):
+            raise error(f"{label} must be a string, got {value!r}")
+        if choices is not None and value not in choices:
+            raise error(f"{label} must be one of {', '.join(choices)}; got {value!r}")
+        return value
+    is_integer = isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+    if kind == "integer":
+        if not is_integer:
+            raise error(f"{label} must be an integer, got {value!r}")
+        number = int(value)
+    else:
+        if not (is_integer or isinstance(value, (float, np.floating))):
+            raise error(f"{label} must be a number, got {value!r}")
+        number = float(value)
+        if not math.isfinite(number):
+            raise error(f"{label} must be finite, got {value!r}")
+    if range is not None:
+        low, high = range
+        if (low is not None and number < low) or (high is not None and number > high):
+            raise error(f"{label} = {number} is outside [{bound_text(low, '-inf')}, {bound_text(high, 'inf')}]")
+    return number
+
+
+def bound_text(value: float | None, unbounded: str) -> str:
+    """A range's bound as users read it: `unbounded` for None."""
+    return unbounded if value is None else f"{value:g}"
+
+
 def check_settings(config: Any, error: type[Exception] = ValueError) -> None:
-    """Check each set field of the dataclass instance `config` against its Setting: a string among
-    the choices, an integer where the default is one, a number (each element of an array) finite
-    and within the range. None passes (a field whose None means "not set"). Raises `error`
-    naming the field."""
+    """Check each set field of the dataclass instance `config` with `checked_value` against its
+    Setting. None passes (a field whose None means "not set"). Raises `error` naming the field."""
     for name, default, spec in settings_of(type(config)):
         value = getattr(config, name)
-        if value is None:
-            continue
-        if _is_integer(default) and not _is_integer(value):
-            raise error(f"{name} must be an integer, got {value!r}")
-        if spec.choices is not None and value not in spec.choices:
-            raise error(f"{name} must be one of {', '.join(spec.choices)}; got {value!r}")
-        if spec.range is None:
-            continue
-        low, high = spec.range
-        for item in value if isinstance(value, (tuple, list)) else (value,):
-            if (isinstance(item, bool) or not isinstance(item, numbers.Real) or not math.isfinite(item)
-                    or (low is not None and item < low) or (high is not None and item > high)):
-                raise error(f"{name} must be finite and within [{low}, {high}], got {value!r}")
-
-
-def _is_integer(value: Any) -> bool:
-    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+        if value is not None:
+            checked_value(name, value, setting_type(name, default, spec.type), spec.range, spec.choices,
+                          spec.length, error)

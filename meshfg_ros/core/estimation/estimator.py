@@ -28,11 +28,11 @@ Design decisions (see also factors.py, factor_graph.py, levenberg_marquardt.py, 
   stalls at max_iterations rejecting steps (on the synthetic box). Held per update,
   the objective is fixed and LM provably decreases it, and K still follows X_t from one update
   to the next.
-- Old states are re-linearised only when they moved more than the nominal measurement_sigma
-  (RMS over vertices) since their last linearisation (FactorGraph.relinearize_threshold, as
-  iSAM2's relinearisation threshold): the quadratic model error that allows is second order,
-  ~threshold^2 / edge length, far below the measurement noise; the newest state is
-  re-linearised at every LM iteration. A threshold of 0 is exact LM on the window (what the
+- Old states are re-linearised only when they moved more than RELINEARIZATION_SIGMAS nominal
+  measurement sigmas (RMS over vertices) since their last linearisation
+  (FactorGraph.relinearize_threshold, as iSAM2's relinearisation threshold): the quadratic
+  model error that allows is second order, ~threshold^2 / edge length, far below the
+  measurement noise; the newest state is re-linearised at every LM iteration. A threshold of 0 is exact LM on the window (what the
   scipy / GTSAM cross-checks set on the graph).
 - Weights (weights.py): with estimate_weights (default) the measurement sigma is estimated
   after every update from the residual distances (robust: 1.4826 median) and the physics
@@ -122,12 +122,7 @@ from meshfg_ros.core.estimation.noise import RayNoise
 from meshfg_ros.core.estimation.persistence import CorrectionPersistence
 from meshfg_ros.core.estimation.robust import ROBUST_KERNELS, make_robust_kernel
 from meshfg_ros.core.settings import check_settings, dynamic_fields, setting
-from meshfg_ros.core.physics.simulator import (
-    POISSON_RATIO_SETTING,
-    TOOL_MODE_SETTING,
-    TOOL_RADIUS_SETTING,
-    YOUNGS_MODULUS_SETTING,
-)
+from meshfg_ros.core.physics.tissue_and_tool import TissueAndTool
 from meshfg_ros.core.estimation.weights import MIN_POINTS, PRIOR_NOISE_RATIO, MeasurementNoise
 
 __all__ = [
@@ -178,6 +173,12 @@ TOOL_MARGIN_SIGMAS = 3.0
 # below the nominal measurement_sigma about the estimate (a value in the wrong units, say).
 NOISE_OFF_NOMINAL = "measurement_sigma far from the clouds' spread: check it and its units"
 _MEDIAN_ABSOLUTE_TO_SIGMA = 1.4826
+# Old states are re-linearised once they moved by this many nominal measurement sigmas (RMS over
+# vertices, FactorGraph.relinearize_threshold): a length, not a weight, for which measurement_sigma
+# gives the scale of what matters; the quadratic model's error it allows, ~threshold^2 / edge
+# length, is far below the measurement noise. The nominal sigma, not the estimate, so that the
+# threshold does not move while the weights are learnt.
+RELINEARIZATION_SIGMAS = 1.0
 # An update whose estimated measurement sigma moved by more than REWEIGHT_CHANGE (relative) is
 # solved again with it, at most MAX_REWEIGHT_ROUNDS times (the first update, from the nominal).
 REWEIGHT_CHANGE = 0.25
@@ -245,10 +246,13 @@ _LENGTH_RANGE = (1e-9, 10.0)  # metres: from a nanometre to a room-sized workspa
 
 
 @dataclass(frozen=True)
-class EstimatorConfig:
-    """Estimator settings (SI units). See the module doc for the modelling choices. Every field is
-    a parameter of the estimator node and the replay (core/settings.py); the dynamic ones may
-    change while it runs (`SlidingWindowEstimator.reconfigure`)."""
+class EstimatorConfig(TissueAndTool):
+    """Estimator settings (SI units): the tissue model and the tool it shares with the simulator
+    (TissueAndTool: the physics prior's stiffness; in sphere mode the points inside the tool
+    sphere, plus a margin, are leaks, core/estimation/measurement_selection.py), and its own. See
+    the module doc for the modelling choices. Every field is a parameter of the estimator node
+    and the replay (core/settings.py); the dynamic ones may change while it runs
+    (`SlidingWindowEstimator.reconfigure`)."""
 
     factors: str = setting("full", "Factor configuration of the estimator, by name.",
                            choices=tuple(FACTOR_CONFIGURATIONS))
@@ -268,8 +272,6 @@ class EstimatorConfig:
     stiffness_kind: str = setting("corotational", "FEM stiffness used as the prior's information matrix.",
                                   choices=STIFFNESS_KINDS)
     spd_projection: bool = setting(False, "Clamp negative eigenvalues of the element stiffness matrices.")
-    youngs_modulus: float = setting(3e3, YOUNGS_MODULUS_SETTING)
-    poisson_ratio: float = setting(0.45, POISSON_RATIO_SETTING)
     robust_kernel: str | None = setting("cauchy", "Robust kernel on the point-to-surface residuals.",
                                         choices=ROBUST_KERNELS)  # None: as "none"
     robust_scale: float = setting(  # 0: ROBUST_SCALE_SIGMAS estimated measurement sigmas
@@ -286,9 +288,6 @@ class EstimatorConfig:
         True, "Publish the prediction plus only the share of the factor graph's correction that persists "
         "from one update to the next (core/estimation/persistence.py): noise fitted through the prior is left out; "
         "false: publish the optimum as it is.")
-    # In sphere mode, points inside the tool sphere (plus a margin) are leaks (see _outside_tool).
-    tool_radius: float = setting(5e-3, TOOL_RADIUS_SETTING)
-    tool_mode: str = setting("sphere", TOOL_MODE_SETTING)
     max_iterations: int = setting(10, "Levenberg-Marquardt iterations per step (at most).", range=(1, 1000))
     linear_solver: str = setting("pcg", "Sparse solver of the normal equations.", choices=LINEAR_SOLVERS)
     # Five camera periods at 1 Hz: an update that needs longer is stopped, not left to fall behind.
@@ -403,7 +402,8 @@ class SlidingWindowEstimator:
         self.enabled = FACTOR_CONFIGURATIONS[self.config.factors]
         self.graph = FactorGraph(
             initial_mesh.vertex_count, initial_mesh.tetrahedra, initial_mesh.surface_triangles,
-            initial_mesh.fixed_vertices, initial_mesh.vertices, self.config.measurement_sigma,
+            initial_mesh.fixed_vertices, initial_mesh.vertices,
+            RELINEARIZATION_SIGMAS * self.config.measurement_sigma,
         )
         self.model = None
         if "simulation" in self.enabled:
@@ -511,7 +511,7 @@ class SlidingWindowEstimator:
         old, self.config = self.config, replace(self.config, **changes)
         if self.config.measurement_sigma != old.measurement_sigma:
             self.noise = MeasurementNoise(self.config.measurement_sigma)
-            self.graph.relinearize_threshold = self.config.measurement_sigma
+            self.graph.relinearize_threshold = RELINEARIZATION_SIGMAS * self.config.measurement_sigma
 
     # ----------------------------------------------------------------------------- input
     def _check_inputs(self, stamp_ns, points, predicted, tool_pose, viewpoint):

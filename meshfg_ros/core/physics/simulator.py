@@ -49,19 +49,15 @@ from meshfg_ros.core.geometry.kernel_types import read_only, writable
 from meshfg_ros.core.solvers.sparse_cholesky import SparseCholesky
 from meshfg_ros.core.geometry.mesh import TetMesh, name_elements, signed_volumes
 from meshfg_ros.core.inputs.pose_history import InvalidPoseError, as_pose
-from meshfg_ros.core.settings import Setting, check_settings, setting
+from meshfg_ros.core.physics.tissue_and_tool import TissueAndTool
+from meshfg_ros.core.settings import check_settings, setting
 
 __all__ = [
     "FLAT_VOLUME_RATIO",
-    "POISSON_RATIO_SETTING",
     "SOLVERS",
     "SOLVER_STRATEGIES",
     "TOOL_CONTACTS",
-    "TOOL_MODES",
     "ElasticSimulator",
-    "TOOL_MODE_SETTING",
-    "TOOL_RADIUS_SETTING",
-    "YOUNGS_MODULUS_SETTING",
     "ElementInversionError",
     "ExtendedPositionBasedDynamics",
     "SimulatorConfig",
@@ -73,16 +69,8 @@ __all__ = [
     "colour_vertices",
 ]
 
-TOOL_MODES = ("sphere", "grasp")
 TOOL_CONTACTS = ("stick", "slide")
 SOLVERS = ("vbd", "xpbd")
-# The tissue model and the tool, settings of the estimator too (its prior and its tool gate): one
-# parameter each.
-YOUNGS_MODULUS_SETTING = Setting("Young's modulus of the tissue model in pascals.", range=(1.0, 1e9))
-POISSON_RATIO_SETTING = Setting("Poisson's ratio of the tissue model.", range=(0.001, 0.499))
-TOOL_RADIUS_SETTING = Setting("Radius of the tool sphere in metres (sphere mode).", range=(1e-6, 1.0))
-TOOL_MODE_SETTING = Setting("How the tool drives the tissue: 'sphere' pushes it with a rigid sphere, 'grasp' "
-                            "moves grasped_vertices rigidly with the tool.", choices=TOOL_MODES)
 
 # Shape-function gradients of the 4 corners from the rows of Dm^-1 (corner 0: minus their sum).
 _CORNER_FROM_EDGES = np.array([[-1.0, -1.0, -1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
@@ -141,15 +129,12 @@ class ElementInversionError(RuntimeError):
 
 
 @dataclass(frozen=True)
-class SimulatorConfig:
-    """Material, tool and solver settings of `ElasticSimulator` (SI units). The fields made with
+class SimulatorConfig(TissueAndTool):
+    """Material, tool and solver settings of `ElasticSimulator` (SI units): the tissue model and
+    the tool it shares with the estimator (TissueAndTool), and its own. The fields made with
     `setting` are parameters of the simulation node and the replay (core/settings.py)."""
 
-    youngs_modulus: float = setting(3.0e3, YOUNGS_MODULUS_SETTING)  # soft tissue is of the order of kPa
-    poisson_ratio: float = setting(0.45, POISSON_RATIO_SETTING)
     density: float = setting(1.0e3, "Tissue density in kg/m^3.", range=(1.0, 1e5))  # gravity load, xpbd's inertia
-    tool_radius: float = setting(5.0e-3, TOOL_RADIUS_SETTING)
-    tool_mode: str = setting("sphere", TOOL_MODE_SETTING)
     tool_contact: str = setting(
         "stick", "Sphere contact: 'stick' (the tissue does not slip while pushed) or 'slide' (frictionless).",
         choices=TOOL_CONTACTS)
