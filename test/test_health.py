@@ -1,8 +1,11 @@
-"""The estimator node's health (nodes/diagnostics.py): OK only while recent steps are estimated
-from most of their points, with a prediction, converged and in time; otherwise the reason."""
+"""The nodes' health (nodes/diagnostics.py). The estimator node's: OK only while recent steps are
+estimated from most of their points, with a prediction, converged and in time; the simulation
+node's: OK only while it has its mesh and tool poses, uses what it receives and its newest
+prediction succeeded; otherwise the reason."""
 from diagnostic_msgs.msg import DiagnosticStatus
 
-from meshfg_ros.nodes.diagnostics import HEALTH_WINDOW, EstimatorCounters, EstimatorHealth, with_setup_problems
+from meshfg_ros.nodes.diagnostics import (HEALTH_WINDOW, EstimatorCounters, EstimatorHealth, SimulatorCounters,
+                                          SimulatorHealth, with_setup_problems)
 
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
 
@@ -112,3 +115,18 @@ def test_wiring_problems_come_first():
     assert with_setup_problems(WARN, "lagging", [], ["parameters file f sets nothing"]) == (
         WARN, "parameters file f sets nothing")
     assert with_setup_problems(WARN, "lagging", [], []) == (WARN, "lagging")
+
+
+def test_the_simulation_node_warns_of_what_it_could_not_use_once_per_report_and_of_its_last_failure():
+    health = SimulatorHealth()
+    assert health.assess(SimulatorCounters(inputs_held_before_mesh=2), waiting_for_mesh=True) == (
+        WARN, "waiting for initial_mesh; 2 inputs held until it comes")
+    level, message = health.assess(SimulatorCounters(requests=3), False)
+    assert level == WARN and message.startswith("3 prediction requests but no tool pose received")
+    counters = SimulatorCounters(requests=3, tool_poses_received=5, tool_poses_rejected_stamp=2, estimates_ignored=1)
+    assert health.assess(counters, False) == (WARN, "2 tool poses rejected since the last report")
+    assert health.assess(counters, False) == (OK, "predicting")  # the estimate ignored was in the same report
+    health.record("the predicted positions are not finite")
+    assert health.assess(counters, False) == (WARN, "the last prediction failed: the predicted positions are not finite")
+    health.record(None)
+    assert health.assess(counters, False) == (OK, "predicting")

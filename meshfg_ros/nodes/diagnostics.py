@@ -6,7 +6,9 @@ core/inputs/input_checks.py) and to the steps (degraded, failed, non-finite, poi
 of each stage), so that a robot's diagnostic aggregator shows why estimates are missing or poor.
 `EstimatorHealth` turns them into a level and a one-line reason (the README's "Wire it to your
 robot" lists them): it is OK only while recent steps are estimated from most of their points,
-with a prediction, converged, and in time.
+with a prediction, converged, and in time. `SimulatorHealth` does the same for the simulation
+node: OK only while it has its mesh and tool poses, uses what it receives, and its newest
+prediction succeeded.
 """
 
 from __future__ import annotations
@@ -300,3 +302,41 @@ class EstimatorHealth:
         if counters.steps == 0:
             return OK, "waiting for clouds"
         return OK, "estimating"
+
+
+class SimulatorHealth:
+    """The simulation node's level and reason from its counters and its newest answer (module docstring)."""
+
+    def __init__(self) -> None:
+        self._rejected_seen = 0
+        self._ignored_seen = 0
+        self._std_ignored_seen = 0
+        self.last_failure: str | None = None  # why the newest answer gave no prediction; None: it gave one
+
+    def record(self, failure: str | None) -> None:
+        """The newest answer: the reason it gave no prediction, or None for a prediction."""
+        self.last_failure = failure
+
+    def assess(self, counters: SimulatorCounters, waiting_for_mesh: bool) -> tuple[bytes, str]:
+        """(level, reason): waiting for the mesh, requests without any tool pose, tool poses rejected,
+        estimates or their std ignored since the last report, the newest prediction failed."""
+        new_rejections, self._rejected_seen = counters.tool_poses_rejected - self._rejected_seen, counters.tool_poses_rejected
+        new_ignored, self._ignored_seen = counters.estimates_ignored - self._ignored_seen, counters.estimates_ignored
+        new_std_ignored = counters.estimate_std_ignored - self._std_ignored_seen
+        self._std_ignored_seen = counters.estimate_std_ignored
+        if waiting_for_mesh:
+            return WARN, waiting_for_mesh_message(counters)
+        if counters.requests and not counters.tool_poses_received:
+            return WARN, (f"{counters.requests} prediction requests but no tool pose received: every step runs "
+                          "without a prediction; publish tool_pose (geometry_msgs/PoseStamped) in this node's "
+                          "namespace, with a QoS it matches")
+        if new_rejections:
+            return WARN, f"{new_rejections} tool poses rejected since the last report"
+        if new_ignored:
+            return WARN, f"{new_ignored} estimates ignored since the last report: predicting from the newest usable state"
+        if new_std_ignored:
+            return WARN, (f"{new_std_ignored} estimates' position_std malformed since the last report: the model is "
+                          "not learnt from them")
+        if self.last_failure is not None:
+            return WARN, f"the last prediction failed: {self.last_failure}"
+        return OK, "predicting"
