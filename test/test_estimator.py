@@ -268,8 +268,8 @@ def test_the_update_stages_account_for_its_time(scene):
 
 def test_the_gate_reuses_the_innovation_tests_association(scene, monkeypatch):
     """Preparing an update queries the closest triangles of the cloud on the prediction once:
-    the innovation test's association serves the measurement factor's gate, which keeps the
-    same points as one that queries on its own."""
+    the innovation test's association serves the point selection, which keeps the same points as
+    one that queries on its own."""
     from meshfg_ros.core.geometry import closest_point
     from meshfg_ros.core.estimation.factors import FactorError, PointToSurfaceFactor
 
@@ -284,14 +284,15 @@ def test_the_gate_reuses_the_innovation_tests_association(scene, monkeypatch):
     pending = estimator.prepare(step.stamp_ns, step.points, step.predicted)
     assert queried == [len(pending.points)]
     reused = next(f for f in estimator.graph.state_factors(pending.key) if isinstance(f, PointToSurfaceFactor))
+    gated = pending.num_points_gated
     known, pending.association = pending.association, None
     own = next(f for f in estimator._state_factors(pending) if isinstance(f, PointToSurfaceFactor))
     assert len(queried) == 2
     np.testing.assert_array_equal(reused.points, own.points)
-    assert reused.num_points_rejected == own.num_points_rejected
-    with pytest.raises(FactorError, match="initial_association"):
-        PointToSurfaceFactor(pending.key, pending.points[1:], mesh.surface_triangles, pending.prediction,
-                             initial_association=known[1])
+    assert pending.num_points_gated == gated
+    with pytest.raises(FactorError, match="association_at has"):
+        PointToSurfaceFactor(pending.key, pending.points[1:], mesh.surface_triangles, mesh.vertex_count,
+                             association_at=known)
 
 
 def test_the_updates_factor_into_the_window_factors_reserved_when_the_estimator_was_built(scene, monkeypatch):

@@ -8,6 +8,7 @@ import pytest
 
 from meshfg_ros.benchmarks.baselines import synthetic_sequence
 import meshfg_ros.core.estimation.estimator as estimator_module
+from meshfg_ros.core.estimation.measurement_selection import TOOL_MARGIN_SIGMAS
 from meshfg_ros.core.estimation.estimator import (
     EstimatorConfig,
     EstimatorConfigError,
@@ -101,7 +102,7 @@ def test_points_on_the_tool_are_leaks_in_sphere_mode_only(scene, tool_mode, drop
     step = sequence[0]
     tool = np.array([*step.points[0], 0.0, 0.0, 0.0, 1.0])  # the sphere around a measured point
     config = replace(BASE, tool_mode=tool_mode, tool_radius=4e-3)
-    reach = config.tool_radius + estimator_module.TOOL_MARGIN_SIGMAS * config.measurement_sigma  # the gate
+    reach = config.tool_radius + TOOL_MARGIN_SIGMAS * config.measurement_sigma  # the gate
     on_tool = int(np.count_nonzero(np.linalg.norm(step.points - tool[:3], axis=1) <= reach))
     with_tool = SlidingWindowEstimator(mesh, config).update(step.stamp_ns, step.points, step.predicted, tool)
     without = SlidingWindowEstimator(mesh, config).update(step.stamp_ns, step.points, step.predicted)
@@ -119,7 +120,7 @@ def test_the_tool_margin_is_at_most_one_radius_however_large_the_sigma(scene):
     config = replace(BASE, tool_radius=4e-3, measurement_sigma=5e-3, estimate_weights=False)
     distances = np.linalg.norm(step.points - tool[:3], axis=1)
     within_two_radii = int(np.count_nonzero(distances <= 2 * config.tool_radius))
-    uncapped = config.tool_radius + estimator_module.TOOL_MARGIN_SIGMAS * config.measurement_sigma
+    uncapped = config.tool_radius + TOOL_MARGIN_SIGMAS * config.measurement_sigma
     assert np.count_nonzero(distances <= uncapped) > within_two_radii  # the bound matters here
     with_tool = SlidingWindowEstimator(mesh, config).update(step.stamp_ns, step.points, step.predicted, tool)
     without = SlidingWindowEstimator(mesh, config).update(step.stamp_ns, step.points, step.predicted)

@@ -18,20 +18,22 @@ from meshfg_ros.core.estimation.factors import (
     TemporalFactor,
     prior_scale,
 )
-from meshfg_ros.core.geometry.closest_point import REGION_FACE
+from meshfg_ros.core.geometry.closest_point import REGION_FACE, ClosestPointIndex
 from meshfg_ros.core.physics.fem import ElasticModel
 from meshfg_ros.synthetic.meshing import cube_mesh
 from meshfg_ros.evaluation.metrics import sample_surface
 from meshfg_ros.core.estimation.noise import (
+    CauchyKernel,
+    HuberKernel,
     IdentityNoise,
     InformationMatrixNoise,
     IsotropicNoise,
     NoiseModelError,
     NotPositiveDefiniteError,
     PerPointNoise,
-    RayNoise,
+    RobustKernelError,
+    make_robust_kernel,
 )
-from meshfg_ros.core.estimation.robust import CauchyKernel, HuberKernel, RobustKernelError, make_robust_kernel
 
 from test_closest_point import torch_closest_point
 
@@ -77,22 +79,24 @@ def test_point_to_surface_keeps_the_last_two_associations(cube, monkeypatch):
     from meshfg_ros.core.geometry import closest_point
 
     first, second, third = (deformed(cube, seed=seed) for seed in (1, 2, 3))
-    factor = PointToSurfaceFactor(0, noisy_points(first, cube.surface_triangles), cube.surface_triangles, first,
-                                  IsotropicNoise(1e-3))
+    points = noisy_points(first, cube.surface_triangles)
+    selection = ClosestPointIndex(first, cube.surface_triangles).associate(points)
+    factor = PointToSurfaceFactor(0, points, cube.surface_triangles, cube.vertex_count, IsotropicNoise(1e-3),
+                                  association_at=(first, selection))
     queries = []
     original = closest_point.ClosestPointIndex.associate
     monkeypatch.setattr(closest_point.ClosestPointIndex, "associate",
                         lambda index, points, *args: queries.append(1) or original(index, points, *args))
     costs = [factor.cost({0: state}) for state in (second, third, second, third)]
     assert len(queries) == 2 and costs[:2] == costs[2:]
-    factor.cost({0: first})  # the gating's association was pushed out by the other two
+    factor.cost({0: first})  # the selection's association was pushed out by the other two
     assert len(queries) == 3
 
 
 def test_point_to_surface_jacobian_matches_finite_differences(cube):
     state = deformed(cube)
-    factor = PointToSurfaceFactor(0, noisy_points(state, cube.surface_triangles), cube.surface_triangles, state,
-                                  IsotropicNoise(1e-3))
+    factor = PointToSurfaceFactor(0, noisy_points(state, cube.surface_triangles), cube.surface_triangles,
+                                  cube.vertex_count, IsotropicNoise(1e-3))
     factor.freeze_association({0: state})  # no triangle switch inside the difference stencil
     analytic = factor.jacobians({0: state})[0].toarray()
     numeric = central_differences(lambda s: factor.residual({0: s}), state)
@@ -103,7 +107,7 @@ def test_point_to_surface_jacobian_matches_finite_differences(cube):
 def test_point_to_surface_jacobian_matches_torch_autograd(cube):
     state = deformed(cube, seed=1)
     points = noisy_points(state, cube.surface_triangles, 200, seed=1)
-    factor = PointToSurfaceFactor(0, points, cube.surface_triangles, state)
+    factor = PointToSurfaceFactor(0, points, cube.surface_triangles, cube.vertex_count)
     triangles = cube.surface_triangles[factor.associate({0: state}).triangle]
     analytic = factor.jacobians({0: state})[0].toarray()
 
@@ -137,7 +141,8 @@ def test_linearize_equals_weighted_normal_equations(cube, model):
     points = noisy_points(state, cube.surface_triangles)
     sigmas = np.random.default_rng(4).uniform(5e-4, 2e-3, len(points))
     for robust in (None, HuberKernel(1e-3), CauchyKernel(1e-3)):
-        factor = PointToSurfaceFactor(0, points, cube.surface_triangles, state, PerPointNoise(sigmas), robust)
+        factor = PointToSurfaceFactor(0, points, cube.surface_triangles, cube.vertex_count, PerPointNoise(sigmas),
+                                      robust)
         terms = factor.linearize({0: state})
         jacobian = factor.jacobians({0: state})[0]
         residual = factor.residual({0: state}).reshape(-1, 3)
@@ -186,7 +191,7 @@ def test_point_factors_evaluated_together_equal_each_alone(cube, frozen):
             points = noisy_points(states[key], cube.surface_triangles, max(count, 1), seed=key)[:count]
             if key == 3:
                 points = cube.vertices.mean(axis=0) + 1.3 * (points - cube.vertices.mean(axis=0))
-            factor = PointToSurfaceFactor(key, points, cube.surface_triangles, states[key], IsotropicNoise(1e-3),
+            factor = PointToSurfaceFactor(key, points, cube.surface_triangles, cube.vertex_count, IsotropicNoise(1e-3),
                                           CauchyKernel(2e-3))
             if frozen:
                 factor.freeze_association(states)
@@ -223,7 +228,7 @@ def test_face_point_term_is_the_cost_curvature_along_the_normal(cube, distance_i
     kernel = CauchyKernel(2e-3)
     sigma = 1e-3
     point = np.array([[0.0331, 0.0173, 0.1 + distance_in_scales * kernel.scale]])  # above the top face
-    factor = PointToSurfaceFactor(0, point, cube.surface_triangles, state, IsotropicNoise(sigma), kernel)
+    factor = PointToSurfaceFactor(0, point, cube.surface_triangles, cube.vertex_count, IsotropicNoise(sigma), kernel)
     assert factor.associate({0: state}).region[0] == REGION_FACE
     blocks = factor.linearize({0: state}).point_blocks[0]
     assert blocks.hessian_triangle.tolist() == blocks.triangle.tolist()  # one point: one row
@@ -284,101 +289,10 @@ def test_physics_information_is_held_until_invalidated(cube, model):
     assert abs(prior.information(state) - first).max() > 1e-3 * abs(first).max()
 
 
-def test_gating_rejects_far_points(cube):
-    state = cube.vertices
-    points = np.array([[0.05, 0.05, 0.101], [0.05, 0.05, 0.2], [0.5, 0.5, 0.5], [0.05, -0.001, 0.05]])
-    factor = PointToSurfaceFactor(0, points, cube.surface_triangles, state, gating_distance=0.01)
-    assert factor.num_points == 2 and factor.num_points_rejected == 2
-    assert sorted(map(tuple, factor.points)) == sorted(map(tuple, points[[0, 3]]))
-
-
-def test_gated_points_are_ordered_by_triangle_with_their_noise(cube):
-    """The factor keeps its points in the order of their closest triangles (faster queries),
-    and each point keeps its own sigma through the reordering."""
-    state = cube.vertices
-    rng = np.random.default_rng(3)
-    points = sample_surface(state, cube.surface_triangles, 60, rng)
-    sigmas = rng.uniform(1e-3, 5e-3, len(points))
-    factor = PointToSurfaceFactor(0, points, cube.surface_triangles, state, PerPointNoise(sigmas),
-                                  gating_distance=0.01)
-    assert factor.num_points == len(points)
-    triangles = factor.associate({0: state}).triangle
-    assert np.all(np.diff(triangles) >= 0)
-    order = [int(np.flatnonzero(np.all(points == point, axis=1))[0]) for point in factor.points]
-    assert sorted(order) == list(range(len(points))) and order != list(range(len(points)))
-    np.testing.assert_allclose(factor.weights, 1.0 / sigmas[order] ** 2, rtol=1e-15)
-
-
-def test_points_against_back_faces_are_dropped_as_leaks(cube):
-    """A camera above the cube (side 0.1 m, bottom at z = 0) sees its top face; a leak onto the
-    table beside it lies just outside a side face whose closest point faces down and away."""
-    state = cube.vertices
-    top = np.array([[0.02, 0.03, 0.1005], [0.07, 0.05, 0.0995], [0.05, 0.08, 0.1002]])
-    table = np.array([[0.101, 0.05, -0.0005], [0.05, -0.0008, -0.0002]])  # beside the bottom edges
-    points = np.concatenate([top, table])
-    camera = np.array([0.05, 0.05, 0.5])
-    factor = PointToSurfaceFactor(0, points, cube.surface_triangles, state, gating_distance=0.01, viewpoint=camera)
-    assert factor.num_points_back_facing == 2 and factor.num_points_rejected == 2
-    assert not factor.back_facing_test_skipped
-    assert sorted(map(tuple, factor.points)) == sorted(map(tuple, top))
-    # Without a viewpoint the distance gate alone keeps them (they are within a millimetre).
-    assert PointToSurfaceFactor(0, points, cube.surface_triangles, state, gating_distance=0.01).num_points == 5
-    # Seen from below, most points would face away: the viewpoint is not the sensor's, nothing is dropped.
-    below = PointToSurfaceFactor(0, points, cube.surface_triangles, state, viewpoint=np.array([0.05, 0.05, -0.5]))
-    assert below.back_facing_test_skipped and below.num_points == 5 and below.num_points_back_facing == 0
-    with pytest.raises(FactorError):
-        PointToSurfaceFactor(0, points, cube.surface_triangles, state, viewpoint=np.array([0.0, np.nan, 1.0]))
-
-
-def test_ray_noise_weights_each_point_by_its_rays_incidence_on_its_face(cube):
-    """Seen from a camera off to the side and above, the cube's top face is met at one angle
-    and its +x face at another: each point's sigma scales with |cos| of its ray against its
-    face's normal (floored), normalised so that the median point keeps the cloud's sigma."""
-    state = cube.vertices
-    camera = np.array([0.3, 0.05, 0.2])
-    top = np.array([[0.02, 0.03, 0.1003], [0.05, 0.05, 0.0998], [0.08, 0.06, 0.1001]])
-    side = np.array([[0.1002, 0.05, 0.05], [0.0999, 0.03, 0.08]])
-    points = np.concatenate([top, side])
-    sigma = 1e-3
-    factor = PointToSurfaceFactor(0, points, cube.surface_triangles, state, RayNoise(sigma, floor=0.1),
-                                  viewpoint=camera)
-    assert factor.num_points == 5
-    rays = factor.points - camera
-    rays /= np.linalg.norm(rays, axis=1)[:, None]
-    on_top = np.isclose(factor.points[:, 2], 0.1, atol=1e-3)
-    incidence = np.where(on_top, np.abs(rays[:, 2]), np.abs(rays[:, 0]))  # normals +z and +x
-    expected = sigma * incidence / np.median(incidence)
-    np.testing.assert_allclose(factor.weights, 1.0 / expected**2, rtol=1e-9)
-    assert incidence[~on_top].min() > incidence[on_top].max()  # the top face is the grazing one
-    # With the floor above every point's incidence, all points weigh alike.
-    floored = PointToSurfaceFactor(0, points, cube.surface_triangles, state, RayNoise(sigma, floor=1.0),
-                                   viewpoint=camera)
-    np.testing.assert_allclose(floored.weights, 1.0 / sigma**2, rtol=1e-12)
-    # A viewpoint most points face away from is not the sensor's (the back-face test is skipped):
-    # its rays do not weight the points either.
-    below = np.array([0.05, 0.05, -0.5])
-    wrong = PointToSurfaceFactor(0, points, cube.surface_triangles, state, RayNoise(sigma), viewpoint=below)
-    assert wrong.back_facing_test_skipped
-    np.testing.assert_allclose(wrong.weights, 1.0 / sigma**2, rtol=1e-12)
-    # Without a viewpoint there are no rays: every point keeps the cloud's sigma.
-    unseen = PointToSurfaceFactor(0, points, cube.surface_triangles, state, RayNoise(sigma), gating_distance=0.01)
-    np.testing.assert_allclose(unseen.weights, 1.0 / sigma**2, rtol=1e-12)
-    # A NaN normal (a degenerate face) takes the floor instead of a NaN weight.
-    normals = np.array([[0.0, 0.0, 1.0], [np.nan] * 3, [0.0, 0.0, 1.0]])
-    noise = RayNoise(sigma, floor=0.5).on_surface(top, normals, camera)
-    rays = top - camera
-    incidence = np.abs(rays[:, 2]) / np.linalg.norm(rays, axis=1)
-    incidence[1] = 0.5
-    incidence = np.maximum(incidence, 0.5)
-    np.testing.assert_allclose(noise.point_weights(3), (np.median(incidence) / (sigma * incidence)) ** 2, rtol=1e-12)
-    with pytest.raises(NoiseModelError):
-        RayNoise(sigma, floor=0.0)
-
-
 def test_association_follows_the_surface_exactly(cube):
     start = cube.vertices
     points = noisy_points(deformed(cube, 2.0), cube.surface_triangles, 400, seed=6)
-    factor = PointToSurfaceFactor(0, points, cube.surface_triangles, start)
+    factor = PointToSurfaceFactor(0, points, cube.surface_triangles, cube.vertex_count)
     moved = deformed(cube, 3.0, seed=7)
     from meshfg_ros.core.geometry.closest_point import brute_force_closest
 
@@ -433,7 +347,7 @@ def build_window(cube, model, threshold=0.0, keys=3):
         graph.add_state(key, predicted)
         graph.add_factor(PhysicsPriorFactor(key, predicted, model, "corotational", scale=scale, ridge=1.0))
         graph.add_factor(PointToSurfaceFactor(key, noisy_points(truth, cube.surface_triangles, 200, key),
-                                              cube.surface_triangles, predicted, IsotropicNoise(1e-3)))
+                                              cube.surface_triangles, cube.vertex_count, IsotropicNoise(1e-3)))
         graph.add_factor(TemporalFactor(key, 5e-3, previous_key=key - 1) if key
                          else TemporalFactor(key, 5e-3, anchor=cube.vertices))
     return graph
@@ -519,7 +433,7 @@ def test_graph_rejects_bad_factors(cube, model):
     with pytest.raises(FactorError):
         TemporalFactor(1, 1e-3)
     with pytest.raises(FactorError, match="shape"):
-        PointToSurfaceFactor(0, np.zeros((3, 2)), cube.surface_triangles, cube.vertices)
+        PointToSurfaceFactor(0, np.zeros((3, 2)), cube.surface_triangles, cube.vertex_count)
     with pytest.raises(FactorError):
         prior_scale(model.stiffness(), 0.0)
     graph.add_state(0, cube.vertices)

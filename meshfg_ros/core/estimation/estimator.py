@@ -32,8 +32,8 @@ Design decisions (see also factors.py, factor_graph.py, levenberg_marquardt.py, 
   measurement sigmas (RMS over vertices) since their last linearisation
   (FactorGraph.relinearize_threshold, as iSAM2's relinearisation threshold): the quadratic
   model error that allows is second order, ~threshold^2 / edge length, far below the
-  measurement noise; the newest state is re-linearised at every LM iteration. A threshold of 0 is exact LM on the window (what the
-  scipy / GTSAM cross-checks set on the graph).
+  measurement noise; the newest state is re-linearised at every LM iteration. A threshold of 0
+  is exact LM on the window (what the scipy / GTSAM cross-checks set on the graph).
 - Weights (weights.py): with estimate_weights (default) the measurement sigma is estimated
   after every update from the residual distances (robust: 1.4826 median) and the physics
   prior is weighted as a simulation sigma of a tenth of it; the first update, which starts
@@ -44,7 +44,10 @@ Design decisions (see also factors.py, factor_graph.py, levenberg_marquardt.py, 
   Leaks: points inside the tool sphere (plus three sigmas) are dropped before anything else
   (the tool pose and radius are inputs), points farther from the predicted surface than five
   robust spreads (the spread clipped to [1, 10] sigmas) are gated, and the rest go through a
-  Cauchy kernel of scale 2.4 sigma.
+  Cauchy kernel of scale 2.4 sigma. Which points reach the measurement factor, and their
+  noise, is decided once per update before the factors are made, by the measurement front end
+  (core/estimation/measurement_selection.py: far input, the tool gate, the innovation test,
+  the gate, the back-face test, the rays' noise); the factors only evaluate.
 - Published: the prediction plus the share alpha of the correction (optimum - prediction) that
   persists from one update to the next (core/estimation/persistence.py, keep_persistent_correction): the
   lag-one correlation of the corrections over their mean energy, 0 at the first update. The
@@ -87,7 +90,6 @@ from dataclasses import dataclass, field, fields, replace
 import numpy as np
 import scipy.sparse
 
-from meshfg_ros.core.geometry.closest_point import ClosestPointIndex
 from meshfg_ros.core.estimation.covariance import (
     PRIOR_ERROR_MEMORY,
     ForgettingMean,
@@ -98,7 +100,6 @@ from meshfg_ros.core.estimation.covariance import (
 )
 from meshfg_ros.core.estimation.factor_graph import FactorGraph
 from meshfg_ros.core.estimation.factors import (
-    MAX_BACK_FACING_SHARE,
     PhysicsPriorFactor,
     PointToSurfaceFactor,
     TemporalFactor,
@@ -106,24 +107,23 @@ from meshfg_ros.core.estimation.factors import (
     prior_scale,
 )
 from meshfg_ros.core.physics.fem import STIFFNESS_KINDS, ElasticModel
-from meshfg_ros.core.inputs.input_checks import (
-    REJECTIONS,
-    Scene,
-    StampError,
-    check_stamp,
-    flat_elements,
-    innovation_sample,
-    innovation_spread,
+from meshfg_ros.core.estimation.measurement_selection import (
+    GATE_SIGMAS,
+    MAX_BACK_FACING_SHARE,
+    drop_points_on_tool,
+    innovation_test,
+    select_points,
+    set_aside_far_input,
 )
+from meshfg_ros.core.inputs.input_checks import Scene, StampError, check_stamp
 from meshfg_ros.core.solvers.levenberg_marquardt import LevenbergMarquardtConfig, levenberg_marquardt
 from meshfg_ros.core.solvers.linear_solvers import LINEAR_SOLVERS, LinearSolveError, NotPositiveDefiniteError, make_linear_solver
 from meshfg_ros.core.geometry.mesh import InvalidMeshError, TetMesh, signed_volumes
-from meshfg_ros.core.estimation.noise import RayNoise
 from meshfg_ros.core.estimation.persistence import CorrectionPersistence
-from meshfg_ros.core.estimation.robust import ROBUST_KERNELS, make_robust_kernel
+from meshfg_ros.core.estimation.noise import ROBUST_KERNELS, make_robust_kernel
 from meshfg_ros.core.settings import check_settings, dynamic_fields, setting
 from meshfg_ros.core.physics.tissue_and_tool import TissueAndTool
-from meshfg_ros.core.estimation.weights import MIN_POINTS, PRIOR_NOISE_RATIO, MeasurementNoise
+from meshfg_ros.core.estimation.weights import PRIOR_NOISE_RATIO, MeasurementNoise
 
 __all__ = [
     "FACTOR_CONFIGURATIONS",
@@ -159,20 +159,13 @@ PRIOR_RIDGE = 1e-6
 # Draws for the prior's marginal covariance, made once per estimator (core/estimation/covariance.py):
 # a 5 % relative spread of its variances, 65 MB of draws at organ scale (32k unknowns).
 PRIOR_MARGINAL_SAMPLES = 256
-# Data-driven defaults (robust_scale = 0, gating_distance = 0), in estimated sigmas: the Cauchy
-# kernel's scale (2.3849 sigma gives 95 % efficiency on Gaussian noise), the gate on the
-# distance of a point to the predicted surface (robust spread of those distances, at least the
-# measurement sigma), and the margin around the tool sphere inside which points are leaks.
+# The robust kernel's scale when robust_scale is 0, in estimated sigmas: 2.3849 sigma gives the
+# Cauchy kernel 95 % efficiency on Gaussian noise. (The data-driven gate and the tool gate's
+# margin: measurement_selection.py.)
 ROBUST_SCALE_SIGMAS = 2.3849
-GATE_SIGMAS = 5.0
-# ... of a spread taken between 1 and GATE_SPREAD_CAP measurement sigmas: a cloud that is mostly
-# leaks or garbage must not widen the gate to its own scale.
-GATE_SPREAD_CAP = 10.0
-TOOL_MARGIN_SIGMAS = 3.0
 # Status text of an update whose cloud spreads more than MeasurementNoise.bounds times above or
 # below the nominal measurement_sigma about the estimate (a value in the wrong units, say).
 NOISE_OFF_NOMINAL = "measurement_sigma far from the clouds' spread: check it and its units"
-_MEDIAN_ABSOLUTE_TO_SIGMA = 1.4826
 # Old states are re-linearised once they moved by this many nominal measurement sigmas (RMS over
 # vertices, FactorGraph.relinearize_threshold): a length, not a weight, for which measurement_sigma
 # gives the scale of what matters; the quadratic model's error it allows, ~threshold^2 / edge
@@ -183,17 +176,6 @@ RELINEARIZATION_SIGMAS = 1.0
 # solved again with it, at most MAX_REWEIGHT_ROUNDS times (the first update, from the nominal).
 REWEIGHT_CHANGE = 0.25
 MAX_REWEIGHT_ROUNDS = 4
-# Innovation test (SlidingWindowEstimator._innovation_test): a prediction is rejected when the
-# robust spread of the cloud's distances to its surface exceeds INNOVATION_SIGMAS nominal
-# measurement sigmas, INNOVATION_DIAGONALS of the scene's diagonal (against a sigma set far too
-# small), and INNOVATION_RATIO times the spread about the copy-forward state that replaces it (a
-# prediction that explains the cloud about as well as the copy-forward is never worse to keep).
-# On the bundled scenes (cao-push, liver-push, cube-shear-spd) the spread about the prediction is
-# 1.0-2.9 nominal sigmas and at most 1.2 times the one about the copy-forward; a prediction shifted
-# by 1 m gives hundreds of sigmas.
-INNOVATION_SIGMAS = 20.0
-INNOVATION_DIAGONALS = 0.05
-INNOVATION_RATIO = 4.0
 
 
 class EstimatorConfigError(ValueError):
@@ -352,7 +334,7 @@ class PendingStep:
     prediction: np.ndarray | None = None  # (N, 3) the prior's mean, fixed vertices reset
     viewpoint: np.ndarray | None = None   # (3,) the sensor's centre, for the back-face test
     # (vertices, Association of `points` on their surface): the innovation test's, which the
-    # measurement factor's gate reuses when the vertices are the prediction's.
+    # point selection reuses when the vertices are the prediction's.
     association: tuple | None = None
     prepare_ms: float = 0.0  # wall time of `prepare` (the "association" stage)
     # The share of the correction published (core/estimation/persistence.py): 1 when the optimum is published.
@@ -550,36 +532,6 @@ class SlidingWindowEstimator:
             points = points[finite]
         return stamp_ns, points, predicted, tool_pose, viewpoint, dropped
 
-    def _far_input(self, points, predicted, tool_pose, messages):
-        """Far cloud points dropped, a far or inverted prediction and a far tool pose set aside
-        (core/inputs/input_checks.py), each reported in `messages`: (points, predicted, tool pose, count
-        of points dropped)."""
-        scene, dropped = self.scene, 0
-        if points is not None:
-            far = scene.far(points)
-            dropped = int(np.count_nonzero(far))
-            if dropped:
-                messages.append(f"{dropped} {REJECTIONS['clouds_with_far_points']} ({scene.describe(points)})")
-                points = points[~far]
-        if tool_pose is not None and scene.far(tool_pose[None, :3])[0]:
-            messages.append(f"{REJECTIONS['tool_poses_ignored_far']} ({scene.describe(tool_pose[None, :3])})")
-            tool_pose = None
-        if predicted is not None and scene.far(predicted).any():
-            messages.append(f"{REJECTIONS['predictions_rejected_far']} (a vertex {scene.describe(predicted)})")
-            predicted = None
-        if predicted is not None:
-            # The simulator never returns an inverted element (it reports a failure instead), and
-            # the prior's volume barrier is relative to the prediction's volumes, fixed vertices
-            # held where they are (as the new state gets it).
-            held = predicted.copy()
-            held[self.mesh.fixed_vertices] = self.mesh.vertices[self.mesh.fixed_vertices]
-            flat = flat_elements(held, self.mesh.tetrahedra)
-            if flat:
-                messages.append(f"{REJECTIONS['predictions_rejected_inverted']} "
-                                f"({flat} of {self.mesh.tetrahedron_count})")
-                predicted = None
-        return points, predicted, tool_pose, dropped
-
     # ----------------------------------------------------------------------------- update
     def update(self, stamp_ns: int, points=None, predicted=None, tool_pose=None, viewpoint=None,
                prior_stiffness=None) -> StepResult:
@@ -587,7 +539,7 @@ class SlidingWindowEstimator:
         `predicted` (N, 3) (either may be None), optimise the window, return the newest state.
         tool_pose (7,) (optional): where the tool is, to drop the cloud's points on it.
         viewpoint (3,) (optional): the sensor's centre, to drop the points against back faces
-        of the predicted surface (PointToSurfaceFactor).
+        of the predicted surface (core/estimation/measurement_selection.py).
         prior_stiffness (optional): (3N, 3N) csr on the model's stiffness pattern, positive
         definite on the free dofs, [N/m]: the prior's information instead of the model's K (an
         external simulator's, core/physics/external_prior.py), scaled like it; unused without `predicted`.
@@ -637,14 +589,25 @@ class SlidingWindowEstimator:
         messages = [f"{dropped} non-finite point(s) dropped"] if dropped else []
         if "simulation" not in self.enabled:
             predicted = None  # a configuration without the physics prior starts from the copy-forward
-        points, predicted, tool_pose, far = self._far_input(points, predicted, tool_pose, messages)
+        points, predicted, tool_pose, far = set_aside_far_input(self.scene, self.mesh, points, predicted, tool_pose,
+                                                                messages)
         self.step += 1
         self.last_stamp_ns = stamp_ns
         self.deadline = None if cfg.update_time_budget is None else start + cfg.update_time_budget
         pending = PendingStep(self.step, stamp_ns, start, num_points_rejected=dropped + far, messages=messages,
                               viewpoint=viewpoint)
-        points = self._outside_tool(points, tool_pose, pending)
-        predicted = self._innovation_test(points, predicted, pending)
+        points, on_tool = drop_points_on_tool(points, tool_pose, cfg.tool_mode, cfg.tool_radius, self.noise.sigma)
+        if on_tool:
+            pending.num_points_rejected += on_tool
+            pending.messages.append(f"{on_tool} point(s) on the tool dropped")
+        innovation = innovation_test(points, predicted, self.last_estimate, self.mesh.surface_triangles,
+                                     cfg.measurement_sigma, self.scene)
+        predicted = innovation.prediction
+        if innovation.rejection is not None:
+            pending.messages.append(innovation.rejection)
+        if innovation.association is not None:
+            pending.association = (predicted, innovation.association)
+            self._learn_prior_error_scale(predicted, innovation.association)
         prediction = predicted
         if prediction is None:
             prediction = self.last_estimate
@@ -672,50 +635,6 @@ class SlidingWindowEstimator:
         pending.prepare_ms = 1e3 * (time.perf_counter() - start)
         return pending
 
-    def _outside_tool(self, points, tool_pose, pending: PendingStep):
-        """Points inside the tool sphere (sphere mode), grown by TOOL_MARGIN_SIGMAS measurement
-        sigmas but by at most its radius, are leaks of the segmentation onto the tool (the
-        commonest leak): dropped and counted. A point farther than a radius off the sphere is no
-        noisy point of it; without the bound a nominal sigma ten times too large drops most of
-        the cloud around the tool, and the noise estimate, made from what is left (mostly
-        leaks), takes seven updates to come down instead of one (docs/design-notes.md, "Weights")."""
-        if points is None or tool_pose is None or self.config.tool_mode != "sphere":
-            return points
-        centre = np.asarray(tool_pose, dtype=np.float64).reshape(-1)[:3]
-        radius = self.config.tool_radius
-        reach = radius + min(TOOL_MARGIN_SIGMAS * self.noise.sigma, radius)
-        inside = np.einsum("ij,ij->i", points - centre, points - centre) <= reach**2
-        count = int(np.count_nonzero(inside))
-        if count:
-            pending.num_points_rejected += count
-            pending.messages.append(f"{count} point(s) on the tool dropped")
-        return points[~inside]
-
-    def _innovation_test(self, points, predicted, pending: PendingStep):
-        """The prediction, or None (the step then runs degraded on the copy-forward) when the
-        cloud contradicts it far beyond the measurement noise: the robust spread of the cloud's
-        distances to the predicted surface is above max(INNOVATION_SIGMAS nominal sigmas,
-        INNOVATION_DIAGONALS scene diagonals) and INNOVATION_RATIO times its spread about the
-        copy-forward. Clouds of fewer than MIN_POINTS points (weights.py) do not judge."""
-        if predicted is None or points is None or len(points) < MIN_POINTS:
-            return predicted
-        triangles = self.mesh.surface_triangles
-        # The whole cloud's association (the measurement factor's gate needs it), judged on the sample.
-        association = ClosestPointIndex(predicted, triangles).associate(points)
-        spread = innovation_spread(innovation_sample(association.distance))
-        limit = max(INNOVATION_SIGMAS * self.config.measurement_sigma, INNOVATION_DIAGONALS * self.scene.diagonal)
-        if spread > limit:
-            sample = innovation_sample(points)
-            copy_forward = innovation_spread(ClosestPointIndex(self.last_estimate, triangles).associate(sample).distance)
-            if spread > INNOVATION_RATIO * copy_forward:
-                pending.messages.append(f"{REJECTIONS['predictions_rejected_innovation']} (spread {1e3 * spread:.3g} "
-                                        f"mm about it, {1e3 * copy_forward:.3g} mm about the copy-forward, "
-                                        f"limit {1e3 * limit:.3g} mm)")
-                return None
-        pending.association = (predicted, association)
-        self._learn_prior_error_scale(predicted, association)
-        return predicted
-
     def _learn_prior_error_scale(self, predicted: np.ndarray, association) -> None:
         """lambda^2 from the cloud's distances to the predicted surface against the prior's
         variance along each point's normal (core/estimation/covariance.py); kept when too few points tell."""
@@ -732,7 +651,8 @@ class SlidingWindowEstimator:
             self.prior_error_scale = self._prior_error_memory.add(scale)
 
     def _state_factors(self, pending: PendingStep) -> list:
-        """The physics prior and measurement factors of the pending state at the current weights."""
+        """The physics prior and measurement factors of the pending state at the current weights: the
+        measurement factor on the points the front end selects with them (select_points)."""
         cfg, graph, key = self.config, self.graph, pending.key
         factors = []
         if "simulation" in self.enabled:
@@ -754,18 +674,17 @@ class SlidingWindowEstimator:
         points = pending.points
         if "measurement" in self.enabled and points is not None and len(points):
             sigma = self.noise.sigma
-            robust = make_robust_kernel(cfg.robust_kernel, cfg.robust_scale or ROBUST_SCALE_SIGMAS * sigma)
-            gate = cfg.gating_distance or (lambda distances: GATE_SIGMAS * float(np.clip(
-                _MEDIAN_ABSOLUTE_TO_SIGMA * np.median(distances), sigma, GATE_SPREAD_CAP * sigma)))
             known = pending.association
             association = known[1] if known is not None and np.array_equal(known[0], pending.prediction) else None
-            factor = PointToSurfaceFactor(key, points, graph.surface_triangles, pending.prediction,
-                                          RayNoise(sigma), robust, gate, pending.viewpoint, association)
-            pending.num_points, pending.num_points_gated = factor.num_points, factor.num_points_rejected
-            pending.num_points_back_facing = factor.num_points_back_facing
-            pending.back_facing_test_skipped = factor.back_facing_test_skipped
-            if factor.num_points:
-                factors.append(factor)
+            selected = select_points(points, graph.surface_triangles, pending.prediction, sigma, cfg.gating_distance,
+                                     pending.viewpoint, association)
+            pending.num_points, pending.num_points_gated = len(selected.points), selected.num_gated
+            pending.num_points_back_facing = selected.num_back_facing
+            pending.back_facing_test_skipped = selected.back_facing_test_skipped
+            if pending.num_points:
+                robust = make_robust_kernel(cfg.robust_kernel, cfg.robust_scale or ROBUST_SCALE_SIGMAS * sigma)
+                factors.append(PointToSurfaceFactor(key, selected.points, graph.surface_triangles, graph.vertex_count,
+                                                    selected.noise, robust, (selected.vertices, selected.association)))
         return factors
 
     def solve(self, pending: PendingStep) -> StepResult:

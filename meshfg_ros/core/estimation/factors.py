@@ -3,7 +3,7 @@
 A factor touches the states (N, 3) of one or two keys and gives its residual r, its
 Jacobians dr/dX_key (sparse, w.r.t. the flattened vertex positions x0 y0 z0 x1 ...), its cost
 and its contribution to the Gauss-Newton normal equations. Noise models (noise.py) and robust
-kernels (robust.py) are separate objects passed to the factor.
+kernels (noise.py) are separate objects passed to the factor.
 
   PhysicsPriorFactor     r = Xhat_t - X_t,  information Lambda = scale * K(X_t) + ridge I
   VolumeBarrierFactor    keeps every tetrahedron of a state away from flat or inverted
@@ -32,8 +32,7 @@ from meshfg_ros.core.geometry.closest_point import (
 )
 from meshfg_ros.core.geometry.kernel_types import read_only
 from meshfg_ros.core.geometry.mesh import ElementVolumes, cross, cross3, dot3
-from meshfg_ros.core.estimation.noise import IdentityNoise, InformationMatrixNoise, PointNoise
-from meshfg_ros.core.estimation.robust import RobustKernel
+from meshfg_ros.core.estimation.noise import IdentityNoise, InformationMatrixNoise, PointNoise, RobustKernel
 
 __all__ = [
     "BARRIER_VOLUME_RATIO",
@@ -41,7 +40,6 @@ __all__ = [
     "Factor",
     "FactorError",
     "FactorLinearization",
-    "MAX_BACK_FACING_SHARE",
     "PhysicsPriorFactor",
     "PointBlocks",
     "PointToSurfaceFactor",
@@ -56,14 +54,10 @@ __all__ = [
 # nearly incompressible tissue needs, so it never moves a plausible estimate, while it keeps
 # the optimum itself from flattening or inverting elements.
 BARRIER_VOLUME_RATIO = 0.5
-# The back-face test (PointToSurfaceFactor) drops up to this share of a cloud's gated points; a
-# larger share means the viewpoint is not the sensor's. Measured on the accuracy suite's
-# camera scenes at the predicted surface: 0-1 % of the points on the tissue and 49-100 % of the
-# leaks onto the surroundings lie against back faces; the leaks are 10-20 % of a cloud.
-MAX_BACK_FACING_SHARE = 0.5
 # The trials' closest-triangle searches answer from the surface grid the points within this many
-# times the farthest accepted point's distance at the prediction (LM's steps move the surface
-# by a fraction of that); libigl's tree answers the few beyond (closest_point.py).
+# times the farthest point's distance at the state of their given association (the prediction;
+# LM's steps move the surface by a fraction of that); libigl's tree answers the few beyond
+# (closest_point.py).
 TRIAL_REACH = 1.25
 # A point's Gauss-Newton term (_distance_hessians) is weighted by the second
 # derivative of its robust cost along its distance, w (rho' + 2 s rho'') (RobustKernel.curvature),
@@ -454,15 +448,6 @@ class TemporalFactor(Factor):
         return out
 
 
-def _unit_normals(vertices: np.ndarray, triangles: np.ndarray, index: np.ndarray) -> np.ndarray:
-    """Unit normals (K, 3) of the triangles triangles[index] of `vertices` (NaN: degenerate)."""
-    a, b, c = triangle_corners(vertices, triangles, index)
-    normals = cross(b - a, c - a)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        normals /= np.linalg.norm(normals, axis=1)[:, None]
-    return normals
-
-
 @numba.njit((read_only(float64, 2), read_only(int64, 2), read_only(int64, 1), read_only(float64, 2),
              read_only(float64, 1), read_only(boolean, 1)), cache=True, boundscheck=True, error_model="numpy")
 def _face_terms(vertices, triangles, triangle, barycentric, weight, face):
@@ -566,99 +551,45 @@ class PointToSurfaceFactor(Factor):
     LM's gain ratio compares like with like. `freeze_association` pins each point to its
     current triangle (for cross-checks with other solvers).
 
-    Points farther than `gating_distance` from the surface at `initial_vertices` are rejected
-    once, at construction (num_points_rejected), so the objective does not change while LM
-    iterates; `gating_distance` may be a function of those distances (K,) that returns the gate
-    (a gate from the data's own spread). With a `viewpoint` (the sensor's centre, (3,)), points
-    whose closest triangle at `initial_vertices` faces away from it are rejected too
-    (num_points_back_facing, counted in num_points_rejected): a camera cannot see a back face,
-    and such points are the segmentation's leaks onto what lies behind the silhouette (the
-    table, neighbouring tissue), close enough to the surface to pass a distance gate. When more
-    than MAX_BACK_FACING_SHARE of the gated points would go, the viewpoint is not the sensor's
-    (a camera pose left at a default) and the test is skipped
-    (back_facing_test_skipped). `initial_association`, the points' Association at
-    `initial_vertices` where the caller has it (the estimator's innovation test made it), saves
-    that query. The accepted points (`points`, with their `noise`) are kept in
-    the order of their closest triangles at `initial_vertices` when those were found.
+    The factor takes the points (K, 3) and their noise model as they are: which points of a
+    cloud it gets, and their noise, is the measurement front end's choice
+    (measurement_selection.py). `association_at`, (vertices (N, 3), the points' Association
+    there) where the caller has it, answers the first query at those vertices, and sets how far
+    from the surface the trials' searches expect the points: the surface grid answers those
+    within TRIAL_REACH times the farthest one's distance (closest_point.py).
     Cost: 0.5 sum_k w_k rho(|r_k|^2), w_k = 1/sigma_k^2, rho the robust kernel (identity
     without one); its gradient carries the IRLS weights w_k rho'(|r_k|^2), its Gauss-Newton
     terms the curvature along each point's distance (see CURVATURE_FLOOR).
     """
 
-    def __init__(self, key, points, surface_triangles, initial_vertices, noise: PointNoise | None = None,
-                 robust: RobustKernel | None = None, gating_distance=np.inf, viewpoint=None,
-                 initial_association: Association | None = None):
+    def __init__(self, key, points, surface_triangles, vertex_count: int, noise: PointNoise | None = None,
+                 robust: RobustKernel | None = None, association_at: tuple[np.ndarray, Association] | None = None):
         points = np.asarray(points, dtype=np.float64)
         if points.ndim != 2 or points.shape[1] != 3:
             raise FactorError(f"points must have shape (K, 3), got {points.shape}")
         if not np.all(np.isfinite(points)):
             raise FactorError("points contain NaN or infinite values")
         self.keys = (key,)
+        self.points = points
         self.triangles = np.asarray(surface_triangles, dtype=np.int64)
-        initial_vertices = np.asarray(initial_vertices, dtype=np.float64)
-        self.vertex_count = len(initial_vertices)
-        noise = IdentityNoise() if noise is None else noise
-        noise.point_weights(len(points))  # validates per-point sizes
-        accepted = np.ones(len(points), dtype=bool)
-        if initial_association is not None and len(initial_association.triangle) != len(points):
-            raise FactorError(f"initial_association has {len(initial_association.triangle)} points, "
-                              f"the cloud {len(points)}")
-        self.num_points_back_facing, self.back_facing_test_skipped = 0, False
-        if viewpoint is not None:
-            viewpoint = np.asarray(viewpoint, dtype=np.float64).reshape(-1)
-            if viewpoint.shape != (3,) or not np.all(np.isfinite(viewpoint)):
-                raise FactorError(f"viewpoint must be 3 finite coordinates, got {viewpoint}")
-        gated = callable(gating_distance) or np.isfinite(gating_distance)
-        if not (gated or viewpoint is not None) or not len(points):
-            initial_association = None
-        elif initial_association is None:
-            initial_association = ClosestPointIndex(initial_vertices, self.triangles).associate(points)
-        normals = None
-        if initial_association is not None:
-            if gated:
-                gate = gating_distance(initial_association.distance) if callable(gating_distance) else gating_distance
-                accepted = initial_association.distance <= gate
-            if viewpoint is not None:
-                normals = _unit_normals(initial_vertices, self.triangles, initial_association.triangle)
-                accepted = self._visible(accepted, normals, initial_association.closest, viewpoint)
-        self.num_points_rejected = int(np.count_nonzero(~accepted))
-        kept = np.flatnonzero(accepted)
-        if initial_association is not None:
-            # The points in the order of their closest triangles: every later association (LM's
-            # trial costs) then reads the same grid cells' lists, or libigl's tree paths, for
-            # consecutive points, which makes libigl's queries about a fifth faster; the grid's
-            # searches near the paper-scale surface take the same time in either order.
-            kept = kept[np.argsort(initial_association.triangle[kept], kind="stable")]
-            initial_association = Association(*(getattr(initial_association, name)[kept] for name in (
-                "triangle", "closest", "barycentric", "region", "distance")))
-        self.points = points[kept]
-        # The distance from the surface within which the points lie, with room for LM's steps:
-        # the trials' searches answer those points from the surface grid (closest_point.py).
-        self._reach = (TRIAL_REACH * float(initial_association.distance.max(initial=0.0))
-                       if initial_association is not None else None)
-        self.noise = noise.subset(kept)
-        # A viewpoint the back-face test found implausible (most points facing away) is not the
-        # sensor's: its rays say nothing of the points' noise either.
-        if normals is not None and not self.back_facing_test_skipped:
-            self.noise = self.noise.on_surface(self.points, normals[kept], viewpoint)
-        self.weights = self.noise.point_weights(len(self.points))
+        self.vertex_count = int(vertex_count)
+        self.noise = IdentityNoise() if noise is None else noise
+        self.weights = self.noise.point_weights(len(points))  # validates per-point sizes
         self.robust = robust
         self._frozen_triangle: np.ndarray | None = None
-        # The last two (vertices, association) pairs: LM linearises where the gating or a trial's
+        # The last two (vertices, association) pairs: LM linearises where the selection or a trial's
         # cost associated, and after an extrapolated trial it did not take, at the trial before it.
-        self._associations = [] if initial_association is None else [(initial_vertices.copy(), initial_association)]
-
-    def _visible(self, accepted, normals, closest, viewpoint) -> np.ndarray:
-        """`accepted` less the points whose closest triangle (unit `normals`, NaN for a
-        degenerate one, which never counts as facing away) faces away from `viewpoint`."""
-        facing = np.einsum("ij,ij->i", normals, viewpoint - closest)
-        back = accepted & (facing < 0.0)
-        count = int(np.count_nonzero(back))
-        if count > MAX_BACK_FACING_SHARE * max(int(np.count_nonzero(accepted)), 1):
-            self.back_facing_test_skipped = True
-            return accepted
-        self.num_points_back_facing = count
-        return accepted & ~back
+        self._associations: list = []
+        self._reach = None
+        if association_at is not None:
+            vertices, association = association_at
+            vertices = checked_state(vertices, self.vertex_count, "association_at's vertices")
+            if len(association.triangle) != len(points):
+                raise FactorError(f"association_at has {len(association.triangle)} points, the factor {len(points)}")
+            # The distance from the surface within which the points lie, with room for LM's steps:
+            # the trials' searches answer those points from the surface grid (closest_point.py).
+            self._reach = TRIAL_REACH * float(association.distance.max(initial=0.0))
+            self._associations = [(vertices.copy(), association)]
 
     @property
     def num_points(self) -> int:

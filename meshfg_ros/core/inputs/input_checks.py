@@ -26,7 +26,7 @@ poses, the simulation node far estimates. An initial mesh itself must lie within
 MAX_WORLD_COORDINATE of the world origin (`check_initial_mesh`).
 
 Innovation: a prediction is rejected when the cloud contradicts it far beyond the measurement
-noise (`innovation_spread`, see `SlidingWindowEstimator._innovation_test`).
+noise (`innovation_spread`, see core/estimation/measurement_selection.py's `innovation_test`).
 
 Every rejection the estimator makes is one of the REJECTIONS below: its status message carries
 the reason's text, and the nodes count them by it (`rejections_in`).
