@@ -247,15 +247,16 @@ class PCGSolver(LinearSolver):
 
     def reserve(self, pattern: scipy.sparse.csr_matrix, count: int) -> None:
         """Make `count` spare factors of block pattern `pattern` (csr, sorted indices, the whole
-        diagonal held) by factoring the identity on it; nothing when the "vertex" preconditioner
-        serves blocks of its size."""
+        diagonal held): its ordering and symbolic analysis, the numeric factorisation left to the
+        first block it serves (`_factor`), so that a node's start-up does not factor placeholder
+        values; nothing when the "vertex" preconditioner serves blocks of its size."""
         if count < 1 or self._mode(pattern.shape[0]) != "block":
             return
         identity = np.zeros(pattern.nnz)
         identity[diagonal_positions(pattern)] = 1.0
         first = SparseCholesky(scipy.sparse.csr_matrix((identity, pattern.indices, pattern.indptr), shape=pattern.shape),
-                               node_size=3)
-        self._spare.extend([first] + [first.sibling(identity) for _ in range(count - 1)])
+                               node_size=3, numeric=False)
+        self._spare.extend([first] + [first.sibling(None) for _ in range(count - 1)])
 
     def state_factor(self, key):
         """The factor serving state `key` ("block" preconditioner): its own, or the one it

@@ -68,11 +68,13 @@ class SparseCholesky:
     """CHOLMOD factor of a symmetric positive definite matrix with a fixed sparsity pattern.
 
     `matrix`: scipy sparse, symmetric (both triangles stored or not: only the lower triangle
-    is read); `node_size`: dofs per graph node for the ordering (3 for mesh vertices). Raises
-    NotPositiveDefiniteError when CHOLMOD meets a non-positive pivot.
+    is read); `node_size`: dofs per graph node for the ordering (3 for mesh vertices);
+    `numeric`: False makes the ordering and the symbolic analysis only, for a factor whose values
+    come later (`refactor`, before any solve): a spare factor made before its first matrix is
+    known. Raises NotPositiveDefiniteError when CHOLMOD meets a non-positive pivot.
     """
 
-    def __init__(self, matrix_: scipy.sparse.spmatrix, node_size: int = 1):
+    def __init__(self, matrix_: scipy.sparse.spmatrix, node_size: int = 1, numeric: bool = True):
         csr = scipy.sparse.csr_matrix(matrix_, dtype=np.float64)
         csr.sort_indices()
         if csr.shape[0] != csr.shape[1]:
@@ -89,17 +91,20 @@ class SparseCholesky:
                                        cvxopt.matrix(csr.indices[self._lower].astype(np.int64)), (self.size, self.size))
         order = nested_dissection(csr, node_size)
         self._ordering = {} if order is None else {"p": cvxopt.matrix(order.tolist(), tc="i")}
-        self._analyse(csr.data)
+        self._analyse(csr.data if numeric else None)
 
-    def _analyse(self, data: np.ndarray) -> None:
-        """Symbolic analysis of the kept matrix with the kept ordering, then the numeric one."""
+    def _analyse(self, data: np.ndarray | None) -> None:
+        """Symbolic analysis of the kept matrix with the kept ordering, then the numeric one of
+        `data` (none for None)."""
         self._factor = _cvxopt().cholmod.symbolic(self._matrix, uplo="L", **self._ordering)
-        self.refactor(data)
+        if data is not None:
+            self.refactor(data)
 
-    def sibling(self, data: np.ndarray) -> SparseCholesky:
+    def sibling(self, data: np.ndarray | None) -> SparseCholesky:
         """A new factor of the matrix with values `data` on this factor's pattern, sharing the
         pattern bookkeeping and the ordering (a new state's block in a window whose factors are
-        all in use: 3.0 ms against 4.6 ms for a new SparseCholesky on a paper-scale block)."""
+        all in use: 3.0 ms against 4.6 ms for a new SparseCholesky on a paper-scale block);
+        None: its symbolic analysis only, values to come (`refactor`)."""
         twin = copy.copy(self)
         twin._matrix = self._matrix * 1.0  # its own copy (8 us; building one takes 0.7 ms)
         twin._analyse(data)
