@@ -8,6 +8,7 @@ import pytest
 
 from meshfg_ros.core.geometry.mesh import (
     DegenerateMeshError,
+    DofPattern,
     InvalidMeshError,
     MeshFileError,
     TetMesh,
@@ -229,3 +230,21 @@ def test_sorted_unique_is_numpys_unique():
     keys = np.random.default_rng(3).integers(0, 500, 5000)
     np.testing.assert_array_equal(sorted_unique(keys), np.unique(keys))
     np.testing.assert_array_equal(sorted_unique(np.array([7])), [7])
+
+
+def test_dof_pattern_holds_every_dof_pair_of_vertices_sharing_an_element():
+    """DofPattern against the pairs listed one by one: rows sorted, each vertex's own block (also
+    of a vertex of no element, here vertex 6), positions and mirrors where they are."""
+    tetrahedra = np.array([[0, 1, 2, 3], [1, 2, 3, 4], [3, 4, 5, 2]])
+    vertex_count = 7
+    pattern = DofPattern(tetrahedra, vertex_count)
+    adjacent = {(v, v) for v in range(vertex_count)}
+    adjacent |= {(a, b) for tet in tetrahedra for a in tet for b in tet}
+    expected = sorted((3 * a + i, 3 * b + k) for a, b in adjacent for i in range(3) for k in range(3))
+    rows = pattern.rows()
+    assert list(zip(rows.tolist(), pattern.indices.tolist())) == expected
+    pair_rows, pair_columns = np.array(expected).T
+    ranks = pattern.vertex_ranks(pair_rows // 3, pair_columns // 3)
+    assert np.array_equal(pattern.positions(pair_rows, ranks, pair_columns % 3), np.arange(len(expected)))
+    mirror = pattern.transposed_positions()
+    assert np.array_equal(rows[mirror], pattern.indices) and np.array_equal(pattern.indices[mirror], rows)

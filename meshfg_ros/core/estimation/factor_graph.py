@@ -20,7 +20,7 @@ from numba.types import float64, int64
 from meshfg_ros.core.estimation.factors import Factor, FactorError, FactorLinearization, checked_state
 from meshfg_ros.core.geometry.kernel_types import read_only, writable
 from meshfg_ros.core.solvers.linear_system import WindowSystem, diagonal_positions
-from meshfg_ros.core.geometry.mesh import ElementVolumes, cross3, dot3, sorted_unique
+from meshfg_ros.core.geometry.mesh import DofPattern, ElementVolumes, cross3, dot3
 
 __all__ = ["MIN_VOLUME_RATIO_PER_STEP", "FactorGraph"]
 
@@ -104,16 +104,14 @@ class FactorGraph:
         return self._pattern
 
     def _build_pattern(self) -> None:
-        """Block pattern over free dofs: every pair of dofs of vertices sharing a tetrahedron."""
-        tets = self.tetrahedra
-        vertex_rows = np.repeat(tets, 4, axis=1).reshape(-1)
-        vertex_cols = np.tile(tets, (1, 4)).reshape(-1)
-        rows = (3 * vertex_rows[:, None, None] + np.arange(3)[None, :, None]).repeat(3, axis=2).reshape(-1)
-        cols = (3 * vertex_cols[:, None, None] + np.arange(3)[None, None, :]).repeat(3, axis=1).reshape(-1)
-        free_rows, free_cols = self._free_index[rows], self._free_index[cols]
+        """Block pattern over free dofs: every pair of dofs of vertices sharing a tetrahedron
+        (the stiffness pattern, geometry.mesh.DofPattern, without the fixed dofs; free dofs
+        keep their order, so its keys stay sorted)."""
+        full = DofPattern(self.tetrahedra, self._free_index.size // 3)
+        free_rows, free_cols = self._free_index[full.rows()], self._free_index[full.indices]
         keep = (free_rows >= 0) & (free_cols >= 0)
         n = self.block_size
-        keys = sorted_unique(np.concatenate([free_rows[keep] * n + free_cols[keep], np.arange(n) * (n + 1)]))
+        keys = free_rows[keep] * n + free_cols[keep]
         self._pattern_keys = keys
         pattern_rows, pattern_cols = np.divmod(keys, n)
         indptr = np.searchsorted(pattern_rows, np.arange(n + 1)).astype(np.int32)

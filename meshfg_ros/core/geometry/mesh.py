@@ -22,6 +22,7 @@ from meshfg_ros.core.geometry.kernel_types import read_only
 
 __all__ = [
     "DegenerateMeshError",
+    "DofPattern",
     "InvalidMeshError",
     "MeshFileError",
     "TetMesh",
@@ -85,10 +86,67 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def sorted_unique(keys: np.ndarray) -> np.ndarray:
     """The distinct values of integer `keys`, ascending: np.unique's, by a sort. np.unique hashes
-    integers (numpy 2.4), which takes about ten times as long as a sort on an organ-scale mesh's
-    4.3M dof-pair keys."""
+    integers (numpy 2.4), which takes about ten times as long as a sort on the millions of pair keys
+    of an organ-scale mesh."""
     ordered = np.sort(keys)
     return ordered[np.r_[True, ordered[1:] != ordered[:-1]]]
+
+
+class DofPattern:
+    """The CSR pattern over a tetrahedral mesh's vertex coordinates (vertex v's coordinate i is
+    dof 3v+i) that a stiffness matrix has: every pair of dofs of two vertices sharing an element,
+    and each vertex's own 3x3 block (also for a vertex of no element). Rows hold their columns
+    in ascending order: a dof's row holds 3 columns per adjacent vertex, in the order of the
+    vertex adjacency (`vertex_indptr`, `vertex_indices`).
+
+    It is built from the vertex pairs (16 per element) and expanded to dofs by arithmetic, and
+    positions are found per vertex pair: sorting and searching the 144 dof pairs of every element
+    instead costs several times as much on an organ-scale mesh, where it was most of a node's
+    start-up."""
+
+    def __init__(self, tetrahedra: np.ndarray, vertex_count: int):
+        tets = np.asarray(tetrahedra, dtype=np.int64).reshape(-1, 4)
+        self.vertex_count = int(vertex_count)
+        pairs = np.concatenate([(tets[:, :, None] * self.vertex_count + tets[:, None, :]).reshape(-1),
+                                np.arange(self.vertex_count) * (self.vertex_count + 1)])
+        self._vertex_keys = sorted_unique(pairs)
+        vertex_rows, self.vertex_indices = np.divmod(self._vertex_keys, self.vertex_count)
+        self.vertex_indptr = np.searchsorted(vertex_rows, np.arange(self.vertex_count + 1))
+        row_lengths = np.repeat(3 * np.diff(self.vertex_indptr), 3)
+        self.indptr = np.concatenate([[0], np.cumsum(row_lengths)])
+        # Each vertex's columns (3 per adjacent vertex), then repeated for its three rows.
+        vertex_block = (3 * self.vertex_indices[:, None] + np.arange(3)).reshape(-1)
+        block_start = np.repeat(np.repeat(3 * self.vertex_indptr[:-1], 3), row_lengths)
+        self._within_row = np.arange(self.indptr[-1]) - np.repeat(self.indptr[:-1], row_lengths)
+        self.indices = vertex_block[block_start + self._within_row]
+
+    @property
+    def size(self) -> int:
+        """The number of dofs (rows and columns)."""
+        return 3 * self.vertex_count
+
+    def rows(self) -> np.ndarray:
+        """(nnz,) the row of each stored entry."""
+        return np.repeat(np.arange(self.size), np.diff(self.indptr))
+
+    def vertex_ranks(self, row_vertices: np.ndarray, column_vertices: np.ndarray) -> np.ndarray:
+        """The place of each column vertex among its row vertex's adjacent vertices (the pairs
+        must share an element, or be one vertex)."""
+        keys = row_vertices * self.vertex_count + column_vertices
+        return np.searchsorted(self._vertex_keys, keys) - self.vertex_indptr[row_vertices]
+
+    def positions(self, rows: np.ndarray, ranks: np.ndarray, components: np.ndarray) -> np.ndarray:
+        """Positions in `indices` of the entries in dof rows `rows` whose column is coordinate
+        `components` of the row vertex's adjacent vertex number `ranks` (vertex_ranks)."""
+        return self.indptr[rows] + 3 * ranks + components
+
+    def transposed_positions(self) -> np.ndarray:
+        """(nnz,) the position of each entry's mirror (its column's row, its row's column)."""
+        rows = self.rows()
+        row_vertices = np.repeat(np.arange(self.vertex_count), np.diff(self.vertex_indptr))
+        mirror_ranks = self.vertex_ranks(self.vertex_indices, row_vertices)  # per vertex pair
+        vertex_entry = self.vertex_indptr[rows // 3] + self._within_row // 3
+        return self.positions(self.indices, mirror_ranks[vertex_entry], rows % 3)
 
 
 @numba.njit(inline="always")

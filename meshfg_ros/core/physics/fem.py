@@ -43,7 +43,7 @@ from numba.types import float64, int64
 
 from meshfg_ros.core.geometry.kernel_types import read_only
 from meshfg_ros.core.geometry.mesh import DegenerateMeshError as DegenerateElementError  # one error for degenerate rest elements
-from meshfg_ros.core.geometry.mesh import sorted_unique
+from meshfg_ros.core.geometry.mesh import DofPattern
 
 __all__ = [
     "STIFFNESS_KINDS",
@@ -422,32 +422,37 @@ class ElasticModel:
             raise DegenerateElementError(flat, f"|volume| <= {tolerance:.3g}")
 
     def _build_sparse_pattern(self) -> None:
-        """Cache the CSR structure of K and the scatter of element upper triangles into it.
+        """Cache the CSR structure of K (geometry.mesh.DofPattern) and the scatter of element
+        upper triangles into it.
 
         Element matrices are symmetric, so only their 78 upper-triangle entries are summed
-        (into the unique global pairs (min dof, max dof)) and then mirrored: half the scatter
-        work, and an exactly symmetric K. The pattern holds the whole diagonal (a vertex of no
-        element gets explicit zeros), whose positions in K's data are `diagonal_positions`: a
-        shift of the diagonal keeps K's pattern (the physics prior's ridge).
+        (into the pattern's entries (row, column) with row <= column, in CSR order) and then
+        mirrored: half the scatter work, and an exactly symmetric K. The pattern holds the whole
+        diagonal (a vertex of no element gets explicit zeros), whose positions in K's data are
+        `diagonal_positions`: a shift of the diagonal keeps K's pattern (the physics prior's ridge).
         """
-        dof_count = 3 * self.vertex_count
-        a, i, b, k = self._element_pairs
-        rows = self._element_dofs_em[a, i]  # (78, M), element-major like the entries
-        columns = self._element_dofs_em[b, k]
-        keys = (np.minimum(rows, columns) * dof_count + np.maximum(rows, columns)).reshape(-1)
-        unique_keys = sorted_unique(np.concatenate([keys, np.arange(dof_count) * (dof_count + 1)]))
-        self._upper_slot = np.searchsorted(unique_keys, keys).astype(np.intp)
-        self._upper_count = unique_keys.size
-        upper_rows, upper_columns = np.divmod(unique_keys, dof_count)
-        off_diagonal = np.flatnonzero(upper_rows != upper_columns)
-        full_rows = np.concatenate([upper_rows, upper_columns[off_diagonal]])
-        full_columns = np.concatenate([upper_columns, upper_rows[off_diagonal]])
-        source = np.concatenate([np.arange(self._upper_count), off_diagonal])
-        order = np.argsort(full_rows * dof_count + full_columns)
-        self._csr_source = source[order].astype(np.intp)
-        self._csr_indices = full_columns[order].astype(np.int32)
-        self._csr_indptr = np.searchsorted(full_rows[order], np.arange(dof_count + 1)).astype(np.int32)
-        self.diagonal_positions = np.flatnonzero(full_rows[order] == full_columns[order])
+        pattern = DofPattern(self.tetrahedra, self.vertex_count)
+        rows, columns = pattern.rows(), pattern.indices
+        upper = columns >= rows
+        upper_index = np.cumsum(upper) - 1  # an upper entry's index among the upper entries
+        a, i, b, k = (np.asarray(local)[:, None] for local in self._element_pairs)
+        element_rows = self._element_dofs_em[a[:, 0], i[:, 0]]  # (78, M), element-major like the entries
+        element_columns = self._element_dofs_em[b[:, 0], k[:, 0]]
+        swap = element_rows > element_columns  # each entry summed into (min dof, max dof)
+        tets = self.tetrahedra.T  # (4, M)
+        ranks = pattern.vertex_ranks(tets[:, None, :], tets[None, :, :])  # (4, 4, M): local vertex pairs
+        elements = np.arange(self.element_count)
+        entry_ranks = ranks[np.where(swap, b, a), np.where(swap, a, b), elements]
+        self._upper_slot = upper_index[pattern.positions(np.minimum(element_rows, element_columns), entry_ranks,
+                                                         np.where(swap, i, k))].reshape(-1)
+        self._upper_count = int(np.count_nonzero(upper))
+        source = upper_index.copy()
+        lower = ~upper
+        source[lower] = upper_index[pattern.transposed_positions()[lower]]  # its mirror's
+        self._csr_source = source.astype(np.intp)
+        self._csr_indices = columns.astype(np.int32)
+        self._csr_indptr = pattern.indptr.astype(np.int32)
+        self.diagonal_positions = np.flatnonzero(rows == columns)
 
     # ------------------------------------------------------------------------ kinematics
 
