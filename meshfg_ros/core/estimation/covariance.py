@@ -24,9 +24,8 @@ lambda^2 A^-1. The last term is the measurement noise the MAP's gain passes on, 
 lambda^2 S counts lambda^2 times instead of once. It is bounded, 0 <= S B S <= S, and
 `published_covariance` takes the bound that keeps Sigma at or above the model's: 0 when
 lambda > 1, S when lambda < 1. Drawing S B S itself (as S - S A S, with draws through the
-prior's factor) triples the draws' cost and moved the mean NEES of the accuracy suite's scenes
-by 2-10 % (slab-inclusion 1.82 against 1.91, dome-tilted 0.44 against 0.48, the cube 0.47
-against 0.46, seed 0).
+prior's factor) would triple the draws' cost for a few per cent of NEES (docs/design-notes.md,
+"Published uncertainty").
 
 The factor. LM's linear solver already holds a Cholesky factor for the newest state's block
 (PCGSolver's block preconditioner: the state's own, refreshed when its block drifts by 5 %,
@@ -34,11 +33,9 @@ damping included, or one it borrows from an earlier state, 1-25 % off on the ben
 the draws go through it, and the block is factored here only where the solver holds none.
 A factor of M draws N(0, M^-1); where M is close to c H (a borrowed block carries an earlier
 noise estimate's scale: the whole block scales with 1 / sigma_m^2), E[x^T H x] = n / c, so the
-draws are rescaled by sqrt(n / mean x^T H x), one product with H. Measured on the accuracy
-suite (seed 0) against a fresh factor of each block: slab-inclusion's mean NEES 5.88 against
-5.95, dome-tilted 1.10 against 1.06, cao-push 13.3 against 13.0, flap-bend 2.25 against 2.22
-(unrescaled, slab-inclusion's was 9.4); a fresh factor costs about 0.1 s of an update at
-5,000 vertices and 0.3 s at 10,000.
+draws are rescaled by sqrt(n / mean x^T H x), one product with H. Rescaled draws through a
+borrowed factor give the NEES of a fresh factor's within a few per cent (docs/design-notes.md),
+and a fresh factor would cost about 0.1 s of an update at 5,000 vertices and 0.3 s at 10,000.
 
 lambda^2, the prior's real error relative to its model, is learnt from the innovation: the
 distances d_k of a cloud's points to the predicted surface, each with the model's variance

@@ -249,7 +249,7 @@ class EstimatorConfig(TissueAndTool):
         1e-3, "Expected simulator error per vertex in metres; scales the FEM-stiffness information of the "
         "physics prior. Used with estimate_weights false; with estimate_weights the prior follows the "
         "estimated measurement sigma (a tenth of it, core/estimation/weights.py).", range=_LENGTH_RANGE, dynamic=True)
-    temporal_sigma: float = setting(  # a weak random walk: up to ~1 cm per 1 Hz step (Table I: see README)
+    temporal_sigma: float = setting(  # a weak random walk: up to ~1 cm per 1 Hz step (Table I: meshfg ablation)
         1e-2, "Standard deviation of a vertex's motion between two steps beyond the simulator's prediction, "
         "metres.", range=_LENGTH_RANGE, dynamic=True)
     stiffness_kind: str = setting("corotational", "FEM stiffness used as the prior's information matrix.",
