@@ -1,4 +1,6 @@
 """`meshfg bench`'s report: the CPU and the BLAS beside every figure, in the text and the JSON."""
+from pathlib import Path
+
 from meshfg_ros.benchmarks.bench import format_report, format_tally, machine, tally
 from meshfg_ros import blas
 
@@ -39,7 +41,9 @@ def test_every_figure_line_names_the_cpu_and_the_blas():
         "loaded": {"machine": ON, "busy_processes": 2, "paper_scale": {**estimator_row(512), "p95_ms": 50.0},
                    "organ_scale": {**estimator_row(10648), "p95_ms": 90.0}},
         "live": {"machine": ON, **live_row(300.0)},
-        "organ_live": {"machine": ON, "recording": "/cache/organ-slab-seed5", "idle": live_row(900.0),
+        "organ_live": {"machine": ON, "recording": "/cache/organ-slab-seed5",
+                       "idle": {**live_row(900.0), "vertex_rmse_live_m": 1.1e-4, "vertex_rmse_replay_m": 1e-4,
+                                "vertex_rmse_simulation_m": 2e-4, "live_over_replay": 1.1},
                        "loaded": {"busy_processes": 2, **live_row(2500.0, degraded=1, steps=6)}},
     }
     lines = format_report(result).splitlines()
@@ -47,8 +51,8 @@ def test_every_figure_line_names_the_cpu_and_the_blas():
                         "(chosen for SomeVendor)")
     figures = [line for line in lines[1:] if not line.startswith(("Core (ms):", "Baselines ("))]  # not headings
     # liver, the planner query, two estimator scales with their stage budgets, both loaded, meshfg
-    # and scipy twice, live and organ-scale live idle and loaded
-    assert len(figures) == 15
+    # and scipy twice, live and organ-scale live idle (with its accuracy) and loaded
+    assert len(figures) == 16
     assert all(line.endswith(TAG) for line in figures), [line for line in figures if not line.endswith(TAG)]
     budget = next(line for line in figures if "stage budget per cloud at 512 vertices" in line)
     # prediction 40 + update stages 21 + messaging 1 = 62 ms to the estimate, learning 5 after it
@@ -65,6 +69,9 @@ def test_every_figure_line_names_the_cpu_and_the_blas():
     assert rows["planner query, 1,000 points"]["met_runs"] == 1
     # late, degraded and clouds skipped
     assert rows["organ-scale live latency max after start-up, loaded"]["met_runs"] == 0
+    assert any("vertex RMSE live 0.110 mm, offline replay 0.100 mm (live / replay 1.100" in line for line in figures)
+    assert rows["organ-scale live vertex RMSE / offline replay's, idle"]["met_runs"] == 0  # 1.1 > 1.05
+    assert "organ-scale live vertex RMSE / offline replay's, loaded" not in rows  # no accuracy measured
 
 
 def test_machine_is_what_the_blas_configuration_reports():
@@ -109,3 +116,30 @@ def test_runs_are_tallied_per_target_in_its_own_direction():
     assert "29.00-31.00 ms (target <= 30 ms): met in 2 of 3 runs" in text
     assert "9.50-12.00 x (target >= 10 x): met in 2 of 3 runs" in text
     assert "none: the sections measured" in format_tally([{"machine": ON}])
+
+
+def test_a_live_run_is_judged_against_the_offline_replay_and_the_truth():
+    """ReplayErrors on a recording with ground truth: a live run that received the replay's own
+    estimates matches it (ratio 1), one that received the truth has no error, and the
+    simulation alone is measured at the same stamps."""
+    import numpy as np
+
+    from meshfg_ros.benchmarks.latency import LiveRun, ReplayErrors
+    from meshfg_ros.replay import replay_recording
+
+    bag = Path(__file__).resolve().parents[1] / "bags" / "cube-shear-spd"
+    reference = ReplayErrors.of(bag)
+    steps = replay_recording(bag).steps[3:8]
+    stamps = np.array([step.stamp_ns for step in steps])
+
+    def run(positions) -> LiveRun:
+        count = len(stamps)
+        return LiveRun(stamps, np.arange(count), np.array(positions), np.zeros((count, len(positions[0]))),
+                       np.full(count, 100.0), np.zeros(count, bool), np.full(count, 50.0), count, count, 15, {}, {}, {})
+
+    as_replay = reference.judge(run([step.result.positions for step in steps]))
+    assert abs(as_replay["live_over_replay"] - 1.0) < 1e-12
+    assert as_replay["vertex_rmse_replay_m"] == np.mean([reference.replay_m[stamp] for stamp in stamps])
+    assert 0 < as_replay["vertex_rmse_live_m"] < as_replay["vertex_rmse_simulation_m"]
+    as_truth = reference.judge(run([reference.truth[stamp] for stamp in stamps]))
+    assert as_truth["vertex_rmse_live_m"] == 0.0 and as_truth["live_over_replay"] == 0.0

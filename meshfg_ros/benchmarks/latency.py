@@ -180,12 +180,59 @@ def run_live_pipeline(
     )
 
 
+@dataclass(frozen=True)
+class ReplayErrors:
+    """What a live run on a recording with ground truth is judged against: per stamp, the truth
+    and the vertex RMSE (free vertices) of the offline replay's estimate and of the simulation
+    alone, which the live nodes should match (the replay is what they compute without timing)."""
+
+    truth: dict[int, np.ndarray]
+    free_vertices: np.ndarray
+    replay_m: dict[int, float]
+    simulation_m: dict[int, float]
+
+    @classmethod
+    def of(cls, bag: str | Path) -> ReplayErrors:
+        """Replay `bag` offline (meshfg_ros.replay) and measure it against the recording's truth."""
+        from meshfg_ros.evaluation.evaluate import mesh_states
+        from meshfg_ros.evaluation.metrics import vertex_rmse
+        from meshfg_ros.io.recording import RecordingReader
+        from meshfg_ros.replay import replay_recording
+        from meshfg_ros.topics import GROUND_TRUTH_TOPIC
+
+        with RecordingReader(bag) as reader:
+            states = mesh_states(reader, GROUND_TRUTH_TOPIC)
+        truth = {state.stamp_ns: state.positions for state in states}
+        fixed = np.union1d(states[0].fixed_vertices, states[0].invalid_vertices)
+        free = np.setdiff1d(np.arange(len(states[0].positions)), fixed)
+        steps = [step for step in replay_recording(bag).steps if step.stamp_ns in truth]
+        return cls(truth, free,
+                   {step.stamp_ns: vertex_rmse(step.result.positions, truth[step.stamp_ns], free) for step in steps},
+                   {step.stamp_ns: vertex_rmse(step.simulation_only, truth[step.stamp_ns], free)
+                    for step in steps if step.simulation_only is not None})
+
+    def judge(self, run: LiveRun) -> dict[str, float]:
+        """Mean vertex RMSE (m) over the stamps the live run estimated and the replay too: live,
+        replay and simulation alone, and the live run's over the replay's."""
+        from meshfg_ros.evaluation.metrics import vertex_rmse
+
+        rows = [(vertex_rmse(positions, self.truth[stamp], self.free_vertices), self.replay_m[stamp],
+                 self.simulation_m.get(stamp, np.nan))
+                for stamp, positions in zip(run.stamps_ns.tolist(), run.positions) if stamp in self.replay_m]
+        if not rows:
+            return {}
+        live, replay, simulation = np.mean(rows, axis=0)
+        return {"vertex_rmse_live_m": float(live), "vertex_rmse_replay_m": float(replay),
+                "vertex_rmse_simulation_m": float(simulation), "live_over_replay": float(live / replay)}
+
+
 def measure_live_latency(
     bag: str | Path,
     rate: float = 1.0,
     overrides: Mapping[str, Any] | None = None,
     timeout_s: float = 180.0,
     single_process: bool = False,
+    reference: ReplayErrors | None = None,
 ) -> dict[str, float]:
     """Latency of the live pipeline on `bag` (cloud arrival -> estimate arrival downstream, ms).
 
@@ -196,11 +243,13 @@ def measure_live_latency(
     includes the nodes' set-up on the mesh, which the clouds played from a recording's start wait
     for): first_latency_ms, clouds_after_start and estimated_after_start (clouds that arrived after
     the first estimate, and how many of them were estimated), latency_ms_max_after_start and
-    degraded_after_start.
+    degraded_after_start. With a `reference` (the recording's ground truth and its offline replay)
+    also the accuracy of the live estimates beside the replay's (ReplayErrors.judge).
     """
     with tempfile.TemporaryDirectory(prefix="meshfg-live-") as workdir:
         run = run_live_pipeline(bag, workdir, rate, overrides, timeout_s, single_process=single_process)
-    return {
+    accuracy = reference.judge(run) if reference is not None else {}
+    return {**accuracy,
         "steps": int(run.stamps_ns.size),
         "expected_steps": run.expected_steps,
         "latency_ms_median": float(np.median(run.latency_ms)),
