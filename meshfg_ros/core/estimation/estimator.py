@@ -157,9 +157,8 @@ LINEAR_TOLERANCE = 1e-1
 # The physics prior's ridge, relative to its mean information: a free body's rigid modes get a tiny information.
 PRIOR_RIDGE = 1e-6
 # Draws for the prior's marginal covariance, made once per estimator (core/estimation/covariance.py):
-# a 10 % relative spread of its variances, half that of the posterior's (MARGINAL_SAMPLES) that it
-# is mixed with; each draw costs a back substitution (2 ms at organ scale) of a node's start-up.
-PRIOR_MARGINAL_SAMPLES = 64
+# a 5 % relative spread of its variances, 65 MB of draws at organ scale (32k unknowns).
+PRIOR_MARGINAL_SAMPLES = 256
 # The robust kernel's scale when robust_scale is 0, in estimated sigmas: 2.3849 sigma gives the
 # Cauchy kernel 95 % efficiency on Gaussian noise. (The data-driven gate and the tool gate's
 # margin: measurement_selection.py.)
