@@ -34,16 +34,20 @@ def _end(section: str) -> str:
     return f"<!-- meshfg results: {section}: end -->"
 
 
-def commit(repository: Path = _REPOSITORY) -> str:
-    """The checkout's commit (12 hex digits), marked when tracked files differ from it; a
-    one-line reason where there is no git checkout."""
+def commit(repository: Path = _REPOSITORY, results: Path | None = None) -> str:
+    """The checkout's commit (12 hex digits), marked when tracked files other than the results
+    file `results` differ from it (the file the commands write is their output, not the code
+    they ran); a one-line reason where there is no git checkout."""
     def git(*arguments: str) -> str:
         return subprocess.run(["git", "-C", str(repository), *arguments], capture_output=True, text=True,
                               check=True, timeout=30).stdout.strip()
 
+    root = Path(repository).resolve()
+    inside = results is not None and Path(results).resolve().is_relative_to(root)
+    excluded = [f":(exclude){Path(results).resolve().relative_to(root)}"] if inside else []
     try:
         head = git("rev-parse", "--short=12", "HEAD")
-        changed = git("status", "--porcelain", "--untracked-files=no")
+        changed = git("status", "--porcelain", "--untracked-files=no", "--", ".", *excluded)
     except (OSError, subprocess.SubprocessError):
         return "unknown (not a git checkout)"
     return f"{head} with uncommitted changes" if changed else head
@@ -67,7 +71,8 @@ def write_section(path: Path, section: str, command_line: str, report: str, *, m
         from meshfg_ros.blas import cpu_model
 
         machine = cpu_model()
-    block = section_text(section, command_line, report, machine, commit() if commit_ is None else commit_, markdown)
+    block = section_text(section, command_line, report, machine, commit(results=path) if commit_ is None else commit_,
+                         markdown)
     text = path.read_text() if path.exists() else HEADER
     begin, end = _begin(section), _end(section)
     start = text.find(begin)

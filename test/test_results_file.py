@@ -97,3 +97,25 @@ def test_the_commit_is_marked_when_the_checkout_differs(tmp_path):
     assert results_file.commit(tmp_path) == "unknown (not a git checkout)"
     commit = results_file.commit()
     assert commit == "unknown (not a git checkout)" or len(commit.split()[0]) == 12
+
+
+def test_the_results_file_itself_does_not_mark_the_commit(tmp_path):
+    """A checkout whose only change is the results file the commands write is the commit itself;
+    any other tracked change marks it."""
+    import subprocess
+
+    def git(*arguments):
+        subprocess.run(["git", "-C", str(tmp_path), *arguments], check=True, capture_output=True)
+
+    git("init", "-q")
+    (tmp_path / "code.py").write_text("x = 1\n")
+    (tmp_path / "results.md").write_text("old\n")
+    git("add", "code.py", "results.md")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "start")
+    clean = results_file.commit(tmp_path, results=tmp_path / "results.md")
+    assert len(clean) == 12 and " " not in clean
+    (tmp_path / "results.md").write_text("new\n")
+    assert results_file.commit(tmp_path, results=tmp_path / "results.md") == clean
+    assert results_file.commit(tmp_path) == f"{clean} with uncommitted changes"
+    (tmp_path / "code.py").write_text("x = 2\n")
+    assert results_file.commit(tmp_path, results=tmp_path / "results.md") == f"{clean} with uncommitted changes"
