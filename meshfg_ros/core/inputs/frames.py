@@ -38,6 +38,7 @@ from meshfg_ros.core.inputs.pose_history import (
     InvalidPoseError,
     OutsideHistory,
     PoseHistory,
+    ReasonedLookupError,
     as_pose,
     as_stamp,
     pose_matrix,
@@ -63,17 +64,13 @@ class InvalidTransformError(InvalidPoseError):
     name, or a parent that would close a loop."""
 
 
-class FrameLookupError(LookupError):
+class FrameLookupError(ReasonedLookupError):
     """A lookup the buffer cannot answer; `reason` says which case, the message why."""
 
     UNKNOWN_FRAME = "unknown_frame"
     NO_PATH = "no_path"
     TOO_OLD = "too_old"
     BEYOND_HORIZON = "beyond_horizon"
-
-    def __init__(self, reason: str, message: str):
-        self.reason = reason
-        super().__init__(message)
 
 
 @dataclass(frozen=True, eq=False)

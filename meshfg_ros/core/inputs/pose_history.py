@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation
 
 from meshfg_ros.core.inputs.input_checks import NS_PER_S, StampError, check_stamp
 
-__all__ = ["InvalidPoseError", "OutsideHistory", "PoseHistory", "as_pose", "as_stamp", "pose_matrix", "seconds"]
+__all__ = ["InvalidPoseError", "OutsideHistory", "PoseHistory", "ReasonedLookupError", "as_pose", "as_stamp", "pose_matrix", "seconds"]
 
 _INITIAL_CAPACITY = 64
 
@@ -39,6 +39,15 @@ class OutsideHistory(LookupError):
     def __init__(self, reason: str, ahead_ns: int = 0):
         self.reason, self.ahead_ns = reason, ahead_ns
         super().__init__(reason)
+
+
+class ReasonedLookupError(LookupError):
+    """A lookup of the pose buffers that fails for one of its class's named reasons: `reason`
+    says which (for counters and diagnostics), the message why."""
+
+    def __init__(self, reason: str, message: str):
+        self.reason = reason
+        super().__init__(message)
 
 
 def seconds(stamp_ns: int) -> str:

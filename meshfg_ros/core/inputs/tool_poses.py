@@ -25,7 +25,7 @@ from collections import Counter
 import numpy as np
 
 from meshfg_ros.core.inputs.input_checks import NS_PER_S
-from meshfg_ros.core.inputs.pose_history import OutsideHistory, PoseHistory, seconds
+from meshfg_ros.core.inputs.pose_history import OutsideHistory, PoseHistory, ReasonedLookupError, seconds
 
 __all__ = ["DEFAULT_EXTRAPOLATION_HORIZON_S", "PoseUnavailable", "ToolPoseBuffer"]
 
@@ -35,16 +35,12 @@ DEFAULT_BUFFER_DURATION_S = 5.0
 DEFAULT_MAX_SAMPLES = 10_000  # 5 s at 2 kHz
 
 
-class PoseUnavailable(LookupError):
+class PoseUnavailable(ReasonedLookupError):
     """No tool pose at the asked stamp; `reason` says which case, the message why."""
 
     EMPTY = "empty"
     BEFORE_FIRST = "before_first"
     BEYOND_HORIZON = "beyond_horizon"
-
-    def __init__(self, reason: str, message: str):
-        self.reason = reason
-        super().__init__(message)
 
 
 class ToolPoseBuffer:
