@@ -107,7 +107,7 @@ class FactorGraph:
         """Block pattern over free dofs: every pair of dofs of vertices sharing a tetrahedron
         (the stiffness pattern, geometry.mesh.DofPattern, without the fixed dofs; free dofs
         keep their order, so its keys stay sorted)."""
-        full = DofPattern(self.tetrahedra, self._free_index.size // 3)
+        full = DofPattern(self.tetrahedra, self.vertex_count)
         free_rows, free_cols = self._free_index[full.rows()], self._free_index[full.indices]
         keep = (free_rows >= 0) & (free_cols >= 0)
         n = self.block_size

@@ -43,7 +43,7 @@ from numba.types import float64, int64
 
 from meshfg_ros.core.geometry.kernel_types import read_only
 from meshfg_ros.core.geometry.mesh import DegenerateMeshError as DegenerateElementError  # one error for degenerate rest elements
-from meshfg_ros.core.geometry.mesh import DofPattern
+from meshfg_ros.core.geometry.mesh import DEGENERATE_VOLUME_TOLERANCE, DofPattern  # one threshold for degenerate elements
 
 __all__ = [
     "STIFFNESS_KINDS",
@@ -62,9 +62,6 @@ __all__ = [
 ]
 
 STIFFNESS_KINDS = ("linear", "corotational", "neo_hookean")
-
-# |volume| below this times (mean edge length)^3 is a degenerate element (as in core/geometry/mesh.py).
-DEGENERATE_VOLUME_TOLERANCE = 1e-12
 
 # Eigenvalues below -tolerance * max|eigenvalue| make a matrix indefinite; above +tolerance
 # * max|eigenvalue| they make it positive definite (between: semi-definite up to rounding).
