@@ -203,8 +203,7 @@ class ReplayErrors:
         with RecordingReader(bag) as reader:
             states = mesh_states(reader, GROUND_TRUTH_TOPIC)
         truth = {state.stamp_ns: state.positions for state in states}
-        fixed = np.union1d(states[0].fixed_vertices, states[0].invalid_vertices)
-        free = np.setdiff1d(np.arange(len(states[0].positions)), fixed)
+        free = states[0].free_vertices
         steps = [step for step in replay_recording(bag).steps if step.stamp_ns in truth]
         return cls(truth, free,
                    {step.stamp_ns: vertex_rmse(step.result.positions, truth[step.stamp_ns], free) for step in steps},

@@ -331,7 +331,7 @@ def evaluate_step(inputs: EvaluationInputs, stamp: int, samples: int = DEFAULT_S
     vertex: dict[str, dict] = {}
     if inputs.same_topology:
         mesh = truth_mesh
-        free = np.setdiff1d(np.arange(len(mesh.positions)), np.union1d(mesh.fixed_vertices, mesh.invalid_vertices))
+        free = mesh.free_vertices
         external = np.intersect1d(np.unique(mesh.surface_triangles), free)
         sets = {"all": free, "external": external}
         if reference.observed is not None:

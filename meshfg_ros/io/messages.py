@@ -360,6 +360,11 @@ class MeshState:
                    mesh.surface_triangles, mesh.boundary_vertices, invalid_vertices=mesh.invalid_vertices,
                    removed_elements=mesh.removed_elements, **fields)
 
+    @property
+    def free_vertices(self) -> np.ndarray:
+        """Sorted vertices that are neither fixed nor invalid: the ones an estimate is judged on."""
+        return np.setdiff1d(np.arange(len(self.positions)), np.union1d(self.fixed_vertices, self.invalid_vertices))
+
     def tet_mesh(self, name: str = "") -> TetMesh:
         """The core mesh (vertices, tetrahedra, fixed vertices) of this state."""
         return TetMesh(self.positions, self.tetrahedra, self.fixed_vertices, name=name)
