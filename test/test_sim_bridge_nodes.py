@@ -34,7 +34,7 @@ from test_nodes import (  # noqa: F401 - probe and processes are fixtures
 )
 from tf2_msgs.msg import TFMessage
 
-from meshfg_ros.core.physics.external_prior import FIXED_DIAGONAL, bridge_state
+from meshfg_ros.core.physics.external_prior import FIXED_DIAGONAL, HELD_DOF_STIFFNESS, bridge_state
 from meshfg_ros.core.physics.fem import ElasticModel
 from meshfg_ros.core.inputs.frames import StampedTransform
 from meshfg_ros.core.geometry.mesh import save_mesh
@@ -44,7 +44,7 @@ from meshfg_ros.io.messages import PoseRecord, pose_to_msg
 from meshfg_ros.io.tf_messages import TF_STATIC_TOPIC, transforms_to_tf_message
 from meshfg_ros.nodes.frame_inputs import TF_STATIC_QOS
 from meshfg_ros.nodes.sim_bridge_client import answer_from_msg
-from meshfg_ros.nodes.sim_bridge_server import FIXED_DOF_STIFFNESS, SimBridgeService, factor_graph_state_response
+from meshfg_ros.nodes.sim_bridge_server import SimBridgeService, factor_graph_state_response
 from meshfg_ros.parameters import estimator_config, load_parameters, world_frame_inputs
 
 pytestmark = pytest.mark.slow  # node processes over DDS
@@ -288,7 +288,7 @@ def test_the_server_executable_answers_with_the_simulator_driven_by_the_tool(pro
                                         shape=(matrix.rows, matrix.cols)).toarray()
     np.testing.assert_allclose(stiffness, stiffness.T, rtol=0, atol=1e-6 * np.abs(stiffness).max())
     fixed_dofs = (3 * mesh.fixed_vertices[:, None] + np.arange(3)).reshape(-1)
-    assert np.all(np.diag(stiffness)[fixed_dofs] == FIXED_DOF_STIFFNESS) and FIXED_DOF_STIFFNESS >= FIXED_DIAGONAL
+    assert np.all(np.diag(stiffness)[fixed_dofs] == HELD_DOF_STIFFNESS) and HELD_DOF_STIFFNESS >= FIXED_DIAGONAL
     free = np.setdiff1d(np.arange(3 * mesh.vertex_count), fixed_dofs)
     assert np.diag(stiffness)[free].max() < FIXED_DIAGONAL
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from meshfg_ros.core.estimation.estimator import EstimatorConfig
-from meshfg_ros.core.physics.external_prior import FIXED_DIAGONAL, BridgeAnswer, bridge_state
+from meshfg_ros.core.physics.external_prior import BridgeAnswer, bridge_state, held_dof_stiffness
 from meshfg_ros.core.physics.fem import ElasticModel
 from meshfg_ros.core.geometry.mesh import inverted_elements
 from meshfg_ros.core.scheduler import EstimationScheduler, Prediction
@@ -28,22 +28,11 @@ from meshfg_ros.parameters import config_changes, shared_settings
 
 __all__ = ["bridge_accuracy"]
 
-_HELD_STIFFNESS = 10.0 * FIXED_DIAGONAL  # 1e9, as the authors' bridge writes it
-
-
 def _answer(mesh, simulator, positions, model, with_stiffness: bool) -> BridgeAnswer:
     """The simulator's answer as the client reads it from the message: every slot, float32 stiffness."""
     rest = simulator.rest_mesh
-    stiffness = None
-    if with_stiffness:
-        matrix = model.stiffness(positions, kind="corotational").tocoo()
-        held = np.zeros(matrix.shape[0], dtype=bool)
-        held[(3 * np.asarray(mesh.fixed_vertices)[:, None] + np.arange(3)).reshape(-1)] = True
-        keep = ~(held[matrix.row] | held[matrix.col])
-        dofs = np.flatnonzero(held)
-        stiffness = (np.concatenate([matrix.row[keep], dofs]), np.concatenate([matrix.col[keep], dofs]),
-                     np.concatenate([matrix.data[keep], np.full(dofs.size, _HELD_STIFFNESS)]).astype(np.float32),
-                     matrix.shape)
+    stiffness = (held_dof_stiffness(model.stiffness(positions, kind="corotational"), rest.boundary_vertices)
+                 if with_stiffness else None)
     return BridgeAnswer(positions=positions.reshape(-1),
                         valid_vertex_count=mesh.vertex_count - rest.invalid_vertices.size,
                         invalid_vertices=rest.invalid_vertices, elements=mesh.all_tetrahedra.reshape(-1),

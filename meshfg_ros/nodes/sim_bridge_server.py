@@ -8,7 +8,7 @@ mesh of mesh_file or `initial_mesh`), and the service `/sim/factor_graph_state`
 (sim_bridge/srv/FactorGraphState; remap it with -r) answers with its current state in
 world_frame (run it with -p world_frame:=sim/world for the authors' frame) and, when asked,
 the corotational FEM stiffness at that state as a full symmetric COO matrix in float32 with the
-fixed vertices' dofs at FIXED_DOF_STIFFNESS on the diagonal, as the authors' bridge sends them.
+fixed vertices' dofs at HELD_DOF_STIFFNESS on the diagonal, as the authors' bridge sends them.
 It cuts on `remove_elements` (std_msgs/UInt32MultiArray: element slots, as the simulation node
 takes them; core/geometry/topology.py): the answers then keep every slot, list the removed elements and
 the vertices left without one in `invalid_indices`, and the stiffness is the remaining
@@ -30,19 +30,20 @@ from std_msgs.msg import UInt32MultiArray
 from rclpy.node import Node
 from sim_bridge.srv import FactorGraphState
 
+from meshfg_ros.core.physics.external_prior import held_dof_stiffness
 from meshfg_ros.core.physics.fem import ElasticModel
-from meshfg_ros.core.geometry.mesh import TetMesh
+from meshfg_ros.core.geometry.mesh import InvalidMeshError, TetMesh
 from meshfg_ros.core.physics.simulator import ElasticSimulator
+from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError
 from meshfg_ros.io.messages import MessageValidationError, header_msg, pose_from_msg
 from meshfg_ros.nodes.ros_conversions import RCLPY_FACTORY, REQUEST_QOS, STREAM_QOS, InitialMeshSource
 from meshfg_ros.nodes.ros_parameters import declare_parameters
 from meshfg_ros.nodes.runtime import run_nodes
 from meshfg_ros.parameters import simulator_config
 
-__all__ = ["FIXED_DOF_STIFFNESS", "SERVICE", "SimBridgeServer", "SimBridgeService", "factor_graph_state_response"]
+__all__ = ["SERVICE", "SimBridgeServer", "SimBridgeService", "factor_graph_state_response"]
 
 SERVICE = "/sim/factor_graph_state"
-FIXED_DOF_STIFFNESS = 1e9  # N/m on the diagonal of a held dof, as the authors' bridge writes it
 _MAX_STEP_S = 0.1  # a pause in the tool poses is not simulated as one long step
 
 
@@ -51,7 +52,7 @@ def factor_graph_state_response(positions: np.ndarray, mesh: TetMesh, frame_id: 
     """The service's answer: `positions` (N, 3) of `mesh`'s vertices, its surface triangles, its
     element slots (`all_tetrahedra`, those a cut removed and the vertices left without an
     element listed as invalid) and `stiffness` (3N, 3N) as float32 COO with the fixed vertices'
-    rows and columns cleared and FIXED_DOF_STIFFNESS on their diagonal."""
+    rows and columns cleared and HELD_DOF_STIFFNESS on their diagonal (external_prior.held_dof_stiffness)."""
     header = header_msg(stamp_ns, frame_id, RCLPY_FACTORY)
     response = FactorGraphState.Response()
     state = response.fg_state.sim_mesh
@@ -66,18 +67,10 @@ def factor_graph_state_response(positions: np.ndarray, mesh: TetMesh, frame_id: 
     state.elements.data = RCLPY_FACTORY.sequence(mesh.all_tetrahedra, np.int32)
     state.elements.invalid_indices = RCLPY_FACTORY.sequence(mesh.removed_elements, np.int32)
     if stiffness is not None:
-        matrix = scipy.sparse.coo_matrix(stiffness)
-        held = np.zeros(matrix.shape[0], dtype=bool)
-        fixed = np.setdiff1d(mesh.fixed_vertices, mesh.invalid_vertices)  # a removed vertex is no boundary
-        held[(3 * fixed[:, None] + np.arange(3)).reshape(-1)] = True
-        keep = ~(held[matrix.row] | held[matrix.col])
-        dofs = np.flatnonzero(held)
-        rows = np.concatenate([matrix.row[keep], dofs])
-        cols = np.concatenate([matrix.col[keep], dofs])
-        values = np.concatenate([matrix.data[keep], np.full(dofs.size, FIXED_DOF_STIFFNESS)])
+        rows, cols, values, shape = held_dof_stiffness(stiffness, mesh.boundary_vertices)  # a removed vertex is no boundary
         out = response.fg_state.sim_stiffness_mat
         out.header = header
-        out.rows, out.cols = matrix.shape
+        out.rows, out.cols = shape
         out.row_indices = RCLPY_FACTORY.sequence(rows, np.int32)
         out.col_indices = RCLPY_FACTORY.sequence(cols, np.int32)
         out.values = RCLPY_FACTORY.sequence(values, np.float32)
@@ -132,7 +125,7 @@ class SimBridgeServer(Node):
             return self.get_logger().warning("remove_elements before the mesh: ignored")
         try:
             changed = self._simulator.remove_elements(np.asarray(msg.data, dtype=np.int64))
-        except Exception as error:  # noqa: BLE001 - a cut the simulator cannot make leaves it as it was
+        except (InvalidMeshError, NotPositiveDefiniteError) as error:  # a cut it cannot make leaves it as it was
             return self.get_logger().warning(f"cut refused: {error}")
         if changed:
             self._mesh = self._simulator.rest_mesh

@@ -45,15 +45,16 @@ import numpy as np
 import scipy.sparse
 
 from meshfg_ros.core.geometry.mesh import TetMesh
-from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError
-from meshfg_ros.core.solvers.sparse_cholesky import SparseCholesky
+from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError, SparseCholesky
 
-__all__ = ["FIXED_DIAGONAL", "REPAIR_SHIFTS", "BridgeAnswer", "ExternalPriorError", "ExternalStiffness",
-           "StiffnessInformation", "StiffnessProjection", "bridge_state"]
+__all__ = ["FIXED_DIAGONAL", "HELD_DOF_STIFFNESS", "REPAIR_SHIFTS", "BridgeAnswer", "ExternalPriorError",
+           "ExternalStiffness", "StiffnessInformation", "StiffnessProjection", "bridge_state", "held_dof_stiffness"]
 
 # A dof whose diagonal stiffness reaches this is held by the simulator (it writes 1e9 [N/m]; a
 # tissue's own diagonal stays below ~1e4 N/m at millimetre elements and 1e5 Pa).
 FIXED_DIAGONAL = 1e8
+# What the authors' bridge writes on the diagonal of a held dof [N/m].
+HELD_DOF_STIFFNESS = 1e9
 # Shifts tried, relative to the mean free diagonal: none first, then the size of the estimator's
 # ridge (PRIOR_RIDGE, which makes a free body's rigid modes definite); beyond the last the matrix
 # is refused.
@@ -112,9 +113,8 @@ class StiffnessProjection:
     """`ExternalStiffness.information` for one template (the estimator's K pattern, csr with
     sorted indices) and set of free dofs, with what does not change between answers made once:
     the pattern's keys and diagonal, the free block's positions and its Cholesky analysis (METIS
-    ordering, symbolic factorisation), and the slots of the last answer's (row, col) pattern.
-    Measured on a 3,375-vertex cube: 0.26 s for a fresh one, of which the numeric factorisation
-    is 0.08 s."""
+    ordering, symbolic factorisation), and the slots of the last answer's (row, col) pattern:
+    most of a fresh one's cost is that analysis, not the numeric factorisation an answer needs."""
 
     def __init__(self, template: scipy.sparse.csr_matrix, free_dofs: np.ndarray) -> None:
         template = scipy.sparse.csr_matrix(template)
@@ -208,6 +208,20 @@ class StiffnessProjection:
                 continue
             return relative * mean_diagonal
         return None
+
+
+def held_dof_stiffness(stiffness, held_vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple]:
+    """A stiffness matrix as the authors' bridge sends it: (rows, columns, float32 values, shape)
+    of its entries, the held vertices' rows and columns cleared and HELD_DOF_STIFFNESS on their
+    diagonal (what bridge_state reads back as held dofs)."""
+    matrix = scipy.sparse.coo_matrix(stiffness)
+    held = np.zeros(matrix.shape[0], dtype=bool)
+    held[(3 * np.asarray(held_vertices, dtype=np.int64)[:, None] + np.arange(3)).reshape(-1)] = True
+    keep = ~(held[matrix.row] | held[matrix.col])
+    dofs = np.flatnonzero(held)
+    return (np.concatenate([matrix.row[keep], dofs]), np.concatenate([matrix.col[keep], dofs]),
+            np.concatenate([matrix.data[keep], np.full(dofs.size, HELD_DOF_STIFFNESS)]).astype(np.float32),
+            matrix.shape)
 
 
 def bridge_state(answer: BridgeAnswer, mesh: TetMesh, to_world: np.ndarray
