@@ -300,8 +300,7 @@ def _write_results(args: argparse.Namespace, section: str, report: str, markdown
         return
     from meshfg_ros import results_file
 
-    command_line = getattr(args, "command_line", None) or f"meshfg {args.command}"
-    results_file.write_section(args.results, section, command_line, report, markdown=markdown)
+    results_file.write_section(args.results, section, args.command_line, report, markdown=markdown)
     print(f"wrote section '{section}' of {args.results}")
 
 

@@ -80,18 +80,16 @@ class SimulationOutputs:
         if predicted:
             self.counters.last_prediction_ms = 1e3 * elapsed_s / predicted
         for answer in answers:
-            if answer.superseded:
-                self.counters.predictions_superseded += 1
-                self._failures.publish(PredictionFailure(header=header_msg(answer.stamp_ns, self._frame, RCLPY_FACTORY),
-                                                         reason=answer.failure, superseded=True))
-                continue
             if answer.positions is None:
-                self.counters.predictions_failed += 1
-                self.health.record(answer.failure)
-                self._node.get_logger().warning(f"no prediction for {answer.stamp_ns} ns: {answer.failure}",
-                                                throttle_duration_sec=1.0)
+                if answer.superseded:
+                    self.counters.predictions_superseded += 1
+                else:
+                    self.counters.predictions_failed += 1
+                    self.health.record(answer.failure)
+                    self._node.get_logger().warning(f"no prediction for {answer.stamp_ns} ns: {answer.failure}",
+                                                    throttle_duration_sec=1.0)
                 self._failures.publish(PredictionFailure(header=header_msg(answer.stamp_ns, self._frame, RCLPY_FACTORY),
-                                                         reason=answer.failure))
+                                                         reason=answer.failure, superseded=answer.superseded))
                 continue
             self.counters.predictions += 1
             self.health.record(None)

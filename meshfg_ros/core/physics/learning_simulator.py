@@ -17,7 +17,7 @@ import numpy as np
 
 from meshfg_ros.core.geometry.mesh import TetMesh
 from meshfg_ros.core.physics.body_load import BodyLoadEstimate
-from meshfg_ros.core.physics.model_fit import learn
+from meshfg_ros.core.physics import model_fit
 from meshfg_ros.core.physics.poisson_ratio import PoissonRatioEstimate
 from meshfg_ros.core.physics.simulator import ElasticSimulator, SimulatorConfig
 
@@ -72,7 +72,7 @@ class LearningSimulator:
         apply them (core/physics/model_fit.py). Without a std of one entry per vertex nothing is
         learnt: the fit has no weights."""
         if position_std is not None and np.shape(position_std) == (len(estimate),):
-            learn(self.rest_mesh, self.body_load, self.poisson_ratio_estimate, predicted, estimate, position_std)
+            model_fit.learn(self.rest_mesh, self.body_load, self.poisson_ratio_estimate, predicted, estimate, position_std)
 
     def remove_elements(self, removed_elements) -> bool:
         """Cut: predict on the mesh without the element slots `removed_elements` from now on
