@@ -5,6 +5,7 @@ innovation test, and a measurement factor that takes the selection as it is."""
 import numpy as np
 import pytest
 
+from meshfg_ros.core.estimation import factors, measurement_selection
 from meshfg_ros.core.estimation.factors import PointToSurfaceFactor
 from meshfg_ros.core.estimation.measurement_selection import (
     GATE_SIGMAS,
@@ -52,7 +53,14 @@ def test_the_data_driven_gate_follows_the_clouds_spread_within_its_bounds(cube):
     assert select_points(exact, cube.surface_triangles, cube.vertices, SIGMA, 0.0).num_gated == 0
 
 
-def test_selected_points_are_ordered_by_triangle_with_their_association(cube):
+class _NoQueries:
+    """Stands in for ClosestPointIndex where a test asserts that no closest-point query is made."""
+
+    def __init__(self, *args, **kwargs):
+        raise AssertionError("a closest-point query was made")
+
+
+def test_selected_points_are_ordered_by_triangle_with_their_association(cube, monkeypatch):
     """The selection lists its points in the order of their closest triangles (faster queries in
     the factor's later associations), and hands the factor their association in that order."""
     rng = np.random.default_rng(3)
@@ -66,8 +74,9 @@ def test_selected_points_are_ordered_by_triangle_with_their_association(cube):
     np.testing.assert_array_equal(selected.association.triangle, fresh.triangle)
     np.testing.assert_array_equal(selected.association.closest, fresh.closest)
     # Given the innovation test's association, the selection makes no query of its own and selects alike.
-    reused = select_points(points, cube.surface_triangles, cube.vertices, SIGMA, 0.01,
-                           association=ClosestPointIndex(cube.vertices, cube.surface_triangles).associate(points))
+    given = ClosestPointIndex(cube.vertices, cube.surface_triangles).associate(points)
+    monkeypatch.setattr(measurement_selection, "ClosestPointIndex", _NoQueries)
+    reused = select_points(points, cube.surface_triangles, cube.vertices, SIGMA, 0.01, association=given)
     np.testing.assert_array_equal(reused.points, selected.points)
 
 
@@ -91,10 +100,11 @@ def test_points_against_back_faces_are_dropped_as_leaks(cube):
 
 
 def test_each_points_noise_follows_its_rays_incidence_on_its_face(cube):
-    """Seen from a camera off to the side and above, the cube's top face is met at one angle
-    and its +x face at another: each point's sigma scales with |cos| of its ray against its
-    face's normal (floored), normalised so that the median point keeps the cloud's sigma."""
-    camera = np.array([0.3, 0.05, 0.2])
+    """Seen from a camera above the cube and a little to its +x side, the top face is met nearly
+    head-on (above the floor) and the +x face grazing (below it): each point's sigma scales with
+    |cos| of its ray against its face's normal, floored, normalised so that the median point
+    keeps the cloud's sigma."""
+    camera = np.array([0.15, 0.05, 0.4])
     top = np.array([[0.02, 0.03, 0.1003], [0.05, 0.05, 0.0998], [0.08, 0.06, 0.1001]])
     side = np.array([[0.1002, 0.05, 0.05], [0.0999, 0.03, 0.08]])
     points = np.concatenate([top, side])
@@ -104,10 +114,13 @@ def test_each_points_noise_follows_its_rays_incidence_on_its_face(cube):
     rays /= np.linalg.norm(rays, axis=1)[:, None]
     on_top = np.isclose(selected.points[:, 2], 0.1, atol=1e-3)
     incidence = np.where(on_top, np.abs(rays[:, 2]), np.abs(rays[:, 0]))  # normals +z and +x
-    assert incidence[~on_top].min() > incidence[on_top].max()  # the top face is the grazing one
-    floored = np.maximum(incidence, RayNoise(SIGMA).floor)
+    floor = RayNoise(SIGMA).floor
+    assert incidence[on_top].min() > floor > incidence[~on_top].max()  # the side face is the grazing one
+    floored = np.maximum(incidence, floor)
     expected = SIGMA * floored / np.median(floored)
-    np.testing.assert_allclose(selected.noise.point_weights(5), 1.0 / expected**2, rtol=1e-9)
+    weights = selected.noise.point_weights(5)
+    np.testing.assert_allclose(weights, 1.0 / expected**2, rtol=1e-9)
+    assert np.ptp(weights[on_top]) > 1e-3 * weights[on_top].max()  # unfloored: each at its own incidence
     # A viewpoint most points face away from is not the sensor's (the back-face test is skipped):
     # its rays do not weight the points either.
     wrong = select_points(points, cube.surface_triangles, cube.vertices, SIGMA, 0.01,
@@ -138,16 +151,15 @@ def test_ray_noise_floors_grazing_rays_and_degenerate_faces():
         RayNoise(SIGMA, floor=0.0)
 
 
-def test_the_factor_takes_the_selection_as_it_is(cube):
-    """The measurement factor keeps the selected points, their order and their weights, and
-    answers its first query at the selection's vertices from the selection's association."""
+def test_the_factor_takes_the_selection_as_it_is(cube, monkeypatch):
+    """The measurement factor answers its first query at the selection's vertices from the
+    selection's association, without a query of its own."""
     camera = np.array([0.3, 0.05, 0.2])
     points = sample_surface(cube.vertices, cube.surface_triangles, 80, np.random.default_rng(8))
     selected = select_points(points, cube.surface_triangles, cube.vertices, SIGMA, 0.01, viewpoint=camera)
     factor = PointToSurfaceFactor(0, selected.points, cube.surface_triangles, cube.vertex_count, selected.noise,
                                   association_at=(selected.vertices, selected.association))
-    np.testing.assert_array_equal(factor.points, selected.points)
-    np.testing.assert_array_equal(factor.weights, selected.noise.point_weights(len(selected.points)))
+    monkeypatch.setattr(factors, "ClosestPointIndex", _NoQueries)
     assert factor.associate({0: cube.vertices.copy()}) is selected.association
 
 

@@ -41,13 +41,13 @@ Design decisions (see also factors.py, factor_graph.py, levenberg_marquardt.py, 
   When the cloud's viewpoint is known, each point's sigma follows its ray's incidence on the
   predicted surface (noise.RayNoise: a depth sensor's noise lies along its rays), scaled so that
   the median point keeps the estimated sigma.
-  Leaks: points inside the tool sphere (plus three sigmas) are dropped before anything else
-  (the tool pose and radius are inputs), points farther from the predicted surface than five
-  robust spreads (the spread clipped to [1, 10] sigmas) are gated, and the rest go through a
-  Cauchy kernel of scale 2.4 sigma. Which points reach the measurement factor, and their
-  noise, is decided once per update before the factors are made, by the measurement front end
-  (core/estimation/measurement_selection.py: far input, the tool gate, the innovation test,
-  the gate, the back-face test, the rays' noise); the factors only evaluate.
+  Leaks: points on the tool sphere are dropped (the tool pose and radius are inputs), points
+  far from the predicted surface are gated (TOOL_MARGIN_SIGMAS, GATE_SIGMAS, GATE_SPREAD_CAP),
+  and the rest go through a Cauchy kernel of scale ROBUST_SCALE_SIGMAS sigmas. Which points
+  reach the measurement factor, and their noise, is decided once per update before the factors
+  are made, by the measurement front end (core/estimation/measurement_selection.py, in this
+  order: far input, the tool gate, the innovation test, the gate, the back-face test, the rays'
+  noise); the factors only evaluate.
 - Published: the prediction plus the share alpha of the correction (optimum - prediction) that
   persists from one update to the next (core/estimation/persistence.py, keep_persistent_correction): the
   lag-one correlation of the corrections over their mean energy, 0 at the first update. The

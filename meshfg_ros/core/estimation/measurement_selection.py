@@ -78,7 +78,6 @@ MAX_BACK_FACING_SHARE = 0.5
 INNOVATION_SIGMAS = 20.0
 INNOVATION_DIAGONALS = 0.05
 INNOVATION_RATIO = 4.0
-_MEDIAN_ABSOLUTE_TO_SIGMA = 1.4826
 
 
 def set_aside_far_input(scene: Scene, mesh: TetMesh, points, predicted, tool_pose, messages: list):
@@ -202,8 +201,7 @@ def select_points(points: np.ndarray, surface_triangles: np.ndarray, vertices: n
     if association is None:
         association = ClosestPointIndex(vertices, surface_triangles).associate(points)
     distance = association.distance
-    gate = gating_distance or GATE_SIGMAS * float(np.clip(
-        _MEDIAN_ABSOLUTE_TO_SIGMA * np.median(distance), sigma, GATE_SPREAD_CAP * sigma))
+    gate = gating_distance or GATE_SIGMAS * float(np.clip(innovation_spread(distance), sigma, GATE_SPREAD_CAP * sigma))
     accepted = distance <= gate
     normals, num_back_facing, skipped = None, 0, False
     if viewpoint is not None:

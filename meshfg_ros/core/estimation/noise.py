@@ -47,8 +47,6 @@ __all__ = [
 # RayNoise: a point's distance noise is at least this share of that of a point seen head-on
 # (see the class).
 RAY_NOISE_FLOOR = 0.5
-# The robust kernels by name (the robust_kernel parameter's choices); "none": plain least squares.
-ROBUST_KERNELS = ("none", "huber", "cauchy")
 
 
 class NoiseModelError(ValueError):
@@ -60,10 +58,6 @@ class PointNoise:
 
     def point_weights(self, count: int) -> np.ndarray:
         raise NotImplementedError
-
-    def subset(self, mask: np.ndarray) -> PointNoise:
-        """The model of the points selected by `mask`: a boolean mask or indices (in their order)."""
-        return self
 
     def on_surface(self, points: np.ndarray, normals: np.ndarray, viewpoint: np.ndarray) -> PointNoise:
         """The model of `points` (K, 3), seen from `viewpoint` (3,), lying on surface patches of
@@ -114,9 +108,6 @@ class PerPointNoise(PointNoise):
         if count != self.sigmas.size:
             raise NoiseModelError(f"per-point noise has {self.sigmas.size} sigmas, got {count} points")
         return 1.0 / self.sigmas**2
-
-    def subset(self, mask: np.ndarray) -> PerPointNoise:
-        return PerPointNoise(self.sigmas[np.asarray(mask)])
 
     def __repr__(self) -> str:
         return f"PerPointNoise({self.sigmas.size} sigmas)"
@@ -255,11 +246,15 @@ class CauchyKernel(RobustKernel):
         return (1.0 - ratio) / (1.0 + ratio) ** 2
 
 
+# The robust kernels by name (the robust_kernel parameter's choices); "none": plain least squares.
+_KERNELS = {kernel.name: kernel for kernel in (HuberKernel, CauchyKernel)}
+ROBUST_KERNELS = ("none", *_KERNELS)
+
+
 def make_robust_kernel(name, scale: float) -> RobustKernel | None:
     """Kernel by name: None or "none" (plain least squares), "huber", "cauchy"."""
     if name is None or name == "none":
         return None
-    kernels = {"huber": HuberKernel, "cauchy": CauchyKernel}
-    if name not in kernels:
+    if name not in _KERNELS:
         raise RobustKernelError(f"robust kernel must be one of {ROBUST_KERNELS}, got {name!r}")
-    return kernels[name](scale)
+    return _KERNELS[name](scale)

@@ -27,13 +27,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from meshfg_ros.core.inputs.input_checks import innovation_spread
+
 __all__ = ["NOISE_BOUNDS", "PRIOR_NOISE_RATIO", "MeasurementNoise", "WeightError"]
 
 PRIOR_NOISE_RATIO = 0.1
 # The noise estimate stays within this factor below and above the nominal sigma.
 NOISE_BOUNDS = 10.0
-# sigma of a zero-mean normal from the median of its absolute values.
-_MEDIAN_ABSOLUTE_TO_SIGMA = 1.4826
 
 
 class WeightError(ValueError):
@@ -70,7 +70,7 @@ class MeasurementNoise:
         distances = np.asarray(distances, dtype=np.float64)
         if distances.size < MIN_POINTS:
             return 0.0
-        target = _MEDIAN_ABSOLUTE_TO_SIGMA * float(np.median(distances))
+        target = innovation_spread(distances)
         self.spread = target
         log_step = np.clip(np.log(max(target, 1e-300) / self.sigma), -np.log(self.max_step), np.log(self.max_step))
         sigma = float(np.clip(self.sigma * np.exp(log_step), self.nominal_sigma / self.bounds,

@@ -317,7 +317,7 @@ def _sweep_colour(state, vertices, segment_bounds, corners, rest_inverse, shape_
 
     Compiled (numba): as numpy passes over the colour's incidences (einsum contractions, the
     cofactors, reduceat sums) the sweeps take half of a prediction's time at organ scale. Not
-    bounds-checked, unlike the package's other kernels (checks made it 2x slower): its indices
+    bounds-checked, unlike the package's other kernels (checks double its time): its indices
     are the rest mesh's elements, which TetMesh keeps within its vertices, and `state` and
     `held` have a row per vertex (ElasticSimulator.predict checks the state's shape)."""
     slopes = np.empty((corners.shape[0], 3))  # dJ/dx = cof(F) g of each incidence
@@ -396,7 +396,7 @@ def _elastic_energy(state, tetrahedra, rest_inverse, corner_volume_gradient, vol
 
     Compiled (numba): as numpy passes (F, cof F, their contractions, a bincount per axis) the
     energies and forces of the global steps take a sixth of a prediction at organ scale. Not
-    bounds-checked, as `_sweep_colour` (checks made it nearly 4x slower)."""
+    bounds-checked, as `_sweep_colour` (the checks would cost several times its time)."""
     energy = 0.0
     with_forces = forces.shape[0] > 0
     for e in range(tetrahedra.shape[0]):
