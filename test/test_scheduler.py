@@ -173,14 +173,84 @@ def test_after_a_request_without_a_tool_pose_the_tool_moves_from_where_the_simul
     assert simulation.add_estimate(FIRST_STAMP_NS + S, degraded, degraded=True) is None
     simulation.add_tool_pose(FIRST_STAMP_NS + 3 * S, scenario.steps[0].tool_pose)
     simulation.request(FIRST_STAMP_NS + 2 * S, now_s=1.0)
-    [answer] = simulation.poll(now_s=1.0)  # the degraded estimate settled the skipped request
+    # the degraded estimate settled the skipped request; the stamp passed is answered too, first
+    [caught_up, answer] = simulation.poll(now_s=1.0)
     assert answer.positions is not None and [dt for dt, _, _ in steps] == [1.0, 1.0]
+    assert (caught_up.stamp_ns, caught_up.catch_up, answer.catch_up) == (FIRST_STAMP_NS + S, True, False)
     (_, passed_pose, start), (_, last_pose, _) = steps
     np.testing.assert_array_equal(start, scenario.initial_mesh.vertices)  # not the degraded estimate
     halfway = scenario.initial_tool_pose[:3] + (scenario.steps[0].tool_pose[:3] - scenario.initial_tool_pose[:3]) / 3
     np.testing.assert_allclose(passed_pose[:3], halfway, rtol=0.0, atol=1e-15)  # a third of the way at 1 of 3 s
     np.testing.assert_allclose(last_pose[:3], halfway + (halfway - scenario.initial_tool_pose[:3]), rtol=0.0,
                                atol=1e-15)
+    np.testing.assert_array_equal(caught_up.tool_pose, passed_pose)
+    np.testing.assert_array_equal(steps[1][2], caught_up.positions)  # the stamp's own prediction starts there
+
+
+def test_clouds_of_a_stalled_tool_stream_run_again_with_the_catch_up_predictions(scenario):
+    """Clouds that ran degraded for want of a tool pose are held with the estimator as it was
+    before them; the simulator's catch-up predictions for them, which come after they ran, are
+    taken (not rejected as late), and the next step first runs them again from that estimator:
+    the window it then holds is the one a run without the stall would have."""
+    stalled = estimation(scenario)
+    steps = scenario.steps
+    for step in steps[:2]:
+        stalled.add_cloud(step.stamp_ns, step.points)
+        stalled.add_prediction(Prediction(step.stamp_ns, None, "no tool pose within the horizon"))
+        ready = stalled.next_step()
+        assert ready.stalled and ready.predicted is None
+        outcome = stalled.run(ready)
+        assert outcome.result.degraded and outcome.catch_up == ()
+    for step in steps[:2]:
+        assert stalled.add_prediction(Prediction(step.stamp_ns, step.truth, tool_pose=step.tool_pose,
+                                                 catch_up=True)) is None
+    stalled.add_cloud(steps[2].stamp_ns, steps[2].points)
+    stalled.add_prediction(Prediction(steps[2].stamp_ns, steps[2].truth, tool_pose=steps[2].tool_pose))
+    ready = stalled.next_step()
+    assert not ready.stalled
+    outcome = stalled.run(ready)
+    again = [(run.step.stamp_ns, run.result.degraded) for run in outcome.catch_up]
+    assert again == [(steps[0].stamp_ns, False), (steps[1].stamp_ns, False)] and not outcome.result.degraded
+    clean = estimation(scenario)
+    for step in steps:
+        clean.add_cloud(step.stamp_ns, step.points)
+        clean.add_prediction(Prediction(step.stamp_ns, step.truth, tool_pose=step.tool_pose))
+        expected = clean.run(clean.next_step()).result
+    assert outcome.result.step == expected.step
+    # The same window and inputs; PCG's preconditioner factors may differ (the solver is the
+    # stalled run's), within LM's stopping tolerance.
+    np.testing.assert_allclose(outcome.result.positions, expected.positions, rtol=0.0, atol=1e-6)
+    assert np.abs(outcome.result.positions - expected.positions).max() < 0.1 * np.abs(
+        expected.positions - scenario.initial_mesh.vertices).max()
+    # With a tool pose at its stamp a failure is no stall: nothing is held, nothing runs again.
+    posed = estimation(scenario)
+    posed.add_tool_pose(steps[0].stamp_ns, steps[0].tool_pose)
+    posed.add_cloud(steps[0].stamp_ns, steps[0].points)
+    posed.add_prediction(Prediction(steps[0].stamp_ns, None, "inverted elements"))
+    assert not posed.next_step().stalled
+
+
+def test_the_simulator_learns_from_a_stalled_cloud_run_again_once(scenario):
+    simulation = prediction(scenario)
+    simulation.add_tool_pose(FIRST_STAMP_NS, scenario.initial_tool_pose)
+    simulation.request(FIRST_STAMP_NS + S, now_s=0.0)
+    simulation.poll(now_s=1.0)  # no tool pose within the horizon: a stall
+    simulation.add_estimate(FIRST_STAMP_NS + S, scenario.initial_mesh.vertices, degraded=True)
+    simulation.add_tool_pose(FIRST_STAMP_NS + 2 * S, scenario.steps[0].tool_pose)
+    simulation.request(FIRST_STAMP_NS + 2 * S, now_s=1.0)
+    [caught_up, _] = simulation.poll(now_s=1.0)
+    load = simulation.simulator.body_acceleration.copy()
+    std = np.full(scenario.initial_mesh.vertex_count, 1e-4)
+    pushed = caught_up.positions - [0.0, 0.0, 2e-4]  # the tissue sank further than predicted
+    assert simulation.learn_from_catch_up(FIRST_STAMP_NS + 2 * S, pushed, std) is None  # not caught up
+    far = simulation.learn_from_catch_up(FIRST_STAMP_NS + S, caught_up.positions + 10.0, std)
+    assert far.counter == "estimates_ignored"
+    np.testing.assert_array_equal(simulation.simulator.body_acceleration, load)
+    assert simulation.learn_from_catch_up(FIRST_STAMP_NS + S, pushed, std) is None
+    learnt = simulation.simulator.body_acceleration.copy()
+    assert learnt[2] < load[2] - 1e-3  # a load along -z
+    simulation.learn_from_catch_up(FIRST_STAMP_NS + S, pushed, std)  # learnt once only
+    np.testing.assert_array_equal(simulation.simulator.body_acceleration, learnt)
 
 
 def test_a_tool_pose_with_a_zero_quaternion_is_set_aside_with_the_reason(scenario):

@@ -6,7 +6,9 @@ parameters), once clean and once with the pose stream stalled for 5 s.
 While it stalls, the clouds run degraded and the estimate drifts from the truth (the hidden
 tissue does not follow the tool). Once poses come again, the simulator restarts from its state
 before the stall and moves the tool through the stamps it missed (PredictionScheduler._catch_up),
-instead of jumping from the last degraded estimate.
+instead of jumping from the last degraded estimate; the estimator runs the stalled clouds again
+with those predictions (EstimationScheduler.run), and the simulator learns from those estimates
+what the stall kept from it (PredictionScheduler.learn_from_catch_up).
 """
 import numpy as np
 import pytest
@@ -25,8 +27,9 @@ POSE_PERIOD_NS = 50_000_000  # 20 Hz
 POSE_LATENCY_S, CLOUD_LATENCY_S, POLL_S = 0.003, 0.05, 0.02
 
 
-def live_errors(inputs, params, truth, stall_ns=None) -> list[tuple[float, bool]]:
-    """(vertex RMSE to the truth in mm, degraded) of each estimate, the poses in [stall_ns) dropped."""
+def live_errors(inputs, params, truth, stall_ns=None) -> tuple[list[tuple[float, bool]], list[tuple[int, bool]]]:
+    """(vertex RMSE to the truth in mm, degraded) of each estimate, the poses in [stall_ns) dropped,
+    and (stamp, degraded) of each cloud run again after the stall."""
     timeouts = SchedulingTimeouts(prediction_timeout=params["prediction_timeout"],
                                   estimate_timeout=params["estimate_timeout"],
                                   tool_pose_timeout=params["tool_pose_timeout"])
@@ -41,7 +44,7 @@ def live_errors(inputs, params, truth, stall_ns=None) -> list[tuple[float, bool]
               for stamp, pose in zip(stamps, tool_poses_at(stamps, known_ns, known))
               if stall_ns is None or not stall_ns[0] <= stamp < stall_ns[1]]
     events += [(cloud.stamp_ns / 1e9 + CLOUD_LATENCY_S, 1, cloud.stamp_ns, cloud.points) for cloud in inputs.clouds]
-    results = {}
+    results, again_run = {}, []
 
     def pump(now_s):
         while True:
@@ -52,7 +55,12 @@ def live_errors(inputs, params, truth, stall_ns=None) -> list[tuple[float, bool]
             if step is None and not answers:
                 return
             if step is not None:
-                result = estimation.run(step).result
+                outcome = estimation.run(step)
+                for again in outcome.catch_up:
+                    again_run.append((again.step.stamp_ns, again.result.degraded))
+                    simulation.learn_from_catch_up(again.step.stamp_ns, again.result.positions,
+                                                   again.result.position_std.astype(np.float32).astype(np.float64))
+                result = outcome.result
                 simulation.add_estimate(step.stamp_ns, result.positions, degraded=result.degraded,
                                         position_std=result.position_std.astype(np.float32).astype(np.float64))
                 results[step.stamp_ns] = result
@@ -72,7 +80,8 @@ def live_errors(inputs, params, truth, stall_ns=None) -> list[tuple[float, bool]
         pump(now_s)
         now_s += POLL_S
     free = inputs.initial_mesh.free_vertices
-    return [(1e3 * vertex_rmse(results[s].positions, truth[s], free), results[s].degraded) for s in sorted(results)]
+    errors = [(1e3 * vertex_rmse(results[s].positions, truth[s], free), results[s].degraded) for s in sorted(results)]
+    return errors, again_run
 
 
 @pytest.fixture(scope="module")
@@ -82,18 +91,21 @@ def runs():
     with RecordingReader(BAGS / "cao-push") as reader:
         truth = {state.stamp_ns: state.positions for state in reader.records(GROUND_TRUTH_TOPIC, MeshState)}
     stall_start = inputs.clouds[2].stamp_ns - 500_000_000
-    return (live_errors(inputs, params, truth),
+    return (inputs, live_errors(inputs, params, truth),
             live_errors(inputs, params, truth, (stall_start, stall_start + 5_000_000_000)))
 
 
-def test_a_stalled_tool_stream_runs_degraded_then_recovers_near_the_clean_run(runs):
-    clean, stalled = runs
+def test_a_stalled_tool_stream_runs_degraded_then_recovers_to_the_clean_run(runs):
+    inputs, (clean, clean_again), (stalled, stalled_again) = runs
     assert len(clean) == len(stalled) == 10 and not any(degraded for _, degraded in clean)
     assert [degraded for _, degraded in stalled] == [False] * 2 + [True] * 5 + [False] * 3
+    # the five stalled clouds ran again, with predictions, once poses came; the clean run had none
+    assert stalled_again == [(cloud.stamp_ns, False) for cloud in inputs.clouds[2:7]] and clean_again == []
     # the stall costs accuracy while it lasts
     assert stalled[6][0] > 2.0 * clean[6][0]
-    # Resumed: the bounds hold the recovery the catch-up gives (the prediction from the state
-    # before the stall, the tool interpolated over it); the error left is the Poisson ratio the
-    # stall's clouds did not teach (docs/design-notes.md, "A stalled tool stream").
-    for after, bound in ((7, 1.15), (8, 1.25), (9, 1.25)):
-        assert stalled[after][0] < bound * clean[after][0], (after, stalled[after][0], clean[after][0])
+    # Resumed: the first cloud's prediction was made before the simulator learnt from the
+    # stalled clouds run again; from the second on the error is the clean run's (issue 44:
+    # within two clouds; docs/design-notes.md, "A stalled tool stream").
+    assert stalled[7][0] < 1.2 * clean[7][0], (stalled[7][0], clean[7][0])
+    for after in (8, 9):
+        assert stalled[after][0] < 1.05 * clean[after][0], (after, stalled[after][0], clean[after][0])

@@ -16,6 +16,10 @@ Two schedulers share the work, as the two nodes do:
   large mesh's slow predictions still arrive in time); without a prediction the step runs
   degraded.
 
+After a stalled tool stream the simulator also answers the stamps it could not predict
+(`Prediction.catch_up`), and the estimator runs those clouds again with them before the next
+step, for the simulator to learn from (`EstimationScheduler.run`).
+
 Newest first: when the pipeline is slower than the clouds, a request still waiting for the
 previous estimate is superseded by the next cloud's (`PredictionScheduler.request`): the
 simulator predicts the newest cloud from the newest estimate, and the estimator drops the
@@ -40,7 +44,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -116,6 +120,10 @@ class Prediction:
     # slots of the uncut mesh's elements the simulator has removed (TetMesh.without_elements);
     # None: the simulator says nothing of its topology (the uncut mesh)
     removed_elements: np.ndarray | None = None
+    # A stamp the simulator answered with a failure for want of a tool pose (a stalled stream),
+    # predicted once poses came again (PredictionScheduler._catch_up): its cloud ran degraded,
+    # and the estimator runs it again with this prediction (EstimationScheduler.run).
+    catch_up: bool = False
 
 
 @dataclass(frozen=True)
@@ -187,6 +195,8 @@ class PredictionScheduler:
         # The newest stamps answered without a tool pose (a stalled stream), which the tool passes
         # on its way to the next pose (_catch_up).
         self._unposed: deque[int] = deque(maxlen=CATCH_UP_STEPS)
+        self._caught_up: dict[int, np.ndarray] = {}  # catch-up predictions not learnt from yet, by stamp
+        self._catch_up_answers: list[Prediction] = []  # and those not yet answered (poll)
         self._previous_done_s = 0.0
         self._state = self.mesh.vertices.copy()
         self._state_ns: int | None = None       # stamp of the estimate self._state is
@@ -288,6 +298,8 @@ class PredictionScheduler:
             if answer is None:
                 break
             self._requests.popleft()
+            answers.extend(self._catch_up_answers)
+            self._catch_up_answers = []
             answers.append(answer)
         return answers
 
@@ -344,8 +356,11 @@ class PredictionScheduler:
         where it left it and `pose` at `stamp` (the path in between is unknown), from the state it
         had before the stall. In one jump the tool's contact would drag the tissue over the whole
         gap at once, and from a degraded estimate the hidden tissue would start where the stall
-        left it (docs/design-notes.md, "A stalled tool stream"). ValueError / RuntimeError: a step
-        the simulator cannot take, as a prediction's."""
+        left it (docs/design-notes.md, "A stalled tool stream"). Each of these predictions is also
+        answered (`catch_up`, before the stamp's own answer), so that the estimator runs the
+        stalled clouds again with them and the simulator learns from those estimates
+        (learn_from_catch_up). ValueError / RuntimeError: a step the simulator cannot take, as a
+        prediction's."""
         gap = [skipped for skipped in self._unposed if self._tool_ns < skipped < stamp]
         self._unposed.clear()
         if not gap:
@@ -353,14 +368,36 @@ class PredictionScheduler:
         path = PoseHistory(duration_ns=stamp - self._tool_ns + 1, max_samples=2)
         path.insert(self._tool_ns, self._tool_pose)
         path.insert(stamp, pose)
+        self._caught_up = {}
         for skipped, skipped_pose in zip(gap, path.interpolate(gap)):
             self._state = self.simulator.predict(self._state, skipped_pose, (skipped - self._tool_ns) / NS_PER_S)
             self._tool_ns, self._tool_pose = skipped, skipped_pose
+            self._caught_up[skipped] = self._state
+            self._catch_up_answers.append(Prediction(skipped, self._state, "", skipped_pose, catch_up=True,
+                                                     removed_elements=self.simulator.rest_mesh.removed_elements))
+
+    def learn_from_catch_up(self, stamp_ns: int, positions: np.ndarray,
+                            position_std: np.ndarray | None) -> Rejection | None:
+        """The estimate of a stalled stream's cloud run again with its catch-up prediction
+        (EstimationScheduler.run): the simulator learns from its correction of that prediction,
+        as from any estimate's (add_estimate), what the stall's degraded estimates could not
+        teach. Its state stays the newest estimate's. Nothing for a stamp it did not catch up."""
+        predicted = self._caught_up.get(stamp_ns)
+        if predicted is None:
+            return None
+        positions = np.asarray(positions, dtype=np.float64)
+        if positions.shape != predicted.shape or not np.isfinite(positions).all() or self.scene.far(positions).any():
+            return Rejection("estimates_ignored", f"catch-up estimate at {stamp_ns} ns has a wrong vertex count, "
+                             "non-finite positions or positions far outside the scene: ignored")
+        del self._caught_up[stamp_ns]
+        self.simulator.learn(predicted, positions, position_std)
+        return None
 
     def _restart_simulator(self, pose: np.ndarray) -> None:
         """After a failed prediction: the tool restarts at `pose` and the simulator forgets what it
-        learnt, which may be what failed (LearningSimulator.reset)."""
+        learnt, which may be what failed (LearningSimulator.reset), and its catch-up."""
         self._tool_pose = pose
+        self._caught_up, self._catch_up_answers = {}, []
         self.simulator.reset(pose)
 
     def _previous_settled(self) -> bool:
@@ -390,6 +427,9 @@ class CloudStep:
     viewpoint: np.ndarray | None = None  # the sensor's centre (world frame), when known
     stiffness: ExternalStiffness | None = None  # the prediction's stiffness (Prediction.stiffness)
     removed_elements: np.ndarray | None = None  # the answer's (Prediction.removed_elements)
+    # The simulator answered this stamp with a failure and no tool pose covers it: a stalled
+    # tool stream (EstimationScheduler.run holds such a step to run it again).
+    stalled: bool = False
 
 
 @dataclass(frozen=True)
@@ -402,6 +442,19 @@ class StepOutcome:
     counter: str = ""  # "failed_steps" or "nonfinite_estimates" when result is None
     # What was set aside or changed on the way: an external stiffness refused or repaired.
     notes: tuple[Rejection, ...] = ()
+    # The stalled stream's clouds run again before this step with their catch-up predictions
+    # (EstimationScheduler.run), oldest first: for the simulator to learn from, not to publish.
+    catch_up: tuple[StepOutcome, ...] = ()
+
+
+@dataclass
+class _HeldSteps:
+    """Clouds that ran degraded while the tool stream stalled, kept with the estimator as it was
+    before the first of them until the simulator's catch-up predictions for them come."""
+
+    snapshot: SlidingWindowEstimator
+    steps: deque[CloudStep] = field(default_factory=lambda: deque(maxlen=CATCH_UP_STEPS))
+    predictions: dict[int, Prediction] = field(default_factory=dict)
 
 
 class EstimationScheduler:
@@ -440,6 +493,7 @@ class EstimationScheduler:
         self._registered = False  # whether a cloud has confirmed the mesh's size and place
         # (the estimator's model, the projection of external stiffness onto its K's pattern)
         self._stiffness_projection: tuple | None = None
+        self._held: _HeldSteps | None = None  # a stalled stream's clouds, to run again (run)
 
     def reconfigure(self, changes: dict) -> None:
         """Apply changed dynamic settings (field name -> value) from the next update on, also after
@@ -538,6 +592,8 @@ class EstimationScheduler:
             return Rejection("clouds_skipped_behind", f"cloud at {stamp} ns skipped: the pipeline is behind the "
                              f"clouds and the simulator predicts the newest one ({self._cost_per_cloud()}). Send "
                              "smaller clouds (a voxel filter), use a coarser mesh or a lower max_iterations")
+        if self._take_catch_up(answer):
+            return None
         if answer.positions is not None and now_s is not None:
             queued = next((cloud for cloud in self._clouds if cloud.stamp_ns == stamp), None)
             if queued is not None:
@@ -559,6 +615,16 @@ class EstimationScheduler:
         while len(self._answers) > MAX_STORED_ANSWERS:
             del self._answers[min(self._answers)]
         return None
+
+    def _take_catch_up(self, answer: Prediction) -> bool:
+        """Whether `answer` is a prediction for a held cloud (one that ran degraded while the tool
+        stream stalled): the simulator's catch-up, kept for `run`."""
+        held = self._held
+        if (held is None or answer.positions is None or answer.positions.shape != self.mesh.vertices.shape
+                or not any(step.stamp_ns == answer.stamp_ns for step in held.steps)):
+            return False
+        held.predictions[answer.stamp_ns] = answer
+        return True
 
     def next_step(self, now_s: float = 0.0, flush: bool = False) -> CloudStep | None:
         """The oldest cloud if it is ready to run (module docstring), else None."""
@@ -584,7 +650,8 @@ class EstimationScheduler:
         predicted = answer.positions if answer is not None else None
         removed = answer.removed_elements if answer is not None else None
         stiffness = answer.stiffness if answer is not None else None
-        return replace(queued, predicted=predicted, tool_pose=tool_pose, removed_elements=removed, stiffness=stiffness)
+        return replace(queued, predicted=predicted, tool_pose=tool_pose, removed_elements=removed, stiffness=stiffness,
+                       stalled=answer is not None and predicted is None and tool_pose is None)
 
     def _tool_pose(self, stamp_ns: int) -> np.ndarray | None:
         try:
@@ -594,10 +661,48 @@ class EstimationScheduler:
 
     def run(self, step: CloudStep, now: Callable[[], float] | None = None) -> StepOutcome:
         """Run one step on the estimator. A failed update leaves the window as it was; a
-        non-finite result (never returned) restarts the estimator from the initial mesh."""
+        non-finite result (never returned) restarts the estimator from the initial mesh.
+
+        A stalled tool stream: the clouds that run degraded for want of a tool pose are held (the
+        newest CATCH_UP_STEPS) with a snapshot of the estimator from before the first of them.
+        When the simulator's catch-up predictions for them have come (PredictionScheduler._catch_up),
+        the next step first runs them again from that snapshot with those predictions, in order
+        (`StepOutcome.catch_up`): the window then holds estimates made with the tool's physics
+        instead of the degraded ones, and the simulator learns the load and the Poisson ratio
+        from them (PredictionScheduler.learn_from_catch_up) as if the stream had not stalled.
+        Those estimates are older than the ones already published, so they are not published."""
         start_s = now() if now is not None else 0.0
         if step.restart:
             self.estimator = self.estimator.restarted()
+            self._held = None
+        catch_up = self._run_held(step)
+        outcome = replace(self._update(step), catch_up=catch_up)
+        self._solver_free_s = now() if now is not None else 0.0
+        self._update_s = self._solver_free_s - start_s
+        return outcome
+
+    def _run_held(self, step: CloudStep) -> tuple[StepOutcome, ...]:
+        """Hold a stalled `step` (snapshot first); after the stall, run the held clouds that have
+        their catch-up predictions again from the snapshot and let go of the rest."""
+        if step.stalled:
+            if self._held is None:
+                self._held = _HeldSteps(self.estimator.snapshot())
+            self._held.steps.append(step)
+            return ()
+        held, self._held = self._held, None
+        if held is None or not held.predictions:
+            return ()
+        self.estimator = held.snapshot
+        outcomes = []
+        for cloud in held.steps:
+            answer = held.predictions.get(cloud.stamp_ns)
+            if answer is not None:
+                outcomes.append(self._update(replace(cloud, predicted=answer.positions, tool_pose=answer.tool_pose,
+                                                     removed_elements=answer.removed_elements,
+                                                     stiffness=answer.stiffness, stalled=False)))
+        return tuple(outcomes)
+
+    def _update(self, step: CloudStep) -> StepOutcome:
         notes: tuple[Rejection, ...] = ()
         try:
             if step.removed_elements is not None:
@@ -614,8 +719,6 @@ class EstimationScheduler:
                 self.estimator = self.estimator.restarted()
                 outcome = StepOutcome(step, None, "the estimate is not finite: the estimator restarts from the "
                                       "initial mesh", "nonfinite_estimates", notes)
-        self._solver_free_s = now() if now is not None else 0.0
-        self._update_s = self._solver_free_s - start_s
         return outcome
 
     def _prior_stiffness(self, step: CloudStep) -> tuple:
@@ -710,6 +813,8 @@ class OfflinePipeline:
         steps = []
         while True:
             for answer in self.open_loop.poll(flush=flush):
+                if answer.catch_up:  # the open loop passes a stall's stamps for its next answer only
+                    continue
                 if answer.positions is not None:  # a failed open-loop step leaves the baseline where it was
                     self._simulation_only = answer.positions
                 self.open_loop.add_estimate(answer.stamp_ns, answer.positions)
@@ -724,6 +829,10 @@ class OfflinePipeline:
                 return steps
             while step is not None:
                 outcome = self.estimation.run(step)
+                for again in outcome.catch_up:
+                    if again.result is not None:
+                        self.simulation.learn_from_catch_up(again.step.stamp_ns, again.result.positions,
+                                                            _as_sent(again.result.position_std))
                 result = outcome.result
                 self.simulation.add_estimate(step.stamp_ns, None if result is None else result.positions,
                                              degraded=result is not None and result.degraded,

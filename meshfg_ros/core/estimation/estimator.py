@@ -83,6 +83,7 @@ Design decisions (see also factors.py, factor_graph.py, levenberg_marquardt.py, 
 
 from __future__ import annotations
 
+import copy
 import threading
 import time
 from dataclasses import dataclass, field, fields, replace
@@ -448,6 +449,17 @@ class SlidingWindowEstimator:
         fresh = SlidingWindowEstimator(self.initial_mesh, self.config)
         fresh._pending_changes = self._pending_changes
         return fresh
+
+    def snapshot(self) -> SlidingWindowEstimator:
+        """A copy of this estimator as it is now (its window and what it learnt), to run later
+        updates again from (the scheduler's re-run of a stalled tool stream's clouds). It shares
+        with this one what the updates do not change in place: the initial mesh, the queue of
+        changes not yet applied and the linear solver, whose cached factors only precondition
+        PCG and are checked against each block they serve (linear_solvers.PCGSolver), so that the
+        copy's updates need no factorisation of their own. Only one of the two may run updates
+        after the copy is taken."""
+        shared = (self.initial_mesh, self._pending_changes, self.solver)
+        return copy.deepcopy(self, memo={id(item): item for item in shared})
 
     def remove_elements(self, removed_elements) -> bool:
         """Follow a cut: from the next update on, the window's states, the physics prior (the
