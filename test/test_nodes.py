@@ -373,6 +373,42 @@ def test_simulation_node_predicts_from_the_latest_estimate(probe, processes, tmp
     assert_clean_exit(node, node.interrupt())
 
 
+def test_simulation_node_predicts_a_stalled_streams_stamps_then_learns_from_their_estimates(probe, processes, tmp_path):
+    """A request no tool pose covers fails (a stall); once poses come, the node publishes the
+    stalled stamp's catch-up prediction before the new one, and learns the load from that
+    stamp's estimate when it comes on catch_up_estimate (the estimator's cloud run again)."""
+    mesh = pushed_cube()
+    node = Process(tmp_path, "simulation_node", *ros_args("/catch", "tool_radius:=0.01"))
+    processes.append(node)
+    io = SimulationProbe(probe, "/catch")
+    again = probe.create_publisher(TetraMesh, "/catch/catch_up_estimate", PREDICTION_QOS)
+    reports = simulation_reports(probe, "/catch")
+    io.wait_connected()
+    assert spin_until(probe, lambda: again.get_subscription_count() == 1)
+    io.mesh.publish(mesh_msg(mesh))
+    centre = np.array([SIDE / 2, SIDE / 2, SIDE + 0.011])
+    io.pose.publish(tool_pose_msg(centre, 1 * S))
+    io.request.publish(header_msg(2 * S, "world", FACTORY))  # no pose within the horizon
+    assert spin_until(probe, lambda: len(io.failures) == 1)
+    degraded, std = estimate_msg(mesh, 2 * S, mesh.vertices)
+    degraded.degraded = True
+    io.estimate.publish(degraded)
+    io.pose.publish(tool_pose_msg(centre - [0.0, 0.0, 2e-3], 3 * S))
+    io.request.publish(header_msg(3 * S, "world", FACTORY))
+    assert spin_until(probe, lambda: len(io.predictions) == 2)
+    assert [stamp_ns_from_msg(m.header.stamp) for m in io.predictions] == [2 * S, 3 * S]
+    caught_up = np.asarray(io.predictions[0].positions).reshape(-1, 3)
+    sank = caught_up.copy()
+    sank[std > 0, 2] -= 2e-4  # the tissue sank further than the catch-up predicted
+    estimate, _ = estimate_msg(mesh, 2 * S, sank)
+    again.publish(estimate)
+    assert spin_until(probe, lambda: reports and reports[-1][1].get("catch_up_estimates_learnt") == "1")
+    counters = reports[-1][1]
+    assert counters["catch_up_predictions"] == "1" and float(counters["body_acceleration_z"]) < -1e-3
+    assert node.alive()
+    assert_clean_exit(node, node.interrupt())
+
+
 @pytest.mark.slow
 def test_simulation_node_answers_the_requests_and_poses_that_came_before_its_mesh(probe, processes, tmp_path):
     """Tool poses, two requests and the estimate answering the first, all before the mesh: once
@@ -587,6 +623,39 @@ def test_estimator_node_runs_a_step_at_once_when_the_simulator_reports_a_failure
     io.wait_for(predictions_failed=3, steps=2)
     io.prediction.publish(mesh_msg(mesh, 3 * S))  # the simulator is back: the next step pairs
     io.send(cloud_msg(points, 3 * S), steps=3, degraded_steps=2)
+    assert [status.degraded for status in io.statuses] == [True, True, False]
+    assert node.alive()
+    assert_clean_exit(node, node.interrupt())
+
+
+def test_estimator_node_runs_a_stalled_streams_clouds_again_with_the_catch_up_predictions(probe, processes, tmp_path):
+    """Clouds the simulator could not predict and no tool pose covers (a stalled tool stream) run
+    degraded at once and are held; the simulator's catch-up predictions for them, which come
+    after they ran, are taken, and the next cloud's step first runs them again: their estimates
+    go to the simulation node on catch_up_estimate, not to estimated_mesh."""
+    mesh = pushed_cube()
+    node = Process(tmp_path, "estimator_node", *ros_args("/again", "prediction_timeout:=60.0", "window_size:=3"))
+    processes.append(node)
+    io = EstimatorProbe(probe, "/again")
+    failure = probe.create_publisher(PredictionFailure, "/again/prediction_failed", PREDICTION_QOS)
+    again = []
+    probe.create_subscription(TetraMesh, "/again/catch_up_estimate", again.append, PREDICTION_QOS)
+    assert spin_until(probe, lambda: io.cloud.get_subscription_count() == 1
+                      and io.prediction.get_subscription_count() == 1 and failure.get_subscription_count() == 1)
+    io.wait_for(clouds_received=0)
+    io.mesh.publish(mesh_msg(mesh))
+    points = top_points()
+    for k in (1, 2):
+        io.cloud.publish(cloud_msg(points, k * S))
+        failure.publish(PredictionFailure(header=header_msg(k * S, "world", FACTORY), reason="test: no tool pose"))
+        io.wait_for(steps=k, degraded_steps=k)
+    for k in (1, 2):
+        io.prediction.publish(mesh_msg(mesh, k * S))  # the catch-up, after their clouds ran
+    io.prediction.publish(mesh_msg(mesh, 3 * S))
+    io.send(cloud_msg(points, 3 * S), steps=3, degraded_steps=2, clouds_run_again=2, predictions_rejected=0)
+    assert spin_until(probe, lambda: len(again) == 2)
+    assert [stamp_ns_from_msg(m.header.stamp) for m in again] == [1 * S, 2 * S]
+    assert not any(m.degraded for m in again) and all(len(m.position_std) == len(mesh.vertices) for m in again)
     assert [status.degraded for status in io.statuses] == [True, True, False]
     assert node.alive()
     assert_clean_exit(node, node.interrupt())

@@ -78,6 +78,9 @@ class EstimatorCounters(Counters):
     sim_bridge_stiffness_rejected: int = 0
     steps: int = 0
     degraded_steps: int = 0
+    # a stalled tool stream's clouds run again with the simulator's catch-up predictions, their
+    # estimates sent on catch_up_estimate for it to learn from (core/scheduler.py)
+    clouds_run_again: int = 0
     failed_steps: int = 0
     nonfinite_estimates: int = 0
     unconverged_steps: int = 0
@@ -134,6 +137,8 @@ class SimulatorCounters(Counters):
     clock_jumps_back: int = 0
     requests: int = 0                   # prediction requests (one per accepted cloud)
     predictions: int = 0
+    catch_up_predictions: int = 0       # of them, for a stalled tool stream's stamps once poses came (core/scheduler.py)
+    catch_up_estimates_learnt: int = 0  # the estimates of those clouds run again, learnt from
     predictions_failed: int = 0
     predictions_superseded: int = 0     # requests skipped for a newer cloud's while behind (core/scheduler.py)
     estimates_ignored: int = 0          # wrong vertex count, not finite, or far outside the scene

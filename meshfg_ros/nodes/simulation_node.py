@@ -9,7 +9,10 @@ blade_half_extents is set, cuts too, at each tool pose). For each request it pub
 `predicted_mesh` (TetraMesh at the cloud's stamp: the simulator moved from the estimate of the
 previous request to the tool pose interpolated at the cloud's stamp), or `prediction_failed`
 (meshfg_msgs/PredictionFailure, same stamp, with the reason) so that the estimator runs that step
-at once without one. A predicted_mesh is on the simulator's topology: after a cut its tetrahedra
+at once without one. After a stalled tool stream it also publishes, before the next prediction,
+the catch-up predictions of the stamps it answered without a tool pose; the estimator runs those
+clouds again with them and sends the estimates on `catch_up_estimate` (TetraMesh), which this
+node learns from (core/scheduler.py). A predicted_mesh is on the simulator's topology: after a cut its tetrahedra
 and surface are the remaining ones and it lists removed_elements and invalid_vertices, which the
 estimator follows. After each estimate it takes it publishes `body_acceleration`
 (geometry_msgs/Vector3Stamped at the estimate's stamp, m/s^2): the unmodelled body load learnt so
@@ -46,6 +49,7 @@ from meshfg_ros.nodes.frame_inputs import TF_QOS, TF_STATIC_QOS, FrameInputs
 from meshfg_ros.nodes.held_inputs import HeldUntilMesh
 from meshfg_ros.nodes.ros_conversions import (
     LATCHED_QOS,
+    PREDICTION_QOS,
     REQUEST_QOS,
     TOOL_POSE_QOS_FIX,
     InitialMeshSource,
@@ -76,13 +80,15 @@ class SimulationNode(Node):
         self._mesh = InitialMeshSource(self, self._frame, self._set_mesh, self._held.release)
         self._inputs = FrameInputs(self, world_frame_inputs(self.params), self._on_placed, self._on_unplaceable)
         self.create_subscription(TetraMesh, "estimated_mesh", self._on_estimate, LATCHED_QOS)
+        self.create_subscription(TetraMesh, "catch_up_estimate", self._on_catch_up_estimate, PREDICTION_QOS)
         self.create_subscription(PoseStamped, "tool_pose", self._on_tool_pose, tool_pose_qos(self.params))
         self.create_subscription(Header, "prediction_request", self._on_request, REQUEST_QOS)
         self.create_subscription(UInt32MultiArray, "remove_elements", self._on_remove_elements, REQUEST_QOS)
         self.setup_warnings = self.outputs.setup_warnings  # what run_nodes found wrong in the set-up
         self._input_qos = IncompatiblePublishers(self)
         self._input_qos.watch("tool_pose", tool_pose_qos(self.params), TOOL_POSE_QOS_FIX)
-        for topic, qos in (("estimated_mesh", LATCHED_QOS), ("prediction_request", REQUEST_QOS),
+        for topic, qos in (("estimated_mesh", LATCHED_QOS), ("catch_up_estimate", PREDICTION_QOS),
+                           ("prediction_request", REQUEST_QOS),
                            ("initial_mesh", LATCHED_QOS), ("/tf", TF_QOS), ("/tf_static", TF_STATIC_QOS)):
             self._input_qos.watch(topic, qos, TOPIC_TABLE_FIX)
         self.outputs.unmatched_publishers = self._input_qos.find
@@ -128,6 +134,22 @@ class SimulationNode(Node):
         else:
             self.outputs.estimate_taken(stamp_ns)
         self._answer()
+
+    def _on_catch_up_estimate(self, msg: TetraMesh) -> None:
+        """The estimate of a stalled stream's cloud run again with this node's catch-up prediction
+        (core/scheduler.py): learnt from, the state left at the newest estimate."""
+        if self._scheduler is None:
+            return
+        stamp_ns = stamp_ns_from_msg(msg.header.stamp)
+        positions = positions_from_msg(msg, self._scheduler.mesh.vertex_count)
+        position_std = position_std_from_msg(msg, self._scheduler.mesh.vertex_count)
+        if positions is None:
+            return self.outputs.count("estimates_ignored", f"catch_up_estimate at {stamp_ns} ns ignored: wrong vertex "
+                                      "count or non-finite positions")
+        rejection = self._scheduler.learn_from_catch_up(stamp_ns, positions, position_std)
+        if rejection is not None:
+            return self.outputs.note(rejection)
+        self.outputs.counters.catch_up_estimates_learnt += 1
 
     def _on_tool_pose(self, msg: PoseStamped) -> None:
         self.outputs.counters.tool_poses_received += 1

@@ -92,6 +92,7 @@ class SimulationOutputs:
                                                          reason=answer.failure, superseded=answer.superseded))
                 continue
             self.counters.predictions += 1
+            self.counters.catch_up_predictions += int(answer.catch_up)
             self.health.record(None)
             self._predictions.publish(self._messages.message(answer.stamp_ns, self._frame, self.counters.predictions,
                                                              answer.positions))
