@@ -333,3 +333,25 @@ def test_the_covariance_draws_go_through_the_factor_the_linear_solver_holds_for_
     # 16 draws: about 20 % spread per vertex; the median ratio within a few per cent.
     assert abs(np.median(np.einsum("vii->v", posterior) / exact_traces) - 1.0) < 0.1
     assert np.all(result.position_std[free] > 0.0) and np.all(np.isfinite(result.position_covariance))
+
+
+@pytest.mark.parametrize("linear_solver", ["pcg", "cholesky", "superlu"])
+def test_a_snapshot_continues_as_the_estimator_would(linear_solver):
+    """A snapshot (what the scheduler runs a stalled stream's clouds again from) shares the
+    factors CHOLMOD cannot copy and gives the estimate the estimator gives from the same point,
+    whichever solver holds them (the marginals factor their own block above DENSE_MAX_DOFS)."""
+    from meshfg_ros.benchmarks.baselines import mismatch_sequence
+
+    mesh, sequence = mismatch_sequence(target_vertices=400, points_per_step=1200, steps=4)
+    assert 3 * mesh.vertex_count > DENSE_MAX_DOFS
+    estimator = SlidingWindowEstimator(mesh, EstimatorConfig(window_size=3, linear_solver=linear_solver))
+    for step in sequence[:2]:
+        estimator.update(step.stamp_ns, step.points, step.predicted)
+    snapshot = estimator.snapshot()
+    third = sequence[2]
+    continued = estimator.update(third.stamp_ns, third.points, third.predicted)
+    assert snapshot.step == 2 and snapshot.last_stamp_ns == sequence[1].stamp_ns  # untouched by the update
+    again = snapshot.update(third.stamp_ns, third.points, third.predicted)
+    np.testing.assert_allclose(again.positions, continued.positions, rtol=0.0, atol=1e-12)
+    np.testing.assert_allclose(again.position_std, continued.position_std, rtol=0.0, atol=1e-12)
+    assert np.abs(continued.positions - third.predicted).max() > 1e-6  # the update did move the state

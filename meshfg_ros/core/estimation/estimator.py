@@ -453,12 +453,12 @@ class SlidingWindowEstimator:
     def snapshot(self) -> SlidingWindowEstimator:
         """A copy of this estimator as it is now (its window and what it learnt), to run later
         updates again from (the scheduler's re-run of a stalled tool stream's clouds). It shares
-        with this one what the updates do not change in place: the initial mesh, the queue of
-        changes not yet applied and the linear solver, whose cached factors only precondition
-        PCG and are checked against each block they serve (linear_solvers.PCGSolver), so that the
-        copy's updates need no factorisation of their own. Only one of the two may run updates
-        after the copy is taken."""
-        shared = (self.initial_mesh, self._pending_changes, self.solver)
+        with this one the initial mesh, the queue of changes not yet applied and the factors the
+        updates only refactor (CHOLMOD's, which cannot be copied): the linear solver's, which
+        precondition PCG and are checked against each block they serve or refactored for it
+        (linear_solvers.py), and the marginals', refactored for each covariance. Only one of the
+        two may run updates after the copy is taken."""
+        shared = (self.initial_mesh, self._pending_changes, self.solver, self.marginals)
         return copy.deepcopy(self, memo={id(item): item for item in shared})
 
     def remove_elements(self, removed_elements) -> bool:
