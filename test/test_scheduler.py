@@ -187,28 +187,34 @@ def test_after_a_request_without_a_tool_pose_the_tool_moves_from_where_the_simul
     np.testing.assert_array_equal(steps[1][2], caught_up.positions)  # the stamp's own prediction starts there
 
 
+def stall_then_resume(scheduler: EstimationScheduler, steps, clock=None):
+    """The first two steps' clouds run without a tool pose, their predictions failed (a stall);
+    their catch-up predictions come after they ran, then the third step's cloud and prediction:
+    the third step's outcome."""
+    for step in steps[:2]:
+        scheduler.add_cloud(step.stamp_ns, step.points)
+        scheduler.add_prediction(Prediction(step.stamp_ns, None, "no tool pose within the horizon"))
+        ready = scheduler.next_step()
+        assert ready.stalled and ready.predicted is None
+        outcome = scheduler.run(ready, clock)
+        assert outcome.result.degraded and outcome.catch_up == ()
+    for step in steps[:2]:
+        assert scheduler.add_prediction(Prediction(step.stamp_ns, step.truth, tool_pose=step.tool_pose,
+                                                   catch_up=True)) is None
+    scheduler.add_cloud(steps[2].stamp_ns, steps[2].points)
+    scheduler.add_prediction(Prediction(steps[2].stamp_ns, steps[2].truth, tool_pose=steps[2].tool_pose))
+    ready = scheduler.next_step()
+    assert not ready.stalled
+    return scheduler.run(ready, clock)
+
+
 def test_clouds_of_a_stalled_tool_stream_run_again_with_the_catch_up_predictions(scenario):
     """Clouds that ran degraded for want of a tool pose are held with the estimator as it was
     before them; the simulator's catch-up predictions for them, which come after they ran, are
     taken (not rejected as late), and the next step first runs them again from that estimator:
     the window it then holds is the one a run without the stall would have."""
-    stalled = estimation(scenario)
     steps = scenario.steps
-    for step in steps[:2]:
-        stalled.add_cloud(step.stamp_ns, step.points)
-        stalled.add_prediction(Prediction(step.stamp_ns, None, "no tool pose within the horizon"))
-        ready = stalled.next_step()
-        assert ready.stalled and ready.predicted is None
-        outcome = stalled.run(ready)
-        assert outcome.result.degraded and outcome.catch_up == ()
-    for step in steps[:2]:
-        assert stalled.add_prediction(Prediction(step.stamp_ns, step.truth, tool_pose=step.tool_pose,
-                                                 catch_up=True)) is None
-    stalled.add_cloud(steps[2].stamp_ns, steps[2].points)
-    stalled.add_prediction(Prediction(steps[2].stamp_ns, steps[2].truth, tool_pose=steps[2].tool_pose))
-    ready = stalled.next_step()
-    assert not ready.stalled
-    outcome = stalled.run(ready)
+    outcome = stall_then_resume(estimation(scenario), steps)
     again = [(run.step.stamp_ns, run.result.degraded) for run in outcome.catch_up]
     assert again == [(steps[0].stamp_ns, False), (steps[1].stamp_ns, False)] and not outcome.result.degraded
     clean = estimation(scenario)
@@ -228,6 +234,17 @@ def test_clouds_of_a_stalled_tool_stream_run_again_with_the_catch_up_predictions
     posed.add_cloud(steps[0].stamp_ns, steps[0].points)
     posed.add_prediction(Prediction(steps[0].stamp_ns, None, "inverted elements"))
     assert not posed.next_step().stalled
+
+
+def test_only_the_stalled_clouds_whose_updates_fit_in_a_cloud_period_run_again(scenario):
+    """Where an update takes most of the clouds' period (organ scale), only the newest held cloud
+    runs again: the step after a stall stays within about two updates."""
+    steps = scenario.steps
+    period_s = (steps[1].stamp_ns - steps[0].stamp_ns) / S
+    ticks = iter(np.arange(0.0, 100.0, 0.6 * period_s))  # each update takes 0.6 periods
+    outcome = stall_then_resume(estimation(scenario), steps, lambda: float(next(ticks)))
+    assert [run.step.stamp_ns for run in outcome.catch_up] == [steps[1].stamp_ns]
+    assert not outcome.catch_up[0].result.degraded
 
 
 def test_the_simulator_learns_from_a_stalled_cloud_run_again_once(scenario):

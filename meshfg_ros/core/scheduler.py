@@ -666,8 +666,9 @@ class EstimationScheduler:
         A stalled tool stream: the clouds that run degraded for want of a tool pose are held (the
         newest CATCH_UP_STEPS) with a snapshot of the estimator from before the first of them.
         When the simulator's catch-up predictions for them have come (PredictionScheduler._catch_up),
-        the next step first runs them again from that snapshot with those predictions, in order
-        (`StepOutcome.catch_up`): the window then holds estimates made with the tool's physics
+        the next step first runs them again from that snapshot with those predictions, in order,
+        the newest that fit in a cloud period (`StepOutcome.catch_up`; at organ scale, where an
+        update takes most of the period, only the newest): the window then holds estimates made with the tool's physics
         instead of the degraded ones, and the simulator learns the load and the Poisson ratio
         from them (PredictionScheduler.learn_from_catch_up) as if the stream had not stalled.
         Those estimates are older than the ones already published, so they are not published."""
@@ -693,14 +694,18 @@ class EstimationScheduler:
         if held is None or not held.predictions:
             return ()
         self.estimator = held.snapshot
-        outcomes = []
-        for cloud in held.steps:
-            answer = held.predictions.get(cloud.stamp_ns)
-            if answer is not None:
-                outcomes.append(self._update(replace(cloud, predicted=answer.positions, tool_pose=answer.tool_pose,
-                                                     removed_elements=answer.removed_elements,
-                                                     stiffness=answer.stiffness, stalled=False)))
-        return tuple(outcomes)
+        again = [(cloud, held.predictions[cloud.stamp_ns]) for cloud in held.steps if cloud.stamp_ns in held.predictions]
+        return tuple(self._update(replace(cloud, predicted=answer.positions, tool_pose=answer.tool_pose,
+                                          removed_elements=answer.removed_elements, stiffness=answer.stiffness,
+                                          stalled=False))
+                     for cloud, answer in again[-self._affordable_reruns():])
+
+    def _affordable_reruns(self) -> int:
+        """How many held clouds run again before a step: as many updates as fit in one cloud
+        period at the last update's time, at least one (all where nothing is timed: offline)."""
+        if not self._update_s or self._cloud_period_s is None:
+            return CATCH_UP_STEPS
+        return max(1, int(self._cloud_period_s / self._update_s))
 
     def _update(self, step: CloudStep) -> StepOutcome:
         notes: tuple[Rejection, ...] = ()
