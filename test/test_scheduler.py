@@ -188,35 +188,46 @@ def test_after_a_request_without_a_tool_pose_the_tool_moves_from_where_the_simul
 
 
 def stall_then_resume(scheduler: EstimationScheduler, steps, clock=None):
-    """The first two steps' clouds run without a tool pose, their predictions failed (a stall);
-    their catch-up predictions come after they ran, then the third step's cloud and prediction:
-    the third step's outcome."""
-    for step in steps[:2]:
+    """The first step runs with its prediction, the next two without a tool pose, their
+    predictions failed (a stall); their catch-up predictions come after they ran, then the
+    fourth step's cloud and prediction: (the fourth step's outcome, what add_prediction said of
+    the catch-up predictions)."""
+    first, *stalled, resumed = steps[:4]
+    scheduler.add_cloud(first.stamp_ns, first.points)
+    scheduler.add_prediction(Prediction(first.stamp_ns, first.truth, tool_pose=first.tool_pose))
+    scheduler.run(scheduler.next_step(), clock)
+    for step in stalled:
         scheduler.add_cloud(step.stamp_ns, step.points)
         scheduler.add_prediction(Prediction(step.stamp_ns, None, "no tool pose within the horizon"))
         ready = scheduler.next_step()
         assert ready.stalled and ready.predicted is None
         outcome = scheduler.run(ready, clock)
         assert outcome.result.degraded and outcome.catch_up == ()
-    for step in steps[:2]:
-        assert scheduler.add_prediction(Prediction(step.stamp_ns, step.truth, tool_pose=step.tool_pose,
-                                                   catch_up=True)) is None
-    scheduler.add_cloud(steps[2].stamp_ns, steps[2].points)
-    scheduler.add_prediction(Prediction(steps[2].stamp_ns, steps[2].truth, tool_pose=steps[2].tool_pose))
+    said = [scheduler.add_prediction(Prediction(step.stamp_ns, step.truth, tool_pose=step.tool_pose, catch_up=True))
+            for step in stalled]
+    scheduler.add_cloud(resumed.stamp_ns, resumed.points)
+    scheduler.add_prediction(Prediction(resumed.stamp_ns, resumed.truth, tool_pose=resumed.tool_pose))
     ready = scheduler.next_step()
     assert not ready.stalled
-    return scheduler.run(ready, clock)
+    return scheduler.run(ready, clock), said
 
 
-def test_clouds_of_a_stalled_tool_stream_run_again_with_the_catch_up_predictions(scenario):
+@pytest.fixture(scope="module")
+def longer_scenario():
+    return tiny_scenario(steps=4)
+
+
+def test_clouds_of_a_stalled_tool_stream_run_again_with_the_catch_up_predictions(longer_scenario):
     """Clouds that ran degraded for want of a tool pose are held with the estimator as it was
     before them; the simulator's catch-up predictions for them, which come after they ran, are
     taken (not rejected as late), and the next step first runs them again from that estimator:
     the window it then holds is the one a run without the stall would have."""
+    scenario = longer_scenario
     steps = scenario.steps
-    outcome = stall_then_resume(estimation(scenario), steps)
+    outcome, said = stall_then_resume(estimation(scenario), steps)
+    assert said == [None, None]  # taken, not rejected as late
     again = [(run.step.stamp_ns, run.result.degraded) for run in outcome.catch_up]
-    assert again == [(steps[0].stamp_ns, False), (steps[1].stamp_ns, False)] and not outcome.result.degraded
+    assert again == [(steps[1].stamp_ns, False), (steps[2].stamp_ns, False)] and not outcome.result.degraded
     clean = estimation(scenario)
     for step in steps:
         clean.add_cloud(step.stamp_ns, step.points)
@@ -236,15 +247,20 @@ def test_clouds_of_a_stalled_tool_stream_run_again_with_the_catch_up_predictions
     assert not posed.next_step().stalled
 
 
-def test_only_the_stalled_clouds_whose_updates_fit_in_a_cloud_period_run_again(scenario):
-    """Where an update takes most of the clouds' period (organ scale), only the newest held cloud
-    runs again: the step after a stall stays within about two updates."""
-    steps = scenario.steps
+@pytest.mark.parametrize("update_periods, again", [(0.3, 1), (0.6, 0)])
+def test_only_the_stalled_clouds_whose_updates_fit_in_half_a_cloud_period_run_again(longer_scenario, update_periods,
+                                                                                  again):
+    """The held clouds run again only as far as their updates (at the longest recent one with a
+    prediction) fit in half the clouds' period, the newest first: none where an update takes
+    half the period or more (organ scale); then nothing is held and the late answers are
+    rejected as any late answer is."""
+    steps = longer_scenario.steps
     period_s = (steps[1].stamp_ns - steps[0].stamp_ns) / S
-    ticks = iter(np.arange(0.0, 100.0, 0.6 * period_s))  # each update takes 0.6 periods
-    outcome = stall_then_resume(estimation(scenario), steps, lambda: float(next(ticks)))
-    assert [run.step.stamp_ns for run in outcome.catch_up] == [steps[1].stamp_ns]
-    assert not outcome.catch_up[0].result.degraded
+    ticks = iter(np.arange(0.0, 100.0, update_periods * period_s))  # the time each update takes
+    outcome, said = stall_then_resume(estimation(longer_scenario), steps, lambda: float(next(ticks)))
+    assert [run.step.stamp_ns for run in outcome.catch_up] == [steps[2].stamp_ns][:again]
+    assert all(not run.result.degraded for run in outcome.catch_up) and not outcome.result.degraded
+    assert [rejection is None for rejection in said] == [bool(again)] * 2
 
 
 def test_the_simulator_learns_from_a_stalled_cloud_run_again_once(scenario):

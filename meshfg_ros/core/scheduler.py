@@ -83,6 +83,9 @@ MAX_STORED_ANSWERS = 100
 PREDICTION_TIMES_KEPT = 5
 PREDICTION_WAIT_MARGIN = 1.5
 MAX_PREDICTION_WAIT_S = 5.0
+# A stalled stream's clouds run again (EstimationScheduler.run) only as far as their updates fit
+# in this share of the clouds' period, so that the next clouds are not delayed into skips.
+RERUN_SHARE_OF_PERIOD = 0.5
 
 
 @dataclass(frozen=True)
@@ -489,6 +492,8 @@ class EstimationScheduler:
         # that a late prediction's time is measured too and the next clouds wait for theirs
         self._ran_without_answer: tuple[int, float] | None = None
         self._update_s = 0.0  # wall time of the last step
+        # and of the recent steps that had a prediction (what a stall's clouds cost to run again)
+        self._predicted_update_times_s: deque[float] = deque(maxlen=PREDICTION_TIMES_KEPT)
         self._cloud_period_s: float | None = None  # between the last two clouds' stamps
         self._registered = False  # whether a cloud has confirmed the mesh's size and place
         # (the estimator's model, the projection of external stiffness onto its K's pattern)
@@ -663,15 +668,17 @@ class EstimationScheduler:
         """Run one step on the estimator. A failed update leaves the window as it was; a
         non-finite result (never returned) restarts the estimator from the initial mesh.
 
-        A stalled tool stream: the clouds that run degraded for want of a tool pose are held (the
-        newest CATCH_UP_STEPS) with a snapshot of the estimator from before the first of them.
-        When the simulator's catch-up predictions for them have come (PredictionScheduler._catch_up),
-        the next step first runs them again from that snapshot with those predictions, in order,
-        the newest that fit in a cloud period (`StepOutcome.catch_up`; at organ scale, where an
-        update takes most of the period, only the newest): the window then holds estimates made with the tool's physics
-        instead of the degraded ones, and the simulator learns the load and the Poisson ratio
-        from them (PredictionScheduler.learn_from_catch_up) as if the stream had not stalled.
-        Those estimates are older than the ones already published, so they are not published."""
+        A stalled tool stream: the clouds that run degraded for want of a tool pose, and those
+        that run without a prediction after them, are held (the newest CATCH_UP_STEPS) with a
+        snapshot of the estimator from before the first of them. When the simulator's late
+        predictions for them have come (its catch-up, PredictionScheduler._catch_up), the next
+        step with a prediction first runs them again from that snapshot, in order: the window
+        then holds estimates made with the tool's physics instead of the degraded ones, and the
+        simulator learns the load and the Poisson ratio from them
+        (PredictionScheduler.learn_from_catch_up) as if the stream had not stalled
+        (`StepOutcome.catch_up`; older than the estimates already out, they are not published).
+        Only the newest that fit in half the clouds' period run again, none where an update
+        takes half the period or more (`_affordable_reruns`)."""
         start_s = now() if now is not None else 0.0
         if step.restart:
             self.estimator = self.estimator.restarted()
@@ -680,32 +687,41 @@ class EstimationScheduler:
         outcome = replace(self._update(step), catch_up=catch_up)
         self._solver_free_s = now() if now is not None else 0.0
         self._update_s = self._solver_free_s - start_s
+        if now is not None and step.predicted is not None:
+            self._predicted_update_times_s.append(self._update_s / (1 + len(catch_up)))
         return outcome
 
     def _run_held(self, step: CloudStep) -> tuple[StepOutcome, ...]:
         """Hold a stalled `step` (snapshot first); after the stall, run the held clouds that have
-        their catch-up predictions again from the snapshot and let go of the rest."""
-        if step.stalled:
+        their predictions again from the snapshot and let go of the rest."""
+        if (step.stalled or (self._held is not None and step.predicted is None)) and self._affordable_reruns():
             if self._held is None:
                 self._held = _HeldSteps(self.estimator.snapshot())
             self._held.steps.append(step)
             return ()
         held, self._held = self._held, None
-        if held is None or not held.predictions:
+        if held is None:
+            return ()
+        again = [(cloud, held.predictions[cloud.stamp_ns]) for cloud in held.steps if cloud.stamp_ns in held.predictions]
+        again = again[len(again) - self._affordable_reruns():]
+        if not again:
             return ()
         self.estimator = held.snapshot
-        again = [(cloud, held.predictions[cloud.stamp_ns]) for cloud in held.steps if cloud.stamp_ns in held.predictions]
         return tuple(self._update(replace(cloud, predicted=answer.positions, tool_pose=answer.tool_pose,
                                           removed_elements=answer.removed_elements, stiffness=answer.stiffness,
                                           stalled=False))
-                     for cloud, answer in again[-self._affordable_reruns():])
+                     for cloud, answer in again)
 
     def _affordable_reruns(self) -> int:
-        """How many held clouds run again before a step: as many updates as fit in one cloud
-        period at the last update's time, at least one (all where nothing is timed: offline)."""
-        if not self._update_s or self._cloud_period_s is None:
+        """How many held clouds run again before a step: as many updates as fit in
+        RERUN_SHARE_OF_PERIOD of the clouds' period, at the longest of the recent updates with a
+        prediction (all where nothing is timed: offline). None at organ scale, where one update
+        takes half the period or more: there a re-run delayed the next clouds until they were
+        skipped or ran degraded, which cost more accuracy than its learning gave
+        (docs/design-notes.md, "A stalled tool stream")."""
+        if not self._predicted_update_times_s or self._cloud_period_s is None:
             return CATCH_UP_STEPS
-        return max(1, int(self._cloud_period_s / self._update_s))
+        return int(RERUN_SHARE_OF_PERIOD * self._cloud_period_s / max(self._predicted_update_times_s))
 
     def _update(self, step: CloudStep) -> StepOutcome:
         notes: tuple[Rejection, ...] = ()
