@@ -630,14 +630,16 @@ def test_estimator_node_runs_a_step_at_once_when_the_simulator_reports_a_failure
 
 def test_estimator_node_runs_a_stalled_streams_clouds_again_with_the_catch_up_predictions(probe, processes, tmp_path):
     """Clouds the simulator could not predict and no tool pose covers (a stalled tool stream) run
-    degraded at once and are held; the simulator's catch-up predictions for them, which come
-    after they ran, are taken, and the next cloud's step first runs them again: their estimates
-    go to the simulation node on catch_up_estimate, not to estimated_mesh."""
+    degraded (after prediction_timeout, the wait for a tool pose) and are held; the simulator's
+    catch-up predictions for them, which come after they ran, are taken, and the next cloud's
+    step first runs them again: their estimates go to the simulation node on catch_up_estimate,
+    not to estimated_mesh."""
     mesh = pushed_cube()
-    node = Process(tmp_path, "estimator_node", *ros_args("/again", "prediction_timeout:=60.0", "window_size:=3"))
+    node = Process(tmp_path, "estimator_node", *ros_args("/again", "prediction_timeout:=0.5", "window_size:=3"))
     processes.append(node)
     io = EstimatorProbe(probe, "/again")
     failure = probe.create_publisher(PredictionFailure, "/again/prediction_failed", PREDICTION_QOS)
+    pose = probe.create_publisher(PoseStamped, "/again/tool_pose", KEEP)
     again = []
     probe.create_subscription(TetraMesh, "/again/catch_up_estimate", again.append, PREDICTION_QOS)
     assert spin_until(probe, lambda: io.cloud.get_subscription_count() == 1
@@ -645,6 +647,7 @@ def test_estimator_node_runs_a_stalled_streams_clouds_again_with_the_catch_up_pr
     io.wait_for(clouds_received=0)
     io.mesh.publish(mesh_msg(mesh))
     points = top_points()
+    pose.publish(tool_pose_msg([SIDE / 2, SIDE / 2, SIDE + 0.011], S // 2))  # then the tool stream stalls
     for k in (1, 2):
         io.cloud.publish(cloud_msg(points, k * S))
         failure.publish(PredictionFailure(header=header_msg(k * S, "world", FACTORY), reason="test: no tool pose"))
@@ -652,6 +655,7 @@ def test_estimator_node_runs_a_stalled_streams_clouds_again_with_the_catch_up_pr
     for k in (1, 2):
         io.prediction.publish(mesh_msg(mesh, k * S))  # the catch-up, after their clouds ran
     io.prediction.publish(mesh_msg(mesh, 3 * S))
+    pose.publish(tool_pose_msg([SIDE / 2, SIDE / 2, SIDE + 0.011], 3 * S))  # poses again
     io.send(cloud_msg(points, 3 * S), steps=3, degraded_steps=2, clouds_run_again=2, predictions_rejected=0)
     assert spin_until(probe, lambda: len(again) == 2)
     assert [stamp_ns_from_msg(m.header.stamp) for m in again] == [1 * S, 2 * S]

@@ -430,8 +430,9 @@ class CloudStep:
     viewpoint: np.ndarray | None = None  # the sensor's centre (world frame), when known
     stiffness: ExternalStiffness | None = None  # the prediction's stiffness (Prediction.stiffness)
     removed_elements: np.ndarray | None = None  # the answer's (Prediction.removed_elements)
-    # The simulator answered this stamp with a failure and no tool pose covers it: a stalled
-    # tool stream (EstimationScheduler.run holds such a step to run it again).
+    # The simulator answered this stamp with a failure and no tool pose covers it, where tool
+    # poses came before: a stalled tool stream (EstimationScheduler.run holds such a step to run
+    # it again).
     stalled: bool = False
 
 
@@ -656,7 +657,8 @@ class EstimationScheduler:
         removed = answer.removed_elements if answer is not None else None
         stiffness = answer.stiffness if answer is not None else None
         return replace(queued, predicted=predicted, tool_pose=tool_pose, removed_elements=removed, stiffness=stiffness,
-                       stalled=answer is not None and predicted is None and tool_pose is None)
+                       stalled=(answer is not None and predicted is None and tool_pose is None
+                                and self._poses.newest_ns is not None))
 
     def _tool_pose(self, stamp_ns: int) -> np.ndarray | None:
         try:
