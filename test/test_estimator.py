@@ -338,8 +338,9 @@ def test_the_covariance_draws_go_through_the_factor_the_linear_solver_holds_for_
 @pytest.mark.parametrize("linear_solver", ["pcg", "cholesky", "superlu"])
 def test_a_snapshot_continues_as_the_estimator_would(linear_solver):
     """A snapshot (what the scheduler runs a stalled stream's clouds again from) shares the
-    factors CHOLMOD cannot copy and gives the estimate the estimator gives from the same point,
-    whichever solver holds them (the marginals factor their own block above DENSE_MAX_DOFS)."""
+    factors CHOLMOD cannot copy and, resumed in the estimator's place, gives the estimate the
+    estimator gave from the same point, whichever solver holds them (the marginals factor their
+    own block above DENSE_MAX_DOFS)."""
     from meshfg_ros.benchmarks.baselines import mismatch_sequence
 
     mesh, sequence = mismatch_sequence(target_vertices=400, points_per_step=1200, steps=4)
@@ -351,6 +352,9 @@ def test_a_snapshot_continues_as_the_estimator_would(linear_solver):
     third = sequence[2]
     continued = estimator.update(third.stamp_ns, third.points, third.predicted)
     assert snapshot.step == 2 and snapshot.last_stamp_ns == sequence[1].stamp_ns  # untouched by the update
+    assert snapshot.graph.relinearizations < estimator.graph.relinearizations
+    snapshot.resume(estimator)  # revisions go on from the estimator's: none repeats in the shared solver
+    assert snapshot.graph.relinearizations == estimator.graph.relinearizations
     again = snapshot.update(third.stamp_ns, third.points, third.predicted)
     np.testing.assert_allclose(again.positions, continued.positions, rtol=0.0, atol=1e-12)
     np.testing.assert_allclose(again.position_std, continued.position_std, rtol=0.0, atol=1e-12)

@@ -381,7 +381,7 @@ def test_simulation_node_predicts_a_stalled_streams_stamps_then_learns_from_thei
     node = Process(tmp_path, "simulation_node", *ros_args("/catch", "tool_radius:=0.01"))
     processes.append(node)
     io = SimulationProbe(probe, "/catch")
-    again = probe.create_publisher(TetraMesh, "/catch/catch_up_estimate", PREDICTION_QOS)
+    again = probe.create_publisher(TetraMesh, "/catch/catch_up_estimate", KEEP)
     reports = simulation_reports(probe, "/catch")
     io.wait_connected()
     assert spin_until(probe, lambda: again.get_subscription_count() == 1)
@@ -641,7 +641,7 @@ def test_estimator_node_runs_a_stalled_streams_clouds_again_with_the_catch_up_pr
     failure = probe.create_publisher(PredictionFailure, "/again/prediction_failed", PREDICTION_QOS)
     pose = probe.create_publisher(PoseStamped, "/again/tool_pose", KEEP)
     again = []
-    probe.create_subscription(TetraMesh, "/again/catch_up_estimate", again.append, PREDICTION_QOS)
+    probe.create_subscription(TetraMesh, "/again/catch_up_estimate", again.append, KEEP)
     assert spin_until(probe, lambda: io.cloud.get_subscription_count() == 1
                       and io.prediction.get_subscription_count() == 1 and failure.get_subscription_count() == 1)
     io.wait_for(clouds_received=0)

@@ -203,7 +203,7 @@ def stall_then_resume(scheduler: EstimationScheduler, steps, clock=None):
         ready = scheduler.next_step(flush=True)
         assert ready.stalled and ready.predicted is None
         outcome = scheduler.run(ready, clock)
-        assert outcome.result.degraded and outcome.catch_up == ()
+        assert outcome.result.degraded and outcome.reruns == ()
     said = [scheduler.add_prediction(Prediction(step.stamp_ns, step.truth, tool_pose=step.tool_pose, catch_up=True))
             for step in stalled]
     scheduler.add_cloud(resumed.stamp_ns, resumed.points)
@@ -227,7 +227,7 @@ def test_clouds_of_a_stalled_tool_stream_run_again_with_the_catch_up_predictions
     steps = scenario.steps
     outcome, said = stall_then_resume(estimation(scenario), steps)
     assert said == [None, None]  # taken, not rejected as late
-    again = [(run.step.stamp_ns, run.result.degraded) for run in outcome.catch_up]
+    again = [(run.step.stamp_ns, run.result.degraded) for run in outcome.reruns]
     assert again == [(steps[1].stamp_ns, False), (steps[2].stamp_ns, False)] and not outcome.result.degraded
     clean = estimation(scenario)
     for step in steps:
@@ -238,8 +238,6 @@ def test_clouds_of_a_stalled_tool_stream_run_again_with_the_catch_up_predictions
     # The same window and inputs; PCG's preconditioner factors may differ (the solver is the
     # stalled run's), within LM's stopping tolerance.
     np.testing.assert_allclose(outcome.result.positions, expected.positions, rtol=0.0, atol=1e-6)
-    assert np.abs(outcome.result.positions - expected.positions).max() < 0.1 * np.abs(
-        expected.positions - scenario.initial_mesh.vertices).max()
     # A failure is no stall with a tool pose at its stamp, nor where no tool pose ever came (the
     # estimator does not see the tool, as with a sim_bridge simulator that moves its own).
     posed, unposed = estimation(scenario), estimation(scenario)
@@ -261,9 +259,40 @@ def test_only_the_stalled_clouds_whose_updates_fit_in_half_a_cloud_period_run_ag
     period_s = (steps[1].stamp_ns - steps[0].stamp_ns) / S
     ticks = iter(np.arange(0.0, 100.0, update_periods * period_s))  # the time each update takes
     outcome, said = stall_then_resume(estimation(longer_scenario), steps, lambda: float(next(ticks)))
-    assert [run.step.stamp_ns for run in outcome.catch_up] == [steps[2].stamp_ns][:again]
-    assert all(not run.result.degraded for run in outcome.catch_up) and not outcome.result.degraded
+    assert [run.step.stamp_ns for run in outcome.reruns] == [steps[2].stamp_ns][:again]
+    assert all(not run.result.degraded for run in outcome.reruns) and not outcome.result.degraded
     assert [rejection is None for rejection in said] == [bool(again)] * 2
+
+
+def test_every_held_cloud_runs_again_also_one_without_a_prediction_after_the_stall():
+    """Three clouds held: two stalled, and one after them that ran without any answer (its
+    prediction came after the catch-up's); with time for all, all three run again from the
+    snapshot, with the settings reconfigured during the stall."""
+    scenario = tiny_scenario(steps=5)
+    first, stalled, unanswered, resumed = scenario.steps[0], scenario.steps[1:3], scenario.steps[3], scenario.steps[4]
+    scheduler = estimation(scenario)
+    scheduler.add_tool_pose(first.stamp_ns, first.tool_pose)
+    scheduler.add_cloud(first.stamp_ns, first.points)
+    scheduler.add_prediction(Prediction(first.stamp_ns, first.truth, tool_pose=first.tool_pose))
+    scheduler.run(scheduler.next_step(flush=True))
+    for step in stalled:
+        scheduler.add_cloud(step.stamp_ns, step.points)
+        scheduler.add_prediction(Prediction(step.stamp_ns, None, "no tool pose within the horizon"))
+        assert scheduler.run(scheduler.next_step(flush=True)).result.degraded
+    scheduler.reconfigure({"simulation_sigma": 2e-4})
+    scheduler.add_tool_pose(unanswered.stamp_ns, unanswered.tool_pose)  # poses again
+    scheduler.add_cloud(unanswered.stamp_ns, unanswered.points)
+    ready = scheduler.next_step(flush=True)  # its prediction has not come: it runs without one
+    assert not ready.stalled and ready.predicted is None and scheduler.run(ready).result.degraded
+    for step in [*stalled, unanswered]:
+        assert scheduler.add_prediction(Prediction(step.stamp_ns, step.truth, tool_pose=step.tool_pose,
+                                                   catch_up=step is not unanswered)) is None
+    scheduler.add_cloud(resumed.stamp_ns, resumed.points)
+    scheduler.add_prediction(Prediction(resumed.stamp_ns, resumed.truth, tool_pose=resumed.tool_pose))
+    outcome = scheduler.run(scheduler.next_step(flush=True))
+    assert [run.step.stamp_ns for run in outcome.reruns] == [step.stamp_ns for step in [*stalled, unanswered]]
+    assert not any(run.result.degraded for run in outcome.reruns) and not outcome.result.degraded
+    assert scheduler.estimator.config.simulation_sigma == 2e-4  # the snapshot took the live settings
 
 
 def test_the_simulator_learns_from_a_stalled_cloud_run_again_once(scenario):
@@ -278,14 +307,16 @@ def test_the_simulator_learns_from_a_stalled_cloud_run_again_once(scenario):
     load = simulation.simulator.body_acceleration.copy()
     std = np.full(scenario.initial_mesh.vertex_count, 1e-4)
     pushed = caught_up.positions - [0.0, 0.0, 2e-4]  # the tissue sank further than predicted
-    assert simulation.learn_from_catch_up(FIRST_STAMP_NS + 2 * S, pushed, std) is None  # not caught up
+    assert simulation.learn_from_catch_up(FIRST_STAMP_NS + 2 * S, pushed, std) is False  # not caught up
     far = simulation.learn_from_catch_up(FIRST_STAMP_NS + S, caught_up.positions + 10.0, std)
     assert far.counter == "estimates_ignored"
+    # a degraded estimate (the estimator set the prediction aside) teaches nothing either
+    assert simulation.learn_from_catch_up(FIRST_STAMP_NS + S, pushed, std, degraded=True) is False
     np.testing.assert_array_equal(simulation.simulator.body_acceleration, load)
-    assert simulation.learn_from_catch_up(FIRST_STAMP_NS + S, pushed, std) is None
+    assert simulation.learn_from_catch_up(FIRST_STAMP_NS + S, pushed, std) is True
     learnt = simulation.simulator.body_acceleration.copy()
     assert learnt[2] < load[2] - 1e-3  # a load along -z
-    simulation.learn_from_catch_up(FIRST_STAMP_NS + S, pushed, std)  # learnt once only
+    assert simulation.learn_from_catch_up(FIRST_STAMP_NS + S, pushed, std) is False  # learnt once only
     np.testing.assert_array_equal(simulation.simulator.body_acceleration, learnt)
 
 

@@ -56,10 +56,11 @@ def live_errors(inputs, params, truth, stall_ns=None) -> tuple[list[tuple[float,
                 return
             if step is not None:
                 outcome = estimation.run(step)
-                for again in outcome.catch_up:
+                for again in outcome.reruns:
                     again_run.append((again.step.stamp_ns, again.result.degraded))
                     simulation.learn_from_catch_up(again.step.stamp_ns, again.result.positions,
-                                                   again.result.position_std.astype(np.float32).astype(np.float64))
+                                                   again.result.position_std.astype(np.float32).astype(np.float64),
+                                                   again.result.degraded)
                 result = outcome.result
                 simulation.add_estimate(step.stamp_ns, result.positions, degraded=result.degraded,
                                         position_std=result.position_std.astype(np.float32).astype(np.float64))

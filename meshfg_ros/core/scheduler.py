@@ -42,6 +42,7 @@ accuracy suite and the benchmarks: the nodes and the replay run this same code.
 
 from __future__ import annotations
 
+import threading
 from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
@@ -184,6 +185,7 @@ class PredictionScheduler:
         if not self.simulator.remove_elements(removed_elements):
             return False
         self.mesh = self.simulator.rest_mesh
+        self._caught_up = {}  # predictions on the uncut mesh teach the cut one nothing
         return True
 
     def _restart_timeline(self) -> None:
@@ -379,22 +381,25 @@ class PredictionScheduler:
             self._catch_up_answers.append(Prediction(skipped, self._state, "", skipped_pose, catch_up=True,
                                                      removed_elements=self.simulator.rest_mesh.removed_elements))
 
-    def learn_from_catch_up(self, stamp_ns: int, positions: np.ndarray,
-                            position_std: np.ndarray | None) -> Rejection | None:
+    def learn_from_catch_up(self, stamp_ns: int, positions: np.ndarray, position_std: np.ndarray | None,
+                            degraded: bool = False) -> bool | Rejection:
         """The estimate of a stalled stream's cloud run again with its catch-up prediction
         (EstimationScheduler.run): the simulator learns from its correction of that prediction,
         as from any estimate's (add_estimate), what the stall's degraded estimates could not
-        teach. Its state stays the newest estimate's. Nothing for a stamp it did not catch up."""
+        teach. Its state stays the newest estimate's. Returns True when it learnt; False for a
+        stamp it did not catch up (or learnt from already) and for a degraded estimate (the
+        estimator set the prediction aside), which teach nothing; a Rejection for an estimate
+        it cannot use."""
         predicted = self._caught_up.get(stamp_ns)
-        if predicted is None:
-            return None
+        if predicted is None or degraded:
+            return False
         positions = np.asarray(positions, dtype=np.float64)
         if positions.shape != predicted.shape or not np.isfinite(positions).all() or self.scene.far(positions).any():
             return Rejection("estimates_ignored", f"catch-up estimate at {stamp_ns} ns has a wrong vertex count, "
                              "non-finite positions or positions far outside the scene: ignored")
         del self._caught_up[stamp_ns]
         self.simulator.learn(predicted, positions, position_std)
-        return None
+        return True
 
     def _restart_simulator(self, pose: np.ndarray) -> None:
         """After a failed prediction: the tool restarts at `pose` and the simulator forgets what it
@@ -446,15 +451,18 @@ class StepOutcome:
     counter: str = ""  # "failed_steps" or "nonfinite_estimates" when result is None
     # What was set aside or changed on the way: an external stiffness refused or repaired.
     notes: tuple[Rejection, ...] = ()
-    # The stalled stream's clouds run again before this step with their catch-up predictions
+    # A stalled stream's clouds run again before this step with their late predictions
     # (EstimationScheduler.run), oldest first: for the simulator to learn from, not to publish.
-    catch_up: tuple[StepOutcome, ...] = ()
+    reruns: tuple[StepOutcome, ...] = ()
 
 
 @dataclass
 class _HeldSteps:
-    """Clouds that ran degraded while the tool stream stalled, kept with the estimator as it was
-    before the first of them until the simulator's catch-up predictions for them come."""
+    """Clouds that ran degraded while the tool stream stalled, and those that ran without a
+    prediction right after it, kept with the estimator as it was before the first of them until
+    the simulator's late predictions for them come. Of a stall longer than CATCH_UP_STEPS clouds
+    the newest are kept, as the simulator catches up the newest stamps: the older ones' estimates
+    drop out of the window when the snapshot is restored."""
 
     snapshot: SlidingWindowEstimator
     steps: deque[CloudStep] = field(default_factory=lambda: deque(maxlen=CATCH_UP_STEPS))
@@ -465,7 +473,8 @@ class EstimationScheduler:
     """The estimator's queue of clouds, paired with predictions and tool poses (module docstring).
 
     Thread-safe use (the estimator node): the add_* methods and `next_step` under the caller's
-    lock, `run` outside it (it only touches the estimator).
+    lock, `run` outside it (it touches the estimator, and the held clouds of a stalled stream
+    under a lock of their own).
     """
 
     def __init__(self, mesh: TetMesh, config: EstimatorConfig, *,
@@ -500,6 +509,7 @@ class EstimationScheduler:
         # (the estimator's model, the projection of external stiffness onto its K's pattern)
         self._stiffness_projection: tuple | None = None
         self._held: _HeldSteps | None = None  # a stalled stream's clouds, to run again (run)
+        self._held_lock = threading.Lock()  # `run` holds and releases them, add_prediction fills them
 
     def reconfigure(self, changes: dict) -> None:
         """Apply changed dynamic settings (field name -> value) from the next update on, also after
@@ -598,14 +608,14 @@ class EstimationScheduler:
             return Rejection("clouds_skipped_behind", f"cloud at {stamp} ns skipped: the pipeline is behind the "
                              f"clouds and the simulator predicts the newest one ({self._cost_per_cloud()}). Send "
                              "smaller clouds (a voxel filter), use a coarser mesh or a lower max_iterations")
-        if self._take_catch_up(answer):
-            return None
         if answer.positions is not None and now_s is not None:
             queued = next((cloud for cloud in self._clouds if cloud.stamp_ns == stamp), None)
             if queued is not None:
                 self._prediction_times_s.append(now_s - max(queued.arrival_s, self._solver_free_s))
             elif self._ran_without_answer is not None and self._ran_without_answer[0] == stamp:
                 self._prediction_times_s.append(now_s - self._ran_without_answer[1])
+        if self._take_catch_up(answer):
+            return None
         if newest is not None and newest - stamp > self._jump_ns:
             self._answers.clear()  # the simulator restarted its timeline (a looped recording)
         elif self._last_step_ns is not None and 0 <= self._last_step_ns - stamp <= self._jump_ns:
@@ -623,14 +633,16 @@ class EstimationScheduler:
         return None
 
     def _take_catch_up(self, answer: Prediction) -> bool:
-        """Whether `answer` is a prediction for a held cloud (one that ran degraded while the tool
-        stream stalled): the simulator's catch-up, kept for `run`."""
-        held = self._held
-        if (held is None or answer.positions is None or answer.positions.shape != self.mesh.vertices.shape
-                or not any(step.stamp_ns == answer.stamp_ns for step in held.steps)):
-            return False
-        held.predictions[answer.stamp_ns] = answer
-        return True
+        """Whether `answer` is a late prediction for a held cloud (_HeldSteps): the simulator's
+        catch-up of a stalled stamp, or the answer of a cloud that ran without it after the
+        stall; kept for `run`."""
+        with self._held_lock:
+            held = self._held
+            if (held is None or answer.positions is None or answer.positions.shape != self.mesh.vertices.shape
+                    or not any(step.stamp_ns == answer.stamp_ns for step in held.steps)):
+                return False
+            held.predictions[answer.stamp_ns] = answer
+            return True
 
     def next_step(self, now_s: float = 0.0, flush: bool = False) -> CloudStep | None:
         """The oldest cloud if it is ready to run (module docstring), else None."""
@@ -678,47 +690,56 @@ class EstimationScheduler:
         then holds estimates made with the tool's physics instead of the degraded ones, and the
         simulator learns the load and the Poisson ratio from them
         (PredictionScheduler.learn_from_catch_up) as if the stream had not stalled
-        (`StepOutcome.catch_up`; older than the estimates already out, they are not published).
+        (`StepOutcome.reruns`; older than the estimates already out, they are not published).
         Only the newest that fit in half the clouds' period run again, none where an update
-        takes half the period or more (`_affordable_reruns`)."""
+        takes more than half the period (`_affordable_reruns`). Where none of them could be
+        estimated again, the estimator keeps the window it had."""
         start_s = now() if now is not None else 0.0
         if step.restart:
             self.estimator = self.estimator.restarted()
-            self._held = None
-        catch_up = self._run_held(step)
-        outcome = replace(self._update(step), catch_up=catch_up)
+            with self._held_lock:
+                self._held = None
+        reruns = self._run_held(step)
+        outcome = replace(self._update(step), reruns=reruns)
         self._solver_free_s = now() if now is not None else 0.0
         self._update_s = self._solver_free_s - start_s
         if now is not None and step.predicted is not None:
-            self._predicted_update_times_s.append(self._update_s / (1 + len(catch_up)))
+            self._predicted_update_times_s.append(self._update_s / (1 + len(reruns)))
         return outcome
 
     def _run_held(self, step: CloudStep) -> tuple[StepOutcome, ...]:
         """Hold a stalled `step` (snapshot first); after the stall, run the held clouds that have
         their predictions again from the snapshot and let go of the rest."""
         if (step.stalled or (self._held is not None and step.predicted is None)) and self._affordable_reruns():
-            if self._held is None:
-                self._held = _HeldSteps(self.estimator.snapshot())
-            self._held.steps.append(step)
+            snapshot = self.estimator.snapshot() if self._held is None else None
+            with self._held_lock:
+                if snapshot is not None:
+                    self._held = _HeldSteps(snapshot)
+                self._held.steps.append(step)
             return ()
-        held, self._held = self._held, None
+        with self._held_lock:
+            held, self._held = self._held, None
         if held is None:
             return ()
         again = [(cloud, held.predictions[cloud.stamp_ns]) for cloud in held.steps if cloud.stamp_ns in held.predictions]
-        again = again[len(again) - self._affordable_reruns():]
+        again = again[max(len(again) - self._affordable_reruns(), 0):]
         if not again:
             return ()
-        self.estimator = held.snapshot
-        return tuple(self._update(replace(cloud, predicted=answer.positions, tool_pose=answer.tool_pose,
-                                          removed_elements=answer.removed_elements, stiffness=answer.stiffness,
-                                          stalled=False))
-                     for cloud, answer in again)
+        live, self.estimator = self.estimator, held.snapshot
+        self.estimator.resume(live)
+        outcomes = tuple(self._update(replace(cloud, predicted=answer.positions, tool_pose=answer.tool_pose,
+                                              removed_elements=answer.removed_elements, stiffness=answer.stiffness,
+                                              stalled=False))
+                         for cloud, answer in again)
+        if all(outcome.result is None for outcome in outcomes):
+            self.estimator = live  # nothing ran again: the stall's degraded states are better than none
+        return outcomes
 
     def _affordable_reruns(self) -> int:
         """How many held clouds run again before a step: as many updates as fit in
         RERUN_SHARE_OF_PERIOD of the clouds' period, at the longest of the recent updates with a
         prediction (all where nothing is timed: offline). None at organ scale, where one update
-        takes half the period or more: there a re-run delayed the next clouds until they were
+        takes more than half the period: there a re-run delayed the next clouds until they were
         skipped or ran degraded, which cost more accuracy than its learning gave
         (docs/design-notes.md, "A stalled tool stream")."""
         if not self._predicted_update_times_s or self._cloud_period_s is None:
@@ -836,7 +857,7 @@ class OfflinePipeline:
         steps = []
         while True:
             for answer in self.open_loop.poll(flush=flush):
-                if answer.catch_up:  # the open loop passes a stall's stamps for its next answer only
+                if answer.catch_up:  # the simulation alone keeps no estimate of a stalled stamp
                     continue
                 if answer.positions is not None:  # a failed open-loop step leaves the baseline where it was
                     self._simulation_only = answer.positions
@@ -852,10 +873,10 @@ class OfflinePipeline:
                 return steps
             while step is not None:
                 outcome = self.estimation.run(step)
-                for again in outcome.catch_up:
+                for again in outcome.reruns:
                     if again.result is not None:
                         self.simulation.learn_from_catch_up(again.step.stamp_ns, again.result.positions,
-                                                            _as_sent(again.result.position_std))
+                                                            _as_sent(again.result.position_std), again.result.degraded)
                 result = outcome.result
                 self.simulation.add_estimate(step.stamp_ns, None if result is None else result.positions,
                                              degraded=result is not None and result.degraded,

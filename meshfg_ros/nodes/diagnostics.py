@@ -138,7 +138,7 @@ class SimulatorCounters(Counters):
     requests: int = 0                   # prediction requests (one per accepted cloud)
     predictions: int = 0
     catch_up_predictions: int = 0       # of them, for a stalled tool stream's stamps once poses came (core/scheduler.py)
-    catch_up_estimates_learnt: int = 0  # the estimates of those clouds run again, learnt from
+    catch_up_estimates_learnt: int = 0  # the estimates of those stamps' clouds run again, learnt from
     predictions_failed: int = 0
     predictions_superseded: int = 0     # requests skipped for a newer cloud's while behind (core/scheduler.py)
     estimates_ignored: int = 0          # wrong vertex count, not finite, or far outside the scene

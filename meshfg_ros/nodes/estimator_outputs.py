@@ -30,7 +30,7 @@ from meshfg_ros.io.messages import MeshState, status_record, status_to_msg
 from meshfg_ros.markers import mesh_markers, spread_surface_sample, surface_edges
 from meshfg_ros.nodes.diagnostics import (ERROR, OK, EstimatorCounters, EstimatorHealth, diagnostic_array,
                                           with_setup_problems)
-from meshfg_ros.nodes.ros_conversions import LATCHED_QOS, PREDICTION_QOS, RCLPY_FACTORY, STREAM_QOS, MeshMessages
+from meshfg_ros.nodes.ros_conversions import LATCHED_QOS, RCLPY_FACTORY, REQUEST_QOS, STREAM_QOS, MeshMessages
 
 _LATENCY_HISTORY = 100
 MIN_VIEW_POINTS = 30  # a cloud with fewer points near the surface says nothing of the camera
@@ -60,7 +60,7 @@ class EstimatorOutputs:
         # The mesh's state, its TetraMesh builder, surface edges and vertices given ellipsoids (markers).
         self._mesh: tuple[MeshState, MeshMessages, np.ndarray, np.ndarray] | None = None
         self._estimates = node.create_publisher(TetraMesh, "estimated_mesh", LATCHED_QOS)
-        self._catch_up_estimates = node.create_publisher(TetraMesh, "catch_up_estimate", PREDICTION_QOS)
+        self._catch_up_estimates = node.create_publisher(TetraMesh, "catch_up_estimate", REQUEST_QOS)
         self._statuses = node.create_publisher(EstimatorStatus, "status", STREAM_QOS)
         self._markers = node.create_publisher(MarkerArray, "markers", STREAM_QOS)
         self._diagnostics = node.create_publisher(DiagnosticArray, "/diagnostics", STREAM_QOS)
@@ -107,7 +107,7 @@ class EstimatorOutputs:
         `mesh`: the estimator's after the step; after a cut the estimate is published (and drawn)
         on its topology: the remaining elements and surface, the removed elements and invalid
         vertices listed."""
-        self._send_catch_up(outcome.catch_up)
+        self._send_reruns(outcome.reruns)
         result = outcome.result
         if result is None:
             self._node.get_logger().error(f"update at {step.stamp_ns} ns: {outcome.error}")
@@ -136,21 +136,26 @@ class EstimatorOutputs:
                                  step.stamp_ns)
         self._wake.trigger()
 
-    def _send_catch_up(self, again: tuple[StepOutcome, ...]) -> None:
-        """The estimates of a stalled stream's clouds run again (StepOutcome.catch_up), to the
+    def _send_reruns(self, reruns: tuple[StepOutcome, ...]) -> None:
+        """The estimates of a stalled stream's clouds run again (StepOutcome.reruns), to the
         simulation node on catch_up_estimate: older than the estimates published, not published
-        as estimates."""
-        results = [outcome.result for outcome in again if outcome.result is not None]
+        as estimates. A re-run that failed is logged and counted as any step's failure."""
         messages = self._mesh[1]
-        for result in results:
+        for outcome in reruns:
+            self.note(list(outcome.notes))
+            result = outcome.result
+            if result is None:
+                self._node.get_logger().error(f"update at {outcome.step.stamp_ns} ns, run again: {outcome.error}")
+                self.count(outcome.counter)
+                continue
             self._catch_up_estimates.publish(messages.message(result.stamp_ns, self._frame, result.step,
                                                               result.positions, result.position_std, result.degraded,
                                                               result.position_covariance))
-        if again:
-            with self._lock:
-                self.counters.clouds_run_again += len(results)
-            self._node.get_logger().info(f"tool poses came again: the stall's {len(again)} clouds run again with the "
-                                         f"simulator's catch-up predictions, {len(results)} estimated")
+            self.count("clouds_run_again")
+        if reruns:
+            estimated = sum(outcome.result is not None for outcome in reruns)
+            self._node.get_logger().info(f"tool poses came again: {len(reruns)} clouds of the stall run again with "
+                                         f"the simulator's late predictions, {estimated} estimated")
 
     def _view_implausible(self, step: CloudStep, result) -> bool:
         """Whether more than IMPLAUSIBLE_SHARE of the step's cloud lies at angles no camera at its

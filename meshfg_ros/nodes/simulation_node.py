@@ -38,7 +38,7 @@ from scipy.spatial.transform import Rotation
 from std_msgs.msg import Header, UInt32MultiArray
 
 from meshfg_msgs.msg import TetraMesh
-from meshfg_ros.core.scheduler import MAX_QUEUED_CLOUDS, PredictionScheduler, SchedulingTimeouts
+from meshfg_ros.core.scheduler import MAX_QUEUED_CLOUDS, PredictionScheduler, Rejection, SchedulingTimeouts
 from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError
 from meshfg_ros.core.geometry.mesh import InvalidMeshError
 from meshfg_ros.core.inputs.tool_poses import DEFAULT_MAX_SAMPLES
@@ -49,7 +49,6 @@ from meshfg_ros.nodes.frame_inputs import TF_QOS, TF_STATIC_QOS, FrameInputs
 from meshfg_ros.nodes.held_inputs import HeldUntilMesh
 from meshfg_ros.nodes.ros_conversions import (
     LATCHED_QOS,
-    PREDICTION_QOS,
     REQUEST_QOS,
     TOOL_POSE_QOS_FIX,
     InitialMeshSource,
@@ -80,14 +79,14 @@ class SimulationNode(Node):
         self._mesh = InitialMeshSource(self, self._frame, self._set_mesh, self._held.release)
         self._inputs = FrameInputs(self, world_frame_inputs(self.params), self._on_placed, self._on_unplaceable)
         self.create_subscription(TetraMesh, "estimated_mesh", self._on_estimate, LATCHED_QOS)
-        self.create_subscription(TetraMesh, "catch_up_estimate", self._on_catch_up_estimate, PREDICTION_QOS)
+        self.create_subscription(TetraMesh, "catch_up_estimate", self._on_catch_up_estimate, REQUEST_QOS)
         self.create_subscription(PoseStamped, "tool_pose", self._on_tool_pose, tool_pose_qos(self.params))
         self.create_subscription(Header, "prediction_request", self._on_request, REQUEST_QOS)
         self.create_subscription(UInt32MultiArray, "remove_elements", self._on_remove_elements, REQUEST_QOS)
         self.setup_warnings = self.outputs.setup_warnings  # what run_nodes found wrong in the set-up
         self._input_qos = IncompatiblePublishers(self)
         self._input_qos.watch("tool_pose", tool_pose_qos(self.params), TOOL_POSE_QOS_FIX)
-        for topic, qos in (("estimated_mesh", LATCHED_QOS), ("catch_up_estimate", PREDICTION_QOS),
+        for topic, qos in (("estimated_mesh", LATCHED_QOS), ("catch_up_estimate", REQUEST_QOS),
                            ("prediction_request", REQUEST_QOS),
                            ("initial_mesh", LATCHED_QOS), ("/tf", TF_QOS), ("/tf_static", TF_STATIC_QOS)):
             self._input_qos.watch(topic, qos, TOPIC_TABLE_FIX)
@@ -146,10 +145,10 @@ class SimulationNode(Node):
         if positions is None:
             return self.outputs.count("estimates_ignored", f"catch_up_estimate at {stamp_ns} ns ignored: wrong vertex "
                                       "count or non-finite positions")
-        rejection = self._scheduler.learn_from_catch_up(stamp_ns, positions, position_std)
-        if rejection is not None:
-            return self.outputs.note(rejection)
-        self.outputs.counters.catch_up_estimates_learnt += 1
+        learnt = self._scheduler.learn_from_catch_up(stamp_ns, positions, position_std, degraded=bool(msg.degraded))
+        if isinstance(learnt, Rejection):
+            return self.outputs.note(learnt)
+        self.outputs.counters.catch_up_estimates_learnt += int(learnt)
 
     def _on_tool_pose(self, msg: PoseStamped) -> None:
         self.outputs.counters.tool_poses_received += 1

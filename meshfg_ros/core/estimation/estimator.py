@@ -456,10 +456,20 @@ class SlidingWindowEstimator:
         with this one the initial mesh, the queue of changes not yet applied and the factors the
         updates only refactor (CHOLMOD's, which cannot be copied): the linear solver's, which
         precondition PCG and are checked against each block they serve or refactored for it
-        (linear_solvers.py), and the marginals', refactored for each covariance. Only one of the
-        two may run updates after the copy is taken."""
+        (linear_solvers.py), and the marginals', refactored for each covariance. The two never
+        run updates at once: this one until the copy is `resume`d in its place, then the copy."""
         shared = (self.initial_mesh, self._pending_changes, self.solver, self.marginals)
         return copy.deepcopy(self, memo={id(item): item for item in shared})
+
+    def resume(self, replaced: SlidingWindowEstimator) -> None:
+        """Go on from this snapshot in place of `replaced`, the estimator it was taken from, which
+        has run updates since: the dynamic settings `replaced` took meanwhile (`reconfigure`)
+        apply here too, and the graph's revision counter goes on from the larger of the two, so
+        that none of this graph's linearisations passes for one of `replaced`'s in the factor
+        cache of the solver they share."""
+        self._apply_changes({name: getattr(replaced.config, name) for name in dynamic_fields(EstimatorConfig)
+                             if getattr(replaced.config, name) != getattr(self.config, name)})
+        self.graph.relinearizations = max(self.graph.relinearizations, replaced.graph.relinearizations)
 
     def remove_elements(self, removed_elements) -> bool:
         """Follow a cut: from the next update on, the window's states, the physics prior (the
@@ -496,10 +506,13 @@ class SlidingWindowEstimator:
         return True
 
     def _apply_pending_changes(self) -> None:
-        """Start using the settings `reconfigure` changed: a new nominal measurement sigma restarts
-        the noise estimate and the re-linearisation threshold from it (a new simulation sigma
-        weights the priors of the states that follow, through `simulation_sigma`)."""
-        changes = self._pending_changes.take()
+        """Start using the settings `reconfigure` changed."""
+        self._apply_changes(self._pending_changes.take())
+
+    def _apply_changes(self, changes: dict) -> None:
+        """Use the dynamic settings `changes` (field -> value): a new nominal measurement sigma
+        restarts the noise estimate and the re-linearisation threshold from it (a new simulation
+        sigma weights the priors of the states that follow, through `simulation_sigma`)."""
         if not changes:
             return
         old, self.config = self.config, replace(self.config, **changes)
