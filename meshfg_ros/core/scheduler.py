@@ -201,7 +201,6 @@ class PredictionScheduler:
         # on its way to the next pose (_catch_up).
         self._unposed: deque[int] = deque(maxlen=CATCH_UP_STEPS)
         self._caught_up: dict[int, np.ndarray] = {}  # catch-up predictions not learnt from yet, by stamp
-        self._catch_up_answers: list[Prediction] = []  # and those not yet answered (poll)
         self._previous_done_s = 0.0
         self._state = self.mesh.vertices.copy()
         self._state_ns: int | None = None       # stamp of the estimate self._state is
@@ -280,10 +279,8 @@ class PredictionScheduler:
             self._skipped_ns = max(stamp_ns, self._skipped_ns or 0)
             return None
         positions = np.asarray(positions, dtype=np.float64)
-        if (positions.shape != self._state.shape or not np.isfinite(positions).all()
-                or self.scene.far(positions).any()):
-            return Rejection("estimates_ignored", f"estimate at {stamp_ns} ns has a wrong vertex count, "
-                             "non-finite positions or positions far outside the scene: ignored")
+        if not self._usable_estimate(positions):
+            return _unusable_estimate(stamp_ns, "estimate")
         if degraded and stamp_ns > self._tool_ns:  # the simulator never reached it: no pose for it
             self._skipped_ns = max(stamp_ns, self._skipped_ns or 0)  # settled, but no start state
             return None
@@ -298,17 +295,15 @@ class PredictionScheduler:
         answers = []
         while self._requests:
             request = self._requests[0]
-            answer = self._answer(request, now_s, flush) if self._start_ns is not None else (
+            answered = self._answer(request, now_s, flush) if self._start_ns is not None else (
                 self._answer_without_poses(request, now_s, flush))
-            if answer is None:
+            if answered is None:
                 break
             self._requests.popleft()
-            answers.extend(self._catch_up_answers)
-            self._catch_up_answers = []
-            answers.append(answer)
+            answers.extend(answered)
         return answers
 
-    def _answer_without_poses(self, request: _Request, now_s: float, flush: bool) -> Prediction | None:
+    def _answer_without_poses(self, request: _Request, now_s: float, flush: bool) -> tuple[Prediction] | None:
         """A request of a timeline no tool pose has started: after tool_pose_timeout it fails with
         the reason (no tool pose received yet), so that its cloud runs at once, degraded, and the
         estimator and the user learn why."""
@@ -317,19 +312,21 @@ class PredictionScheduler:
         try:
             self._poses.pose_at(request.stamp_ns)
         except PoseUnavailable as error:
-            return Prediction(request.stamp_ns, None, str(error))
+            return (Prediction(request.stamp_ns, None, str(error)),)
         raise AssertionError("a tool pose buffer without a timeline holds no pose")
 
-    def _answer(self, request: _Request, now_s: float, flush: bool) -> Prediction | None:
+    def _answer(self, request: _Request, now_s: float, flush: bool) -> tuple[Prediction, ...] | None:
+        """The answers a ready request gets, None while it waits: its own, after a stalled stream
+        preceded by the catch-up's (_catch_up)."""
         stamp = request.stamp_ns
         if request.superseded:
-            return Prediction(stamp, None, "superseded: a newer cloud came while this one waited for the previous "
-                                           "estimate (the pipeline is behind the clouds)", superseded=True)
+            return (Prediction(stamp, None, "superseded: a newer cloud came while this one waited for the previous "
+                                            "estimate (the pipeline is behind the clouds)", superseded=True),)
         if stamp <= self._previous_ns:
             if stamp == self._start_ns:
-                return Prediction(stamp, None, "the first tool pose only starts the simulation")
-            return Prediction(stamp, None, f"the cloud is not newer than the simulator's tool pose "
-                                           f"({self._previous_ns} ns)")
+                return (Prediction(stamp, None, "the first tool pose only starts the simulation"),)
+            return (Prediction(stamp, None, f"the cloud is not newer than the simulator's tool pose "
+                                            f"({self._previous_ns} ns)"),)
         waited_s = now_s - max(request.arrival_s, self._previous_done_s)
         if not (self._previous_settled() or flush or waited_s >= self.timeouts.estimate_timeout):
             return None
@@ -340,46 +337,48 @@ class PredictionScheduler:
             pose = self._poses.pose_at(stamp)
         except PoseUnavailable as error:
             self._unposed.append(stamp)
-            return self._finish(Prediction(stamp, None, str(error)), now_s)
+            return (self._finish(Prediction(stamp, None, str(error)), now_s),)
         try:
-            self._catch_up(stamp, pose)
+            caught_up = self._catch_up(stamp, pose)
             dt = (stamp - self._tool_ns) / NS_PER_S  # the tool moves from where the simulator left it
             self._tool_ns, self._tool_pose = stamp, pose
             predicted = self.simulator.predict(self._state, pose, dt)
         except (ValueError, RuntimeError) as error:
             self._restart_simulator(pose)
-            return self._finish(Prediction(stamp, None, str(error), pose), now_s)
+            return (self._finish(Prediction(stamp, None, str(error), pose), now_s),)
         if not np.isfinite(predicted).all():
             self._restart_simulator(pose)
-            return self._finish(Prediction(stamp, None, "the predicted positions are not finite", pose), now_s)
+            return (self._finish(Prediction(stamp, None, "the predicted positions are not finite", pose), now_s),)
         self._predicted = Prediction(stamp, predicted, "", pose)
-        return self._finish(self._predicted, now_s)
+        return (*caught_up, self._finish(self._predicted, now_s))
 
-    def _catch_up(self, stamp: int, pose: np.ndarray) -> None:
+    def _catch_up(self, stamp: int, pose: np.ndarray) -> list[Prediction]:
         """After a stalled tool stream: the simulator passes the stamps it answered without a tool
         pose (the newest CATCH_UP_STEPS), one prediction each, with the tool interpolated between
         where it left it and `pose` at `stamp` (the path in between is unknown), from the state it
         had before the stall. In one jump the tool's contact would drag the tissue over the whole
         gap at once, and from a degraded estimate the hidden tissue would start where the stall
-        left it (docs/design-notes.md, "A stalled tool stream"). Each of these predictions is also
-        answered (`catch_up`, before the stamp's own answer), so that the estimator runs the
-        stalled clouds again with them and the simulator learns from those estimates
+        left it (docs/design-notes.md, "A stalled tool stream"). Returns these predictions
+        (`catch_up`), answered before the stamp's own, so that the estimator runs the stalled
+        clouds again with them and the simulator learns from those estimates
         (learn_from_catch_up). ValueError / RuntimeError: a step the simulator cannot take, as a
         prediction's."""
         gap = [skipped for skipped in self._unposed if self._tool_ns < skipped < stamp]
         self._unposed.clear()
         if not gap:
-            return
+            return []
         path = PoseHistory(duration_ns=stamp - self._tool_ns + 1, max_samples=2)
         path.insert(self._tool_ns, self._tool_pose)
         path.insert(stamp, pose)
         self._caught_up = {}
+        answers = []
         for skipped, skipped_pose in zip(gap, path.interpolate(gap)):
             self._state = self.simulator.predict(self._state, skipped_pose, (skipped - self._tool_ns) / NS_PER_S)
             self._tool_ns, self._tool_pose = skipped, skipped_pose
             self._caught_up[skipped] = self._state
-            self._catch_up_answers.append(Prediction(skipped, self._state, "", skipped_pose, catch_up=True,
-                                                     removed_elements=self.simulator.rest_mesh.removed_elements))
+            answers.append(Prediction(skipped, self._state, "", skipped_pose, catch_up=True,
+                                      removed_elements=self.simulator.rest_mesh.removed_elements))
+        return answers
 
     def learn_from_catch_up(self, stamp_ns: int, positions: np.ndarray, position_std: np.ndarray | None,
                             degraded: bool = False) -> bool | Rejection:
@@ -394,18 +393,23 @@ class PredictionScheduler:
         if predicted is None or degraded:
             return False
         positions = np.asarray(positions, dtype=np.float64)
-        if positions.shape != predicted.shape or not np.isfinite(positions).all() or self.scene.far(positions).any():
-            return Rejection("estimates_ignored", f"catch-up estimate at {stamp_ns} ns has a wrong vertex count, "
-                             "non-finite positions or positions far outside the scene: ignored")
+        if not self._usable_estimate(positions):
+            return _unusable_estimate(stamp_ns, "catch-up estimate")
         del self._caught_up[stamp_ns]
         self.simulator.learn(predicted, positions, position_std)
         return True
+
+    def _usable_estimate(self, positions: np.ndarray) -> bool:
+        """Whether an estimate's positions (float64) can be a start state or be learnt from: one
+        finite position per vertex, none far outside the scene."""
+        return (positions.shape == self._state.shape and bool(np.isfinite(positions).all())
+                and not self.scene.far(positions).any())
 
     def _restart_simulator(self, pose: np.ndarray) -> None:
         """After a failed prediction: the tool restarts at `pose` and the simulator forgets what it
         learnt, which may be what failed (LearningSimulator.reset), and its catch-up."""
         self._tool_pose = pose
-        self._caught_up, self._catch_up_answers = {}, []
+        self._caught_up = {}
         self.simulator.reset(pose)
 
     def _previous_settled(self) -> bool:
@@ -419,6 +423,11 @@ class PredictionScheduler:
         self._previous_ns = answer.stamp_ns
         self._previous_done_s = now_s
         return replace(answer, removed_elements=self.simulator.rest_mesh.removed_elements)
+
+
+def _unusable_estimate(stamp_ns: int, what: str) -> Rejection:
+    return Rejection("estimates_ignored", f"{what} at {stamp_ns} ns has a wrong vertex count, non-finite positions "
+                     "or positions far outside the scene: ignored")
 
 
 # --------------------------------------------------------------------------- estimator side

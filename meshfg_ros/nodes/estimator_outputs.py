@@ -110,8 +110,7 @@ class EstimatorOutputs:
         self._send_reruns(outcome.reruns)
         result = outcome.result
         if result is None:
-            self._node.get_logger().error(f"update at {step.stamp_ns} ns: {outcome.error}")
-            self.count(outcome.counter)
+            self._failed(outcome, "")
             return self._wake.trigger()
         if mesh is not None and not np.array_equal(mesh.removed_elements, self._mesh[0].removed_elements):
             self._set_topology(MeshState.of_mesh(mesh, step.stamp_ns, self._frame, 0))
@@ -136,6 +135,11 @@ class EstimatorOutputs:
                                  step.stamp_ns)
         self._wake.trigger()
 
+    def _failed(self, outcome: StepOutcome, what: str) -> None:
+        """Log and count a step that gave no estimate (`what` qualifies the update in the log)."""
+        self._node.get_logger().error(f"update at {outcome.step.stamp_ns} ns{what}: {outcome.error}")
+        self.count(outcome.counter)
+
     def _send_reruns(self, reruns: tuple[StepOutcome, ...]) -> None:
         """The estimates of a stalled stream's clouds run again (StepOutcome.reruns), to the
         simulation node on catch_up_estimate: older than the estimates published, not published
@@ -145,8 +149,7 @@ class EstimatorOutputs:
             self.note(list(outcome.notes))
             result = outcome.result
             if result is None:
-                self._node.get_logger().error(f"update at {outcome.step.stamp_ns} ns, run again: {outcome.error}")
-                self.count(outcome.counter)
+                self._failed(outcome, ", run again")
                 continue
             self._catch_up_estimates.publish(messages.message(result.stamp_ns, self._frame, result.step,
                                                               result.positions, result.position_std, result.degraded,
