@@ -136,8 +136,12 @@ def test_estimator_node_answers_surface_queries_in_any_frame_on_the_newest_estim
     np.testing.assert_allclose(answer.distance_std, expected.distance_std, rtol=1e-12)
     assert 0.2e-3 < np.median(answer.distance_std) < 2e-3
 
-    # The same points given in the planner's frame (through /tf_static): the same answers, in it.
-    in_planner = call_service(probe, client, request(to_planner(points), "planner"))
+    # The same points given in the planner's frame (through /tf_static, which may reach the node
+    # after the estimate did): the same answers, in it.
+    deadline = time.monotonic() + 30.0
+    while (not (in_planner := call_service(probe, client, request(to_planner(points), "planner"))).success
+           and "unknown frame" in in_planner.message and time.monotonic() < deadline):
+        spin_until(probe, lambda: False, timeout_s=0.2)
     assert in_planner.success and in_planner.header.frame_id == "planner", in_planner.message
     np.testing.assert_allclose(in_planner.signed_distances, signed, rtol=0.0, atol=1e-12)
     np.testing.assert_allclose(points_from_flat(in_planner.closest_points), to_planner(expected.closest), atol=1e-12)
