@@ -23,7 +23,8 @@ project's 2-core Intel VMs MKL's kernels factor and solve the organ-scale blocks
 bundled OpenBLAS 0.3.15; on its AMD EPYC VMs MKL takes no AVX code path and the bundled
 OpenBLAS's Zen kernels are the faster ones (measurements: docs/design-notes.md, "CHOLMOD's BLAS").
 
-One thread, always, unless MKL_NUM_THREADS says otherwise. The robot's computer shares its cores
+One BLAS thread, always, unless MKL_NUM_THREADS says otherwise (coarse pieces of work, each a
+whole CHOLMOD solve or sparse product, are split over threads by core/worker_threads.py). The robot's computer shares its cores
 with perception, planning and control, and the two nodes of this package are two processes. A
 threaded BLAS makes every supernode a parallel region that waits for all its threads: with
 another process on a core, each region waits for that core's time slice (or spins for it), and

@@ -9,8 +9,9 @@ import meshfg_ros.core
 
 CORE = Path(meshfg_ros.core.__path__[0])
 # The rank of each part of the core: a module may import its own part and parts of lower rank.
-# geometry and solvers know nothing of each other; the scheduler sits on everything.
-RANKS = {"settings": 0, "geometry": 1, "solvers": 1, "inputs": 2, "physics": 3, "estimation": 4, "scheduler": 5}
+# geometry and solvers know nothing of each other; the scheduler sits on everything; settings
+# and worker_threads serve every part.
+RANKS = {"settings": 0, "worker_threads": 0, "geometry": 1, "solvers": 1, "inputs": 2, "physics": 3, "estimation": 4, "scheduler": 5}
 MAX_MODULES_PER_LEVEL = 8
 
 

@@ -20,7 +20,8 @@ from numba.types import float64, int64
 from meshfg_ros.core.estimation.factors import Factor, FactorError, FactorLinearization, checked_state
 from meshfg_ros.core.geometry.kernel_types import read_only, writable
 from meshfg_ros.core.solvers.linear_system import WindowSystem, diagonal_positions
-from meshfg_ros.core.geometry.mesh import DofPattern, ElementVolumes, cross3, dot3
+import meshfg_ros.core.worker_threads as worker_threads
+from meshfg_ros.core.geometry.mesh import DofPattern, ElementVolumes, cross3, dot3, element_ranges
 
 __all__ = ["MIN_VOLUME_RATIO_PER_STEP", "FactorGraph"]
 
@@ -483,8 +484,10 @@ class FactorGraph:
         moves[:, self.free_dofs] = step.reshape(len(self.keys), self.block_size)[moved]
         moves = moves.reshape(len(keys), -1, 3)
         window = np.stack([states[key] for key in keys])
-        fractions = _first_crossings(window, moves, self.tetrahedra, volumes, longest, MIN_VOLUME_RATIO_PER_STEP,
-                                     _STEP_FRACTION_GRID, _STEP_FRACTION_BISECTIONS)
+        fractions = np.min(worker_threads.run_parts(_first_crossings, [
+            (window, moves, self.tetrahedra[part], np.ascontiguousarray(volumes[:, part]),
+             np.ascontiguousarray(longest[:, part]), MIN_VOLUME_RATIO_PER_STEP, _STEP_FRACTION_GRID,
+             _STEP_FRACTION_BISECTIONS) for part in element_ranges(len(self.tetrahedra), len(keys))]), axis=0)
         if np.all(fractions == 1.0):
             return fractions
         margin = MIN_VOLUME_RATIO_PER_STEP * 6.0 * volumes
@@ -518,7 +521,7 @@ def _scatter_add_flat(target, index, values):
 
 
 @numba.njit((read_only(float64, 3), read_only(float64, 3), read_only(int64, 2), read_only(float64, 2),
-             read_only(float64, 2), float64, int64, int64), cache=True, boundscheck=True)
+             read_only(float64, 2), float64, int64, int64), cache=True, boundscheck=True, nogil=True)
 def _first_crossings(states, moves, tetrahedra, volumes, longest, ratio, grid_count, bisections):
     """Per state s, the smallest fraction alpha in [0, 1] of its move at which one of its
     elements with a positive volume first falls below `ratio` of it (1 where none does), to

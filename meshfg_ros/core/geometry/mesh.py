@@ -18,6 +18,7 @@ import numba
 import numpy as np
 from numba.types import float64, int64
 
+import meshfg_ros.core.worker_threads as worker_threads
 from meshfg_ros.core.geometry.kernel_types import read_only
 
 __all__ = [
@@ -28,6 +29,7 @@ __all__ = [
     "TetMesh",
     "check_degenerate",
     "cross",
+    "element_ranges",
     "inverted_elements",
     "load_mesh",
     "orient_tetrahedra",
@@ -37,6 +39,9 @@ __all__ = [
 
 # |signed volume| below this times (mean edge length)^3 counts as a degenerate element.
 DEGENERATE_VOLUME_TOLERANCE = 1e-12
+# Per-element kernels run on the worker threads in parts of at least this many elements (times
+# states): a thread's hand-off costs tens of microseconds, an element a few nanoseconds.
+PARALLEL_MIN_ELEMENTS = 20_000
 
 # Faces of a positively oriented tetrahedron (v0, v1, v2, v3), each listed counter-clockwise
 # seen from outside, i.e. with its normal pointing away from the opposite vertex.
@@ -168,14 +173,25 @@ def signed_volumes(vertices: np.ndarray, tetrahedra: np.ndarray, longest_edges: 
     volume change along a step, FactorGraph.step_fraction)."""
     vertices = np.asarray(vertices, dtype=np.float64)
     stacked = np.ascontiguousarray(vertices.reshape((-1,) + vertices.shape[-2:]))
-    volumes, longest = _volumes_and_longest_edges(stacked, np.ascontiguousarray(tetrahedra, dtype=np.int64))
+    tetrahedra = np.ascontiguousarray(tetrahedra, dtype=np.int64)
+    parts = worker_threads.run_parts(_volumes_and_longest_edges,
+                                     [(stacked, tetrahedra[part]) for part in element_ranges(len(tetrahedra), len(stacked))])
+    volumes, longest = (np.concatenate([part[k] for part in parts], axis=1) for k in range(2))
     shape = vertices.shape[:-2] + (volumes.shape[1],)
     if not longest_edges:
         return volumes.reshape(shape)
     return volumes.reshape(shape), longest.reshape(shape)
 
 
-@numba.njit((read_only(float64, 3), read_only(int64, 2)), cache=True, boundscheck=True)
+def element_ranges(elements: int, states: int = 1) -> list[slice]:
+    """`elements` split in contiguous ranges for the worker threads (core/worker_threads.py),
+    each of at least PARALLEL_MIN_ELEMENTS elements times `states` (one range below that)."""
+    parts = max(1, min(worker_threads.count(), states * elements // PARALLEL_MIN_ELEMENTS))
+    bounds = np.linspace(0, elements, parts + 1).astype(np.int64)
+    return [slice(int(low), int(high)) for low, high in zip(bounds[:-1], bounds[1:])]
+
+
+@numba.njit((read_only(float64, 3), read_only(int64, 2)), cache=True, boundscheck=True, nogil=True)
 def _volumes_and_longest_edges(states, tetrahedra):
     """signed_volumes of states (W, N, 3): the triple product of the edge vectors u, v, w at
     corner 0, ((u x v) . w) / 6, and the longest of the three, each (W, M).

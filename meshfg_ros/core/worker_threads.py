@@ -1,0 +1,96 @@
+"""Independent pieces of one computation run at once on the process's worker threads.
+
+The update's costliest pieces are independent and run in C without Python's lock: the
+right-hand sides of a CHOLMOD solve (sparse_cholesky.py), the state blocks of the window's
+product (linear_system.py). On a robot computer of two cores the estimator otherwise computes on
+one while the other waits for the simulator. Work is split coarsely, one part per thread and
+call, so a thread that loses its core to another process delays its own part only; and the
+pool's threads block on a queue between calls, they never spin, so with another process on
+each core an update slows in proportion to the CPU it gets (`meshfg bench` measures it). This
+is unlike a threaded BLAS, which meets all its threads at every supernode (blas.py).
+
+`MESHFG_WORKER_THREADS` sets how many threads split such work, the calling thread included:
+1 computes everything on the calling thread. The default is the number of cores the process
+may run on, at most 2 (on this package's 2-core target the estimator and the simulator take
+turns, so both cores serve whichever computes).
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable, Sequence, TypeVar
+
+__all__ = ["WorkerThreadsSettingError", "count", "run_parts", "split"]
+
+DEFAULT_MAX_THREADS = 2
+
+T = TypeVar("T")
+
+_pool: ThreadPoolExecutor | None = None
+_pool_workers = 0
+_pool_lock = threading.Lock()
+_local = threading.local()
+
+
+class WorkerThreadsSettingError(ValueError):
+    """MESHFG_WORKER_THREADS is not a positive integer."""
+
+
+def count() -> int:
+    """Threads that split work, the caller included: MESHFG_WORKER_THREADS, else the usable
+    cores up to DEFAULT_MAX_THREADS."""
+    setting = os.environ.get("MESHFG_WORKER_THREADS")
+    if setting is None:
+        return max(1, min(DEFAULT_MAX_THREADS, len(os.sched_getaffinity(0))))
+    try:
+        threads = int(setting)
+    except ValueError:
+        threads = 0
+    if threads < 1:
+        raise WorkerThreadsSettingError(f"MESHFG_WORKER_THREADS must be a positive integer, got {setting!r}")
+    return threads
+
+
+def split(items: Sequence[T], most: int) -> list[Sequence[T]]:
+    """`items` in at most `most` (and at most count()) contiguous, non-empty groups of nearly
+    equal length; one group when `most` < 2."""
+    groups = max(1, min(count(), most, len(items)))
+    bounds = [len(items) * k // groups for k in range(groups + 1)]
+    return [items[low:high] for low, high in zip(bounds[:-1], bounds[1:])]
+
+
+def _executor(workers: int) -> ThreadPoolExecutor:
+    """The pool, with at least `workers` threads (a larger one replaces it; the old one's idle
+    threads end)."""
+    global _pool, _pool_workers
+    with _pool_lock:
+        if _pool is None or _pool_workers < workers:
+            if _pool is not None:
+                _pool.shutdown(wait=False)
+            _pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="meshfg-worker",
+                                       initializer=_mark_worker)
+            _pool_workers = workers
+        return _pool
+
+
+def _mark_worker() -> None:
+    _local.worker = True
+
+
+def run_parts(function: Callable[..., T], parts: Sequence[tuple]) -> list[T]:
+    """[function(*part) for part in parts], the first part on the calling thread and the others
+    on worker threads at the same time. Inline, in order, on a worker thread itself (no pool
+    waits on itself) or with a single part. An exception of any part is raised after all ended."""
+    if len(parts) <= 1 or getattr(_local, "worker", False):
+        return [function(*part) for part in parts]
+    futures = [_executor(len(parts) - 1).submit(function, *part) for part in parts[1:]]
+    try:
+        first = function(*parts[0])
+    finally:
+        others = [future.exception() for future in futures]  # waits for every part
+    for error in others:
+        if error is not None:
+            raise error
+    return [first] + [future.result() for future in futures]

@@ -1,0 +1,159 @@
+"""Work split over the worker threads (core/worker_threads.py) gives what one thread gives: the
+CHOLMOD solves without the GIL, the window's products, the association, the element kernels and
+a whole estimator update."""
+
+import threading
+import time
+
+import numpy as np
+import pytest
+import scipy.sparse
+
+import meshfg_ros.core.worker_threads as worker_threads
+from meshfg_ros.core.estimation import factor_graph, factors
+from meshfg_ros.core.estimation.estimator import EstimatorConfig, SlidingWindowEstimator
+from meshfg_ros.core.geometry import closest_point, mesh as mesh_module
+from meshfg_ros.core.geometry.closest_point import ClosestPointIndex
+from meshfg_ros.core.physics.fem import ElasticModel
+from meshfg_ros.core.solvers import cholmod_solve, linear_system, sparse_cholesky
+from meshfg_ros.core.solvers.linear_system import WindowSystem
+from meshfg_ros.core.solvers.sparse_cholesky import SparseCholesky
+from meshfg_ros.synthetic.meshing import box_mesh
+
+
+@pytest.fixture
+def two_threads(monkeypatch):
+    """Two worker threads and every threshold at its least, so that the smallest test problem
+    is split."""
+    monkeypatch.setenv("MESHFG_WORKER_THREADS", "2")
+    monkeypatch.setattr(sparse_cholesky, "PARALLEL_MIN_SIZE", 0)
+    monkeypatch.setattr(linear_system, "PARALLEL_MIN_ENTRIES", 1)
+    monkeypatch.setattr(closest_point, "PARALLEL_MIN_POINTS", 1)
+    monkeypatch.setattr(mesh_module, "PARALLEL_MIN_ELEMENTS", 1)
+    monkeypatch.setattr(factors, "PARALLEL_MIN_PRIOR_DOFS", 1)
+
+
+@pytest.fixture(scope="module")
+def stiffness():
+    mesh = box_mesh(216, (0.1, 0.1, 0.1))
+    matrix = ElasticModel(mesh.vertices, mesh.tetrahedra, 3e3, 0.45).stiffness(kind="linear")
+    return (matrix + 1e-2 * scipy.sparse.identity(matrix.shape[0])).tocsr()
+
+
+def test_parts_run_at_once_on_two_threads_and_come_back_in_order(two_threads):
+    both_started = threading.Barrier(2, timeout=5.0)  # only two threads at once can pass it
+
+    def part(value):
+        both_started.wait()
+        return value, threading.get_ident()
+
+    results = worker_threads.run_parts(part, [(1,), (2,)])
+    assert [value for value, _ in results] == [1, 2]
+    assert results[0][1] == threading.get_ident() != results[1][1]
+
+
+def test_a_part_that_fails_is_raised_after_every_part_ended(two_threads):
+    ended = []
+
+    def part(fail):
+        if fail:
+            raise ValueError("the first part failed")
+        time.sleep(0.05)
+        ended.append(True)
+
+    with pytest.raises(ValueError, match="first part failed"):
+        worker_threads.run_parts(part, [(True,), (False,)])
+    assert ended == [True]
+
+
+def test_a_worker_splits_no_further_and_one_thread_splits_nothing(two_threads, monkeypatch):
+    def inner(value):
+        return threading.get_ident()
+
+    def outer(value):
+        return worker_threads.run_parts(inner, [(1,), (2,)])
+
+    _, nested = worker_threads.run_parts(outer, [(0,), (1,)])
+    assert nested[0] == nested[1]  # inline on the worker: no pool waits on itself
+    monkeypatch.setenv("MESHFG_WORKER_THREADS", "1")
+    assert worker_threads.split(list(range(5)), 4) == [[0, 1, 2, 3, 4]]
+
+
+def test_thread_count_setting(monkeypatch):
+    monkeypatch.delenv("MESHFG_WORKER_THREADS", raising=False)
+    assert 1 <= worker_threads.count() <= worker_threads.DEFAULT_MAX_THREADS
+    monkeypatch.setenv("MESHFG_WORKER_THREADS", "3")
+    assert worker_threads.count() == 3
+    assert worker_threads.split(list(range(7)), 5) == [[0, 1], [2, 3], [4, 5, 6]]
+    for bad in ("0", "-1", "two"):
+        monkeypatch.setenv("MESHFG_WORKER_THREADS", bad)
+        with pytest.raises(worker_threads.WorkerThreadsSettingError, match="positive integer"):
+            worker_threads.count()
+
+
+def test_cholmod_solves_without_the_gil_equal_cvxopts(stiffness, two_threads, monkeypatch):
+    assert cholmod_solve.available()
+    rng = np.random.default_rng(3)
+    columns = rng.normal(size=(stiffness.shape[0], 5))
+    factor = SparseCholesky(stiffness, node_size=3)
+    split = [factor.solve(columns), factor.forward_solve(columns), factor.back_solve(columns), factor.solve(columns[:, 0])]
+    monkeypatch.setenv("MESHFG_WORKER_THREADS", "1")
+    single = [factor.solve(columns), factor.forward_solve(columns), factor.back_solve(columns), factor.solve(columns[:, 0])]
+    monkeypatch.setattr(cholmod_solve, "available", lambda: False)
+    through_cvxopt = [factor.solve(columns), factor.forward_solve(columns), factor.back_solve(columns),
+                      factor.solve(columns[:, 0])]
+    expected = np.linalg.solve(stiffness.toarray(), columns)
+    np.testing.assert_allclose(split[0], expected, rtol=1e-9, atol=1e-12 * np.abs(expected).max())
+    for ours, theirs, one in zip(split, through_cvxopt, single):
+        assert ours.shape == theirs.shape
+        np.testing.assert_allclose(ours, theirs, rtol=1e-12, atol=1e-14 * np.abs(theirs).max())
+        np.testing.assert_allclose(ours, one, rtol=1e-12, atol=1e-14 * np.abs(one).max())
+
+
+def test_window_products_association_and_volumes_split_as_one_thread_gives(stiffness, two_threads, monkeypatch):
+    rng = np.random.default_rng(4)
+    size = stiffness.shape[0]
+    blocks = [stiffness, 2.0 * stiffness, 3.0 * stiffness]
+    system = WindowSystem(blocks, [0.5, 0.25], [0, 1, 2], linear_system.diagonal_positions(stiffness))
+    x = rng.normal(size=3 * size)
+    mesh = box_mesh(216, (0.1, 0.1, 0.1))
+    surface = mesh.surface_triangles
+    points = rng.uniform(-0.01, 0.11, size=(500, 3))
+    states = np.stack([mesh.vertices, mesh.vertices + rng.normal(scale=1e-3, size=mesh.vertices.shape)])
+    split = (system.matvec(x), ClosestPointIndex(mesh.vertices, surface).associate(points).triangle,
+             mesh_module.signed_volumes(states, mesh.tetrahedra, longest_edges=True))
+    monkeypatch.setenv("MESHFG_WORKER_THREADS", "1")
+    single = (system.matvec(x), ClosestPointIndex(mesh.vertices, surface).associate(points).triangle,
+              mesh_module.signed_volumes(states, mesh.tetrahedra, longest_edges=True))
+    np.testing.assert_allclose(split[0], single[0], rtol=1e-13, atol=0)
+    np.testing.assert_array_equal(split[1], single[1])
+    for ours, one in zip(split[2], single[2]):
+        np.testing.assert_array_equal(ours, one)
+
+
+def test_an_estimator_update_split_over_two_threads_equals_one_threads(two_threads, monkeypatch):
+    """The whole update (PCG with its block factors, the inversion guard, the priors, the
+    association, the covariance draws) on two threads and on one: the same estimate."""
+    box = box_mesh(343, (0.06, 0.06, 0.03))
+    mesh = box.with_fixed(np.flatnonzero(box.vertices[:, 2] < 1e-9))
+    rng = np.random.default_rng(6)
+    surface_points = mesh.vertices[mesh.vertices[:, 2] > 0.029]
+
+    def run():
+        estimator = SlidingWindowEstimator(mesh, EstimatorConfig(window_size=3))
+        outcomes = []
+        for step in range(4):
+            moved = mesh.vertices + np.array([0.0, 0.0, -1e-4 * step])
+            points = surface_points + np.array([0.0, 0.0, -2e-4 * step]) + rng.normal(scale=5e-5, size=surface_points.shape)
+            outcomes.append(estimator.update(step * 100_000_000, points, moved))
+        return outcomes
+
+    split = run()
+    monkeypatch.setenv("MESHFG_WORKER_THREADS", "1")
+    rng = np.random.default_rng(6)
+    single = run()
+    for ours, one in zip(split, single):
+        assert ours.iterations == one.iterations
+        np.testing.assert_allclose(ours.positions, one.positions, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(ours.position_std, one.position_std, rtol=1e-9, atol=1e-15)
+    assert np.abs(split[-1].positions - mesh.vertices).max() > 1e-4  # the estimate moved with the data
