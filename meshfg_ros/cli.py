@@ -47,6 +47,7 @@ _USER_ERRORS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("meshfg_ros.core.physics.simulator", ("SimulatorConfigError", "SimulatorInputError")),
     ("meshfg_ros.core.estimation.estimator", ("EstimatorConfigError",)),
     ("meshfg_ros.blas", ("BlasSettingError",)),
+    ("meshfg_ros.core.worker_threads", ("WorkerThreadsSettingError",)),
     ("meshfg_ros.replay", ("ReplayError",)),
     ("meshfg_ros.evaluation.evaluate", ("EvaluationError",)),
     ("meshfg_ros.evaluation.render", ("OutputDirectoryError",)),
@@ -644,8 +645,10 @@ def main(argv: list[str] | None = None) -> int:
     args.command_line = "meshfg " + shlex.join(argv)  # what --results says made a section
     try:
         from meshfg_ros import blas
+        import meshfg_ros.core.worker_threads as worker_threads
 
         blas.configure()  # before any command loads cvxopt: CHOLMOD binds to the BLAS chosen for this CPU
+        worker_threads.count()  # a bad MESHFG_WORKER_THREADS stops the command here, not in its first update
         return args.run(args)
     except KeyboardInterrupt:
         print(f"meshfg {args.command}: interrupted", file=sys.stderr)

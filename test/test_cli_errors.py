@@ -1,6 +1,7 @@
 """The `meshfg` console script on bad input: one line on stderr, exit code 1, no traceback,
 nothing existing overwritten; and each command end to end on small and bundled recordings."""
 import json
+import os
 import shutil
 import subprocess
 
@@ -126,6 +127,13 @@ def test_demo_refuses_a_non_empty_output(tmp_path):
     (tmp_path / "notes.txt").write_text("keep")
     assert_one_line_error(meshfg("demo", "--out", tmp_path), "demo", "not empty")
     assert (tmp_path / "notes.txt").read_text() == "keep"
+
+
+def test_a_bad_worker_thread_count_is_refused_before_any_work(tmp_path):
+    completed = subprocess.run([MESHFG, "demo", "--out", str(tmp_path / "out")], capture_output=True, text=True,
+                               timeout=120, env={**os.environ, "MESHFG_WORKER_THREADS": "0"})
+    assert_one_line_error(completed, "demo", "MESHFG_WORKER_THREADS must be a positive integer", "'0'")
+    assert not (tmp_path / "out").exists()
 
 
 def test_usage_error_exits_2():

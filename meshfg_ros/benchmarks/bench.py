@@ -342,8 +342,11 @@ def machine() -> dict:
     (blas.configure, as the `meshfg` command and the nodes call it)."""
     from meshfg_ros import blas
 
+    import meshfg_ros.core.worker_threads as worker_threads
+
     backend = blas.configure()
-    return {"cpu": backend.cpu, "blas": backend.name, "blas_threads": backend.threads, "blas_detail": backend.detail}
+    return {"cpu": backend.cpu, "blas": backend.name, "blas_threads": backend.threads, "blas_detail": backend.detail,
+            "worker_threads": worker_threads.count()}
 
 
 def run_bench(sections=("core", "estimator", "baselines", "live"), bag: Path | None = None,
@@ -441,7 +444,8 @@ def format_tally(results: list[dict]) -> str:
 def _on(section: dict) -> str:
     """` [CPU; BLAS]`: where a figure was measured, for every line of the report."""
     on = section["machine"]
-    return f" [{on['cpu']}; BLAS {on['blas']} x{on['blas_threads']}]"
+    workers = f", {on['worker_threads']} worker threads" if "worker_threads" in on else ""
+    return f" [{on['cpu']}; BLAS {on['blas']} x{on['blas_threads']}{workers}]"
 
 
 def format_report(result: dict) -> str:
@@ -450,7 +454,8 @@ def format_report(result: dict) -> str:
     if "machine" in result:
         on = result["machine"]
         lines.append(f"CPU: {on['cpu']}; sparse Cholesky BLAS: {on['blas']}, {on['blas_threads']} thread(s) "
-                     f"({on['blas_detail']})")
+                     f"({on['blas_detail']})" + (f"; worker threads: {on['worker_threads']} (MESHFG_WORKER_THREADS)"
+                                                  if "worker_threads" in on else ""))
     if "core" in result:
         lines.append("Core (ms): mesh, vertices, K linear, K corotational, one simulator step, "
                      "learning the load and the Poisson ratio from an estimate")

@@ -30,6 +30,7 @@ from std_msgs.msg import Header
 
 from meshfg_msgs.msg import PredictionFailure, TetraMesh
 from meshfg_ros import blas
+import meshfg_ros.core.worker_threads as worker_threads
 from meshfg_ros.core.scheduler import (
     MAX_QUEUED_CLOUDS,
     EstimationScheduler,
@@ -123,7 +124,8 @@ class EstimatorNode(Node):
             self._bridge.set_mesh(mesh)
         with self._lock:
             self._scheduler = scheduler
-        self.get_logger().info(f"sparse Cholesky BLAS: {blas.backend().name}, {blas.backend().threads} thread(s)")
+        self.get_logger().info(f"sparse Cholesky BLAS: {blas.backend().name}, {blas.backend().threads} thread(s); "
+                               f"worker threads: {worker_threads.count()}")
 
     def _on_cloud(self, msg: PointCloud2) -> None:
         arrival_s = time.monotonic()

@@ -22,6 +22,7 @@ from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
 from meshfg_ros import blas
+import meshfg_ros.core.worker_threads as worker_threads
 from meshfg_ros.parameters import ParameterError, parameters_help
 
 _HELP_OPTIONS = ("-h", "--help")
@@ -94,8 +95,9 @@ def run_nodes(program: str, node_factories: Sequence[Callable[[], Node]], args=N
             _print_help(program, node_names or (program,))
             return 0
         blas.configure()  # before a node loads cvxopt: CHOLMOD binds to the BLAS chosen for this CPU
+        worker_threads.count()  # a bad MESHFG_WORKER_THREADS stops the node here, not in its first update
         init_without_signal_handlers(argv)
-    except (blas.BlasSettingError, ArgumentError) as error:
+    except (blas.BlasSettingError, worker_threads.WorkerThreadsSettingError, ArgumentError) as error:
         print(f"{program}: {error}", file=sys.stderr)
         return 1
     nodes: list[Node] = []
