@@ -74,10 +74,13 @@ def test_every_figure_line_names_the_cpu_and_the_blas():
     assert "organ-scale live vertex RMSE / offline replay's, loaded" not in rows  # no accuracy measured
 
 
-def test_machine_is_what_the_blas_configuration_reports():
+def test_machine_is_what_the_blas_and_thread_configuration_reports(monkeypatch):
     backend = blas.configure()  # this session's choice (conftest)
+    monkeypatch.setenv("MESHFG_WORKER_THREADS", "3")
     assert machine() == {"cpu": blas.cpu_model(), "blas": backend.name, "blas_threads": backend.threads,
-                         "blas_detail": backend.detail}
+                         "blas_detail": backend.detail, "worker_threads": 3}
+    report = format_report({"machine": machine()})
+    assert "worker threads: 3 (MESHFG_WORKER_THREADS)" in report
 
 
 def test_benchmark_updates_run_the_estimator_node_step_loop_and_beat_the_prediction():
