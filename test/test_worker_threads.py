@@ -79,6 +79,23 @@ def test_a_worker_splits_no_further_and_one_thread_splits_nothing(two_threads, m
     assert worker_threads.split(list(range(5)), 4) == [[0, 1, 2, 3, 4]]
 
 
+def test_a_forked_child_splits_on_a_pool_of_its_own(two_threads):
+    import os
+    import signal
+
+    worker_threads.run_parts(lambda value: value, [(1,), (2,)])  # the parent's pool exists
+    child = os.fork()
+    if child == 0:  # the child: a split must not wait on the parent's threads
+        signal.alarm(30)  # a child that hangs ends, and the test fails, instead of the suite hanging
+        try:
+            results = worker_threads.run_parts(lambda value: value * 2, [(1,), (2,)])
+            os._exit(0 if results == [2, 4] else 1)
+        finally:
+            os._exit(2)
+    _, status = os.waitpid(child, 0)
+    assert os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0
+
+
 def test_thread_count_setting(monkeypatch):
     monkeypatch.delenv("MESHFG_WORKER_THREADS", raising=False)
     assert 1 <= worker_threads.count() <= worker_threads.DEFAULT_MAX_THREADS

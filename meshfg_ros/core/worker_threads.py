@@ -79,6 +79,16 @@ def _mark_worker() -> None:
     _local.worker = True
 
 
+def _forget_pool() -> None:
+    """In a forked child: the parent's pool threads do not exist there, so a new pool is made
+    at the child's first split instead of waiting on them."""
+    global _pool, _pool_workers, _pool_lock
+    _pool, _pool_workers, _pool_lock = None, 0, threading.Lock()
+
+
+os.register_at_fork(after_in_child=_forget_pool)
+
+
 def run_parts(function: Callable[..., T], parts: Sequence[tuple]) -> list[T]:
     """[function(*part) for part in parts], the first part on the calling thread and the others
     on worker threads at the same time. Inline, in order, on a worker thread itself (no pool
