@@ -102,6 +102,18 @@ def test_indefinite_and_non_finite_matrices_are_rejected(stiffness):
     data[0] = np.nan
     with pytest.raises(NotPositiveDefiniteError, match="non-finite"):
         factor.refactor(data)
+    vector = np.ones(stiffness.shape[0])
+    np.testing.assert_allclose(stiffness @ factor.solve(vector), vector, rtol=1e-9)  # still the last good factor
+    indefinite.sort_indices()
+    with pytest.raises(NotPositiveDefiniteError, match="not positive"):
+        factor.refactor(indefinite.data)
+    for solve in (factor.solve, factor.forward_solve, factor.back_solve):  # never NaN from a failed factor
+        with pytest.raises(NotPositiveDefiniteError, match="failed or was never made"):
+            solve(vector)
+    factor.refactor(stiffness.data)
+    np.testing.assert_allclose(stiffness @ factor.solve(vector), vector, rtol=1e-9)
+    with pytest.raises(NotPositiveDefiniteError, match="failed or was never made"):
+        factor.sibling(None).solve(vector)  # its symbolic analysis only
 
 
 def test_pattern_and_shape_checks(stiffness):

@@ -61,18 +61,19 @@ def split(items: Sequence[T], most: int) -> list[Sequence[T]]:
     return [items[low:high] for low, high in zip(bounds[:-1], bounds[1:])]
 
 
-def _executor(workers: int) -> ThreadPoolExecutor:
-    """The pool, with at least `workers` threads (a larger one replaces it; the old one's idle
-    threads end)."""
+def _submit(function: Callable[..., T], parts: Sequence[tuple]) -> list:
+    """Futures of function(*part) on the pool, made with at least len(parts) threads (a larger
+    one replaces it: the old one's threads end after their work). Submitted under the lock, so
+    that no other caller replaces the pool in between."""
     global _pool, _pool_workers
     with _pool_lock:
-        if _pool is None or _pool_workers < workers:
+        if _pool is None or _pool_workers < len(parts):
             if _pool is not None:
                 _pool.shutdown(wait=False)
-            _pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="meshfg-worker",
+            _pool = ThreadPoolExecutor(max_workers=len(parts), thread_name_prefix="meshfg-worker",
                                        initializer=_mark_worker)
-            _pool_workers = workers
-        return _pool
+            _pool_workers = len(parts)
+        return [_pool.submit(function, *part) for part in parts]
 
 
 def _mark_worker() -> None:
@@ -95,7 +96,7 @@ def run_parts(function: Callable[..., T], parts: Sequence[tuple]) -> list[T]:
     waits on itself) or with a single part. An exception of any part is raised after all ended."""
     if len(parts) <= 1 or getattr(_local, "worker", False):
         return [function(*part) for part in parts]
-    futures = [_executor(len(parts) - 1).submit(function, *part) for part in parts[1:]]
+    futures = _submit(function, parts[1:])
     try:
         first = function(*parts[0])
     finally:

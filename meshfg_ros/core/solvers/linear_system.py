@@ -130,7 +130,7 @@ class WindowSystem:
         parts = self.split(x)
         out = np.zeros_like(parts)
         active = [t for t in range(len(self.keys)) if parts[t].any()]
-        groups = max(1, min(worker_threads.count(), len(active) * self.pattern.nnz // PARALLEL_MIN_ENTRIES))
+        groups = max(1, min(worker_threads.count(), len(active), len(active) * self.pattern.nnz // PARALLEL_MIN_ENTRIES))
         worker_threads.run_parts(self._block_products, [(group, parts, out) for group in np.array_split(active, groups)])
         if self.diagonal_shift is not None:
             out += self.diagonal_shift * parts

@@ -104,6 +104,7 @@ class SparseCholesky:
         """Symbolic analysis of the kept matrix with the kept ordering, then the numeric one of
         `data` (none for None)."""
         self._factor = _cvxopt().cholmod.symbolic(self._matrix, uplo="L", **self._ordering)
+        self._numeric = False  # whether the factor holds a successful numeric factorisation
         if data is not None:
             self.refactor(data)
 
@@ -131,9 +132,11 @@ class SparseCholesky:
             raise NotPositiveDefiniteError("Cholesky of a matrix with non-finite entries")
         try:
             self._matrix.V = self._values(data)
+            self._numeric = False
             _cvxopt().cholmod.numeric(self._matrix, self._factor)
         except ArithmeticError as error:
             raise NotPositiveDefiniteError(f"Cholesky failed: pivot {error} not positive") from None
+        self._numeric = True
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         """A^-1 rhs for rhs (n,) or (n, k) (CHOLMOD's sys code 0)."""
@@ -160,6 +163,8 @@ class SparseCholesky:
         rhs = np.asarray(rhs, dtype=np.float64)
         if rhs.shape[0] != self.size:
             raise ValueError(f"right-hand side has {rhs.shape[0]} rows, the matrix {self.size}")
+        if not self._numeric:  # CHOLMOD would answer a failed factor with NaN, a symbolic one with an error
+            raise NotPositiveDefiniteError("solve with a factor whose numeric factorisation failed or was never made")
         if rhs.size == 0:
             return rhs.copy()
         columns = rhs.reshape(self.size, -1)
