@@ -36,6 +36,7 @@ def test_every_figure_line_names_the_cpu_and_the_blas():
                                           "simulator_step_ms": 12.0, "model_learning_ms": 3.0}},
         "paper_scale": estimator_row(512),
         "organ_scale": estimator_row(10648),
+        "organ_scale_one_thread": {**estimator_row(10648), "p95_ms": 40.0},
         "baselines": {"machine": ON, **comparison(), "paper_scale": comparison()},
         "planner": {"machine": ON, "vertices": 1000, "points": 1000, "build_ms": 2.0, "query_ms": 4.0},
         "loaded": {"machine": ON, "busy_processes": 2, "paper_scale": {**estimator_row(512), "p95_ms": 50.0},
@@ -50,15 +51,18 @@ def test_every_figure_line_names_the_cpu_and_the_blas():
     assert lines[0] == ("CPU: Some CPU 9000, 2 cores; sparse Cholesky BLAS: bundled, 1 thread(s) "
                         "(chosen for SomeVendor)")
     figures = [line for line in lines[1:] if not line.startswith(("Core (ms):", "Baselines ("))]  # not headings
-    # liver, the planner query, two estimator scales with their stage budgets, both loaded, meshfg
-    # and scipy twice, live and organ-scale live idle (with its accuracy) and loaded
-    assert len(figures) == 16
+    # liver, the planner query, two estimator scales with their stage budgets, organ scale on one
+    # worker thread, both loaded, meshfg and scipy twice, live and organ-scale live idle (with its
+    # accuracy) and loaded
+    assert len(figures) == 17
     assert all(line.endswith(TAG) for line in figures), [line for line in figures if not line.endswith(TAG)]
     budget = next(line for line in figures if "stage budget per cloud at 512 vertices" in line)
     # prediction 40 + update stages 21 + messaging 1 = 62 ms to the estimate, learning 5 after it
     assert "prediction 40, association 3, linearisation 9, linear solves 7, covariance 2, messaging 1" in budget
     assert "cloud to estimate 62 ms, then learning 5 before the next prediction: loop 67 ms" in budget
     assert any("paper_scale: median 20.0 ms, p95 50.0 ms = 2.00x idle" in line for line in figures)
+    assert any("on one worker thread (MESHFG_WORKER_THREADS=1), organ_scale: median 20.0 ms, p95 40.0 ms" in line
+               and "the default worker threads take 0.62x its p95" in line for line in figures)
     assert any("after it 2 of 6 clouds estimated, latency max 2500 ms" in line and "1 degraded" in line
                for line in figures)
     rows = {row["figure"]: row for row in tally([result])}

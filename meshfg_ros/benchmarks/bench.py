@@ -10,6 +10,8 @@ Sections (each can be skipped):
   points, W=5), against the targets (p95 <= 30 ms and <= 500 ms); and each scale's stage
   budget: what one cloud costs, stage by stage (prediction, the update's stages, messaging,
   then the learning before the next prediction), against the 1 s cloud period;
+  With more than one worker thread (core/worker_threads.py), the organ-scale update on one too,
+  as the baseline of what the threads save;
 - loaded: the estimator figures with one busy process per core (target: p95 at most 3x idle);
 - baselines: the same single window update (association frozen, information fixed) solved
   from the same start by meshfg's LM, GTSAM's LM and scipy's least_squares: median time and
@@ -289,6 +291,20 @@ def busy_cores():
             loop.wait()
 
 
+@contextmanager
+def one_worker_thread():
+    """MESHFG_WORKER_THREADS=1 for this process while in the block (the threads' baseline)."""
+    before = os.environ.get("MESHFG_WORKER_THREADS")
+    os.environ["MESHFG_WORKER_THREADS"] = "1"
+    try:
+        yield
+    finally:
+        if before is None:
+            del os.environ["MESHFG_WORKER_THREADS"]
+        else:
+            os.environ["MESHFG_WORKER_THREADS"] = before
+
+
 def bench_loaded(progress: bool = True) -> dict:
     """The estimator figures (bench_estimator) at both scales with one busy process per core."""
     with busy_cores() as loops:
@@ -361,6 +377,9 @@ def run_bench(sections=("core", "estimator", "baselines", "live"), bag: Path | N
     if "estimator" in sections:
         for key, scale in (("paper_scale", PAPER_SCALE), ("organ_scale", ORGAN_SCALE)):
             out[key] = {"machine": on, **bench_estimator(scale, progress), "stages": bench_stages(scale)}
+        if on["worker_threads"] > 1:
+            with one_worker_thread():
+                out["organ_scale_one_thread"] = {"machine": machine(), **bench_estimator(ORGAN_SCALE, progress)}
     if "loaded" in sections:
         out["loaded"] = {"machine": on, **bench_loaded(progress)}
     if "baselines" in sections:
@@ -444,7 +463,8 @@ def format_tally(results: list[dict]) -> str:
 def _on(section: dict) -> str:
     """` [CPU; BLAS]`: where a figure was measured, for every line of the report."""
     on = section["machine"]
-    workers = f", {on['worker_threads']} worker threads" if "worker_threads" in on else ""
+    count = on.get("worker_threads")
+    workers = "" if count is None else f", {count} worker thread{'' if count == 1 else 's'}"
     return f" [{on['cpu']}; BLAS {on['blas']} x{on['blas_threads']}{workers}]"
 
 
@@ -482,6 +502,12 @@ def format_report(result: dict) -> str:
                          f"converged), linear solve {row['linear_solve_ms']:.2f} ms, RMSE {row['rmse_mm']:.3f} mm "
                          f"(prediction {row['prediction_rmse_mm']:.3f} mm){_on(row)}")
             lines.append(_stage_budget(row))
+    if "organ_scale_one_thread" in result:
+        row = result["organ_scale_one_thread"]
+        ratio = (f"; the default worker threads take {result['organ_scale']['p95_ms'] / row['p95_ms']:.2f}x its p95"
+                 if "organ_scale" in result else "")
+        lines.append(f"  on one worker thread (MESHFG_WORKER_THREADS=1), organ_scale: median {row['median_ms']:.1f} ms, "
+                     f"p95 {row['p95_ms']:.1f} ms, {row['iterations']:.1f} LM iterations{ratio}{_on(row)}")
     if "loaded" in result:
         loaded = result["loaded"]
         for key in ("paper_scale", "organ_scale"):
