@@ -174,3 +174,29 @@ def test_an_estimator_update_split_over_two_threads_equals_one_threads(two_threa
         np.testing.assert_allclose(ours.positions, one.positions, rtol=0, atol=1e-12)
         np.testing.assert_allclose(ours.position_std, one.position_std, rtol=1e-9, atol=1e-15)
     assert np.abs(split[-1].positions - mesh.vertices).max() > 1e-4  # the estimate moved with the data
+
+
+def test_a_simulator_step_split_over_two_threads_equals_one_threads(two_threads, monkeypatch):
+    """The vertex sweep's shares of a colour move as the whole colour does on one thread (the
+    K0 solves, whose split columns differ in the last bits, kept on one thread here)."""
+    from meshfg_ros.core.physics import simulator as simulator_module
+    from meshfg_ros.core.physics.simulator import ElasticSimulator, SimulatorConfig
+    from meshfg_ros.synthetic.scenarios import pose
+
+    monkeypatch.setattr(simulator_module, "PARALLEL_MIN_INCIDENCES", 1)
+    monkeypatch.setattr(sparse_cholesky, "PARALLEL_MIN_SIZE", 10**9)
+    box = box_mesh(343, (0.05, 0.05, 0.05))
+    mesh = box.with_fixed(np.flatnonzero(box.vertices[:, 2] < 1e-9))
+    top = int(np.argmax(mesh.vertices[:, 2] + 1e-3 * mesh.vertices[:, 0]))
+    start = mesh.vertices[top] + np.array([0.0, 0.0, 0.005])
+
+    def predict():
+        simulator = ElasticSimulator(mesh, SimulatorConfig(tool_radius=0.005))
+        simulator.reset(pose(start))
+        return simulator.predict(mesh.vertices, pose(start - np.array([0.0, 0.0, 0.004])), 1.0)
+
+    split = predict()
+    monkeypatch.setenv("MESHFG_WORKER_THREADS", "1")
+    single = predict()
+    np.testing.assert_array_equal(split, single)
+    assert np.abs(split - mesh.vertices).max() > 1e-3  # the tool pushed the tissue

@@ -22,7 +22,7 @@ import threading
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, Sequence, TypeVar
 
-__all__ = ["WorkerThreadsSettingError", "count", "run_parts", "split"]
+__all__ = ["WorkerThreadsSettingError", "count", "ranges", "run_parts", "split"]
 
 DEFAULT_MAX_THREADS = 2
 
@@ -53,12 +53,18 @@ def count() -> int:
     return threads
 
 
+def ranges(length: int, most: int) -> list[slice]:
+    """range(length) in at most `most` (and at most count()) contiguous, non-empty slices of
+    nearly equal length; one slice when `most` < 2 (an empty one for length 0)."""
+    parts = max(1, min(count(), most, length))
+    bounds = [length * k // parts for k in range(parts + 1)]
+    return [slice(low, high) for low, high in zip(bounds[:-1], bounds[1:])]
+
+
 def split(items: Sequence[T], most: int) -> list[Sequence[T]]:
     """`items` in at most `most` (and at most count()) contiguous, non-empty groups of nearly
     equal length; one group when `most` < 2."""
-    groups = max(1, min(count(), most, len(items)))
-    bounds = [len(items) * k // groups for k in range(groups + 1)]
-    return [items[low:high] for low, high in zip(bounds[:-1], bounds[1:])]
+    return [items[part] for part in ranges(len(items), most)]
 
 
 def _submit(function: Callable[..., T], parts: Sequence[tuple]) -> list:

@@ -186,9 +186,7 @@ def signed_volumes(vertices: np.ndarray, tetrahedra: np.ndarray, longest_edges: 
 def element_ranges(elements: int, states: int = 1) -> list[slice]:
     """`elements` split in contiguous ranges for the worker threads (core/worker_threads.py),
     each of at least PARALLEL_MIN_ELEMENTS elements times `states` (one range below that)."""
-    parts = max(1, min(worker_threads.count(), states * elements // PARALLEL_MIN_ELEMENTS))
-    bounds = np.linspace(0, elements, parts + 1).astype(np.int64)
-    return [slice(int(low), int(high)) for low, high in zip(bounds[:-1], bounds[1:])]
+    return worker_threads.ranges(elements, states * elements // PARALLEL_MIN_ELEMENTS)
 
 
 @numba.njit((read_only(float64, 3), read_only(int64, 2)), cache=True, boundscheck=True, nogil=True)
