@@ -11,9 +11,11 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import scipy.sparse
 from scipy.spatial.transform import Rotation
 
-from meshfg_ros.synthetic.meshing import cube_mesh
+from meshfg_ros.core.physics.fem import ElasticModel
+from meshfg_ros.synthetic.meshing import box_mesh, cube_mesh
 from meshfg_ros.evaluation.metrics import sample_surface
 from meshfg_ros.synthetic.scenarios import FIRST_STAMP_NS, STEP_PERIOD_NS, Scenario, ScenarioStep, pose
 from meshfg_ros.core.physics.simulator import ElasticSimulator, SimulatorConfig
@@ -38,6 +40,14 @@ def robot_statics():
 
     return [StampedTransform("ecm_link", "endoscope_optical_frame", 0, OPTICAL[:3], OPTICAL[3:]),
             StampedTransform("world", "psm1_base", 0, BASE[:3], BASE[3:])]
+
+
+def box_stiffness(vertices: int) -> scipy.sparse.csr_matrix:
+    """K + a small diagonal of a box of about `vertices` vertices: SPD, with the pattern the
+    estimator factors."""
+    mesh = box_mesh(vertices, (0.1, 0.1, 0.1))
+    matrix = ElasticModel(mesh.vertices, mesh.tetrahedra, 3e3, 0.45).stiffness(kind="linear")
+    return (matrix + 1e-2 * scipy.sparse.identity(matrix.shape[0])).tocsr()
 
 
 def mkl_installed() -> bool:

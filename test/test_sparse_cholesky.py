@@ -4,6 +4,8 @@ import numpy as np
 import pytest
 import scipy.sparse
 
+from offline_helpers import box_stiffness
+
 from meshfg_ros.core.physics.fem import ElasticModel
 from meshfg_ros.synthetic.meshing import box_mesh
 from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError
@@ -13,10 +15,7 @@ from meshfg_ros.core.solvers.sparse_cholesky import SparseCholesky, nested_disse
 
 @pytest.fixture(scope="module")
 def stiffness():
-    """K + a small diagonal of a 125-vertex box: SPD with the pattern the estimator factors."""
-    mesh = box_mesh(125, (0.1, 0.1, 0.1))
-    matrix = ElasticModel(mesh.vertices, mesh.tetrahedra, 3e3, 0.45).stiffness(kind="linear")
-    return (matrix + 1e-2 * scipy.sparse.identity(matrix.shape[0])).tocsr()
+    return box_stiffness(125)
 
 
 def test_solves_vectors_and_matrices(stiffness):

@@ -7,14 +7,13 @@ import time
 
 import numpy as np
 import pytest
-import scipy.sparse
+from offline_helpers import box_stiffness
 
 import meshfg_ros.core.worker_threads as worker_threads
-from meshfg_ros.core.estimation import factor_graph, factors
+from meshfg_ros.core.estimation import factors
 from meshfg_ros.core.estimation.estimator import EstimatorConfig, SlidingWindowEstimator
 from meshfg_ros.core.geometry import closest_point, mesh as mesh_module
 from meshfg_ros.core.geometry.closest_point import ClosestPointIndex
-from meshfg_ros.core.physics.fem import ElasticModel
 from meshfg_ros.core.solvers import cholmod_solve, linear_system, sparse_cholesky
 from meshfg_ros.core.solvers.linear_system import WindowSystem
 from meshfg_ros.core.solvers.sparse_cholesky import SparseCholesky
@@ -35,9 +34,7 @@ def two_threads(monkeypatch):
 
 @pytest.fixture(scope="module")
 def stiffness():
-    mesh = box_mesh(216, (0.1, 0.1, 0.1))
-    matrix = ElasticModel(mesh.vertices, mesh.tetrahedra, 3e3, 0.45).stiffness(kind="linear")
-    return (matrix + 1e-2 * scipy.sparse.identity(matrix.shape[0])).tocsr()
+    return box_stiffness(216)
 
 
 def test_parts_run_at_once_on_two_threads_and_come_back_in_order(two_threads):

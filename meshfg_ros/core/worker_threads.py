@@ -28,6 +28,7 @@ DEFAULT_MAX_THREADS = 2
 
 T = TypeVar("T")
 
+_usable_cores: int | None = None  # the cores the process may use, read at the first count()
 _pool: ThreadPoolExecutor | None = None
 _pool_workers = 0
 _pool_lock = threading.Lock()
@@ -39,11 +40,14 @@ class WorkerThreadsSettingError(ValueError):
 
 
 def count() -> int:
-    """Threads that split work, the caller included: MESHFG_WORKER_THREADS, else the usable
-    cores up to DEFAULT_MAX_THREADS."""
+    """Threads that split work, the caller included: MESHFG_WORKER_THREADS, else the cores the
+    process may use (read once) up to DEFAULT_MAX_THREADS."""
+    global _usable_cores
     setting = os.environ.get("MESHFG_WORKER_THREADS")
     if setting is None:
-        return max(1, min(DEFAULT_MAX_THREADS, len(os.sched_getaffinity(0))))
+        if _usable_cores is None:
+            _usable_cores = len(os.sched_getaffinity(0))
+        return max(1, min(DEFAULT_MAX_THREADS, _usable_cores))
     try:
         threads = int(setting)
     except ValueError:
@@ -88,9 +92,9 @@ def _mark_worker() -> None:
 
 def _forget_pool() -> None:
     """In a forked child: the parent's pool threads do not exist there, so a new pool is made
-    at the child's first split instead of waiting on them."""
-    global _pool, _pool_workers, _pool_lock
-    _pool, _pool_workers, _pool_lock = None, 0, threading.Lock()
+    at the child's first split instead of waiting on them (and its cores are read again)."""
+    global _pool, _pool_workers, _pool_lock, _usable_cores
+    _pool, _pool_workers, _pool_lock, _usable_cores = None, 0, threading.Lock(), None
 
 
 os.register_at_fork(after_in_child=_forget_pool)

@@ -445,14 +445,9 @@ class ClosestPointIndex:
         points = np.ascontiguousarray(_check_points(points))
         if not len(points):
             return _association(points, self.vertices, self.triangles, np.zeros(0, dtype=np.int64))
-        parts = max(1, min(worker_threads.count(), len(points) // PARALLEL_MIN_POINTS))
-        # Every parts-th point to each thread: a cloud's points come in scan order, so a
-        # contiguous share could hold the dense or the far part of it.
-        triangle = np.empty(len(points), dtype=np.int64)
-        for k, found in enumerate(worker_threads.run_parts(
-                _grid_closest, [(np.ascontiguousarray(points[k::parts]), self.vertices, self.triangles, *self._grid)
-                                for k in range(parts)])):
-            triangle[k::parts] = found
+        triangle = np.concatenate(worker_threads.run_parts(_grid_closest, [
+            (share, self.vertices, self.triangles, *self._grid)
+            for share in worker_threads.split(points, len(points) // PARALLEL_MIN_POINTS)]))
         unanswered = np.flatnonzero(triangle < 0)
         if unanswered.size:
             if self._tree is None:

@@ -40,7 +40,7 @@ __all__ = [
 # |signed volume| below this times (mean edge length)^3 counts as a degenerate element.
 DEGENERATE_VOLUME_TOLERANCE = 1e-12
 # Per-element kernels run on the worker threads in parts of at least this many elements (times
-# states): a thread's hand-off costs tens of microseconds, an element a few nanoseconds.
+# states): an element's volume takes about 8 ns, a hand-off to a thread about 0.1 ms.
 PARALLEL_MIN_ELEMENTS = 20_000
 
 # Faces of a positively oriented tetrahedron (v0, v1, v2, v3), each listed counter-clockwise

@@ -80,7 +80,7 @@ _DIAGONAL = np.arange(3)
 _MIN_VOLUME_FRACTION_PER_MOVE = 0.1
 # A colour's vertex sweep runs on the worker threads in shares of at least this many (vertex,
 # element) incidences: the 10,648-vertex box's 8 colours hold 13,000-41,000, swept in about
-# 0.9 ms each on one thread; a thread's hand-off costs tens of microseconds.
+# 0.9 ms each on one thread; a hand-off to a thread costs about 0.1 ms.
 PARALLEL_MIN_INCIDENCES = 4000
 # Floor of a distance that divides (a vertex at the tool's centre).
 _TINY = np.finfo(float).tiny
