@@ -23,6 +23,7 @@ from meshfg_ros.core.physics.simulator import (
     colour_tetrahedra,
     colour_vertices,
 )
+from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError, SparseCholesky
 
 YOUNGS_MODULUS = 3.0e3  # Pa, soft tissue
 POISSON_RATIO = 0.45
@@ -336,7 +337,7 @@ def test_rest_factor_keeps_unit_columns_within_its_budget(pushed_block, monkeypa
     simulator = ElasticSimulator(pushed_block, SimulatorConfig(youngs_modulus=YOUNGS_MODULUS,
                                                                poisson_ratio=POISSON_RATIO))
     factor = simulator.solver.rest_stiffness
-    size = factor.cholesky.size
+    size = factor.size
     monkeypatch.setattr(simulator_module, "_UNIT_HALVES_BYTES", 2 * 3 * size * 8)  # two vertices' columns
     held_rows = np.array([3, 10, 20, 30])
     forces = np.random.default_rng(6).normal(size=size)
@@ -351,7 +352,77 @@ def test_rest_factor_keeps_unit_columns_within_its_budget(pushed_block, monkeypa
     for _ in range(2):
         solution = factor.solve(forces, held_rows)
         np.testing.assert_allclose(solution, expected, rtol=0, atol=1e-9 * np.abs(expected).max())
-        assert len(factor._unit_halves) <= 2
+        assert len(factor._current.unit_halves) <= 2
+
+
+def _rest_stiffness(mesh, simulator, poisson_ratio: float) -> np.ndarray:
+    """Dense K0 on the simulator's movable dofs at `poisson_ratio`."""
+    dofs = (3 * simulator.movable_vertices[:, None] + np.arange(3)).reshape(-1)
+    model = ElasticModel(mesh.vertices, mesh.tetrahedra, YOUNGS_MODULUS, poisson_ratio)
+    return model.stiffness(kind="linear").toarray()[np.ix_(dofs, dofs)]
+
+
+@pytest.mark.parametrize("threads", ["1", "2"])
+def test_rest_factor_steps_with_the_factor_of_the_ratio_before(pushed_block, monkeypatch, threads):
+    """After a Poisson ratio change the rest responses use K0 at the new ratio and the global
+    step K0 at the one before (its refactor on a thread of its own with two worker threads, on
+    the calling thread with one); before any change both are the first ratio's."""
+    monkeypatch.setenv("MESHFG_WORKER_THREADS", threads)
+    simulator = ElasticSimulator(pushed_block, SimulatorConfig(youngs_modulus=YOUNGS_MODULUS,
+                                                               poisson_ratio=POISSON_RATIO))
+    factor = simulator.solver.rest_stiffness
+    forces = np.random.default_rng(8).normal(size=factor.size)
+    ratios = [POISSON_RATIO, 0.40, 0.47]
+    inverse = {ratio: np.linalg.solve(_rest_stiffness(pushed_block, simulator, ratio), forces) for ratio in ratios}
+
+    def assert_solves(current, stepping):
+        for solution, ratio in ((factor.solve(forces), current), (factor.solve(forces, stepping=True), stepping)):
+            np.testing.assert_allclose(solution, inverse[ratio], rtol=0, atol=1e-9 * np.abs(inverse[ratio]).max())
+
+    assert_solves(ratios[0], ratios[0])
+    simulator.poisson_ratio = ratios[1]
+    assert_solves(ratios[1], ratios[0])
+    simulator.poisson_ratio = ratios[2]
+    assert_solves(ratios[2], ratios[1])
+
+
+def test_predictions_do_not_depend_on_where_k0_is_refactored(pushed_block, monkeypatch):
+    """The same pushes with ratio changes between the predictions give the same states whether
+    the new ratio's K0 is refactored on a thread of its own (two worker threads) or in line (one)."""
+    runs = []
+    for threads in ("2", "1"):
+        monkeypatch.setenv("MESHFG_WORKER_THREADS", threads)
+        simulator = ElasticSimulator(pushed_block, SimulatorConfig(youngs_modulus=YOUNGS_MODULUS, poisson_ratio=0.45,
+                                                                   tool_radius=8e-3))
+        touching = np.array([0.03, 0.03, 0.038])
+        simulator.reset(pose(touching))
+        state, states = pushed_block.vertices, []
+        for depth, ratio in zip((1e-3, 2e-3, 3e-3), (0.47, 0.42, 0.48)):
+            state = simulator.predict(state, pose(touching - [0.0, 0.0, depth]), dt=1.0)
+            states.append(state)
+            simulator.poisson_ratio = ratio
+        runs.append(np.array(states))
+    assert np.abs(runs[0] - pushed_block.vertices).max() > 5e-4  # the tool moved the block
+    np.testing.assert_allclose(runs[0], runs[1], rtol=0, atol=1e-12)
+
+
+def test_a_failed_background_refactor_is_raised_where_its_factor_is_needed(pushed_block, monkeypatch):
+    """A refactor that fails on its own thread raises at the next use of the current factor,
+    and the global step's factor (the ratio before) still solves."""
+    monkeypatch.setenv("MESHFG_WORKER_THREADS", "2")
+    simulator = ElasticSimulator(pushed_block, SimulatorConfig(youngs_modulus=YOUNGS_MODULUS,
+                                                               poisson_ratio=POISSON_RATIO))
+    factor = simulator.solver.rest_stiffness
+    forces = np.ones(factor.size)
+
+    def fail(self, data):
+        raise NotPositiveDefiniteError("Cholesky failed: a pivot is not positive")
+
+    monkeypatch.setattr(SparseCholesky, "refactor", fail)
+    simulator.poisson_ratio = 0.40
+    assert np.all(np.isfinite(factor.solve(forces, stepping=True)))
+    with pytest.raises(NotPositiveDefiniteError, match="not positive"):
+        factor.solve(forces)
 
 
 def test_inverting_grasp_motion_is_reported():

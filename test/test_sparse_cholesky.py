@@ -1,5 +1,7 @@
 """SparseCholesky: CHOLMOD factor with the symbolic analysis kept across numeric refactors."""
 
+import threading
+
 import numpy as np
 import pytest
 import scipy.sparse
@@ -9,7 +11,7 @@ from offline_helpers import box_stiffness
 from meshfg_ros.core.physics.fem import ElasticModel
 from meshfg_ros.synthetic.meshing import box_mesh
 from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError
-from meshfg_ros.core.solvers import sparse_cholesky
+from meshfg_ros.core.solvers import cholmod_without_gil, sparse_cholesky
 from meshfg_ros.core.solvers.sparse_cholesky import SparseCholesky, nested_dissection
 
 
@@ -159,3 +161,25 @@ def test_nested_dissection_fills_less_than_amd():
     # getfactor last: it converts the factor in place.
     fill_metis, fill_amd = (len(cholmod.getfactor(factor._factor)) for factor in (metis, amd))
     assert fill_metis < 0.9 * fill_amd
+
+
+def test_refactor_without_the_gil_matches_cvxopts_and_lets_python_run(monkeypatch):
+    """Refactored through cholmod_without_gil (CHOLMOD's factorisation without the GIL), a factor
+    solves as one refactored through cvxopt does, and another thread runs Python meanwhile."""
+    if not cholmod_without_gil.available():
+        pytest.skip("CHOLMOD cannot be bound here: refactors go through cvxopt")
+    stiffness = box_stiffness(3000)
+    vector = np.random.default_rng(2).normal(size=stiffness.shape[0])
+    factor = SparseCholesky(stiffness, node_size=3, numeric=False)
+    passes = 0
+    refactoring = threading.Thread(target=factor.refactor, args=(stiffness.data,))
+    refactoring.start()
+    while refactoring.is_alive():
+        passes += 1
+    refactoring.join()
+    assert passes > 100  # a factorisation that held the GIL would leave this thread a pass or two
+    solution = factor.solve(vector)
+    monkeypatch.setattr(cholmod_without_gil, "available", lambda: False)
+    through_cvxopt = SparseCholesky(stiffness, node_size=3)
+    np.testing.assert_allclose(solution, through_cvxopt.solve(vector), rtol=1e-12, atol=0)
+    np.testing.assert_allclose(stiffness @ solution, vector, rtol=1e-9)

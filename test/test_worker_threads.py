@@ -14,7 +14,7 @@ from meshfg_ros.core.estimation import factors
 from meshfg_ros.core.estimation.estimator import EstimatorConfig, SlidingWindowEstimator
 from meshfg_ros.core.geometry import closest_point, mesh as mesh_module
 from meshfg_ros.core.geometry.closest_point import ClosestPointIndex
-from meshfg_ros.core.solvers import cholmod_solve, linear_system, sparse_cholesky
+from meshfg_ros.core.solvers import cholmod_without_gil, linear_system, sparse_cholesky
 from meshfg_ros.core.solvers.linear_system import WindowSystem
 from meshfg_ros.core.solvers.sparse_cholesky import SparseCholesky
 from meshfg_ros.synthetic.meshing import box_mesh
@@ -106,14 +106,14 @@ def test_thread_count_setting(monkeypatch):
 
 
 def test_cholmod_solves_without_the_gil_equal_cvxopts(stiffness, two_threads, monkeypatch):
-    assert cholmod_solve.available()
+    assert cholmod_without_gil.available()
     rng = np.random.default_rng(3)
     columns = rng.normal(size=(stiffness.shape[0], 5))
     factor = SparseCholesky(stiffness, node_size=3)
     split = [factor.solve(columns), factor.forward_solve(columns), factor.back_solve(columns), factor.solve(columns[:, 0])]
     monkeypatch.setenv("MESHFG_WORKER_THREADS", "1")
     single = [factor.solve(columns), factor.forward_solve(columns), factor.back_solve(columns), factor.solve(columns[:, 0])]
-    monkeypatch.setattr(cholmod_solve, "available", lambda: False)
+    monkeypatch.setattr(cholmod_without_gil, "available", lambda: False)
     through_cvxopt = [factor.solve(columns), factor.forward_solve(columns), factor.back_solve(columns),
                       factor.solve(columns[:, 0])]
     expected = np.linalg.solve(stiffness.toarray(), columns)

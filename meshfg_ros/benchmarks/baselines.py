@@ -438,16 +438,13 @@ def benchmark_update(mesh: TetMesh, sequence, config, warmup: int | None = None)
     Returns latencies_ms, median_ms, p95_ms, mean_iterations, linear_solve_ms (median time of
     one linear solve over all updates, from StepResult.linear_solve_ms), final_costs, rmse_m
     (vertex RMSE of each update against the truth), converged_share (of the timed updates) and
-    the last measurement sigma estimate, and stage_ms: per stage of the update
-    (core.estimation.estimator.STAGES), its time in each timed update.
+    the last measurement sigma estimate.
     """
-    from meshfg_ros.core.estimation.estimator import STAGES
     from meshfg_ros.core.scheduler import EstimationScheduler, Prediction  # the scheduler imports the estimator
 
     scheduler = EstimationScheduler(mesh, config)
     warmup = config.window_size - 1 if warmup is None else warmup
     latencies, iterations, solves, costs, rmse, converged = [], [], [], [], [], []
-    stages = {stage: [] for stage in STAGES}
     for index, step in enumerate(sequence):
         scheduler.add_cloud(step.stamp_ns, step.points)
         scheduler.add_prediction(Prediction(step.stamp_ns, step.predicted))
@@ -463,8 +460,6 @@ def benchmark_update(mesh: TetMesh, sequence, config, warmup: int | None = None)
             iterations.append(result.iterations)
             costs.append(result.final_cost)
             converged.append(result.converged)
-            for stage in STAGES:
-                stages[stage].append(result.stage_ms[stage])
         rmse.append(float(np.sqrt(np.mean(np.sum((result.positions - step.truth) ** 2, axis=1)))))
     latencies = np.asarray(latencies)
     return dict(
@@ -477,7 +472,6 @@ def benchmark_update(mesh: TetMesh, sequence, config, warmup: int | None = None)
         rmse_m=rmse,
         converged_share=float(np.mean(converged)),
         measurement_sigma_m=float(result.measurement_sigma),
-        stage_ms=stages,
     )
 
 

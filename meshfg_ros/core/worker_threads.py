@@ -10,7 +10,9 @@ each core an update slows in proportion to the CPU it gets (`meshfg bench` measu
 is unlike a threaded BLAS, which meets all its threads at every supernode (blas.py).
 
 `MESHFG_WORKER_THREADS` sets how many threads split such work, the calling thread included:
-1 computes everything on the calling thread. The default is the number of cores the process
+1 computes everything on the calling thread. With more than one, the simulator also makes the
+stiffness factor of a newly learnt Poisson ratio on a thread of its own (core/physics/simulator.py,
+RestFactor). The default is the number of cores the process
 may run on, at most 2 (on this package's 2-core target the estimator and the simulator take
 turns, so both cores serve whichever computes).
 """

@@ -36,6 +36,7 @@ threads, no randomness).
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, replace
 
 import numba
@@ -85,8 +86,8 @@ PARALLEL_MIN_INCIDENCES = 4000
 # Floor of a distance that divides (a vertex at the tool's centre).
 _TINY = np.finfo(float).tiny
 _NO_ROWS = np.zeros(0, dtype=np.int64)  # no movable vertex held or sliding
-# RestFactor keeps forward-substituted unit columns of at most this many bytes, the oldest
-# dropped first (a vertex's three take 0.7 MB at organ scale, 10,648 vertices).
+# Each of RestFactor's two factors keeps forward-substituted unit columns of at most this many
+# bytes, the oldest dropped first (a vertex's three take 0.7 MB at organ scale, 10,648 vertices).
 _UNIT_HALVES_BYTES = 64 * 2**20
 # vbd: vertices within this factor of the tool radius touch the tool.
 _CONTACT_BAND = 1.0 + 1e-4
@@ -474,6 +475,44 @@ def _outside_tool(points: np.ndarray, centre: np.ndarray, radius: float) -> np.n
     return pushed
 
 
+class _KeptFactor:
+    """One numeric factor of K0, the unit columns forward-substituted through it (movable row ->
+    L^-1 P of its three unit columns, (3 n, 3)), and the thread that is refactoring it, if any."""
+
+    def __init__(self, cholesky: SparseCholesky):
+        self.cholesky = cholesky
+        self.unit_halves: dict[int, np.ndarray] = {}
+        self._refactoring: threading.Thread | None = None
+        self._error: BaseException | None = None
+
+    def refactor(self, values: np.ndarray, background: bool) -> None:
+        """Refactor with `values`, on a thread of its own with `background` (SparseCholesky's
+        refactor releases the GIL): `settle` waits for it."""
+        self.unit_halves.clear()
+        if not background:
+            self.cholesky.refactor(values)
+            return
+        self._refactoring = threading.Thread(target=self._refactor, args=(values,), name="meshfg-k0-refactor",
+                                             daemon=True)
+        self._refactoring.start()
+
+    def _refactor(self, values: np.ndarray) -> None:
+        try:
+            self.cholesky.refactor(values)
+        except BaseException as error:  # raised to the caller of settle
+            self._error = error
+
+    def settle(self) -> _KeptFactor:
+        """This factor once its refactor has ended; its error, if it failed."""
+        if self._refactoring is not None:
+            self._refactoring.join()
+            self._refactoring = None
+        if self._error is not None:
+            error, self._error = self._error, None
+            raise error
+        return self
+
+
 class RestFactor:
     """The Cholesky factor of K0 (small-strain stiffness: the Hessian at rest) on the movable
     dofs, and its solves with some movable vertices held or sliding on the tool.
@@ -481,6 +520,16 @@ class RestFactor:
     K0 = mu A + lambda B (the body's stiffness_parts) has one pattern at any moduli: the
     entries of A and B on the movable dofs are picked once, and a new Poisson ratio is a
     numeric refactor of their sum (`refactor`).
+
+    Two factors, so that a new ratio's refactor is off the loop's path. The learning's rest
+    responses need K0 at the current moduli (`solve`); the prediction's global step only needs
+    a Hessian close to the body's, since its line search keeps the energy's own moduli
+    (`solve(..., stepping=True)`). After a ratio change the global step therefore uses the
+    factor of the ratio before it, while the new ratio's is made on a thread of its own (with
+    more than one worker thread, core/worker_threads.py), during the prediction and the update
+    that follow, and waited for by the next learning. The steps use the previous ratio's factor
+    however long the refactor takes, so a prediction does not depend on the timing: a replay
+    gives what the live nodes give.
 
     A constrained solve is a Schur complement on the factor: with K0 = P^T L L^T P, the
     constraint columns E and W = L^-1 P E, the solution of K0 x = f held to E^T x = 0 is
@@ -503,45 +552,57 @@ class RestFactor:
         self._shear, self._volumetric = shear.data[entries], volumetric.data[entries]
         stiffness = scipy.sparse.csr_matrix((self._values(body.config), picked.indices, picked.indptr),
                                             shape=picked.shape)
-        self.cholesky = SparseCholesky(stiffness, node_size=3)
-        self._unit_halves: dict[int, np.ndarray] = {}  # movable row -> L^-1 P of its unit columns (3 n, 3)
+        self._current = _KeptFactor(SparseCholesky(stiffness, node_size=3))  # at the body's moduli
+        self._stepping = self._current  # the global step's: at the moduli before the last change
+
+    @property
+    def size(self) -> int:
+        """Movable dofs."""
+        return self._current.cholesky.size
 
     def _values(self, config: SimulatorConfig) -> np.ndarray:
         return config.shear_modulus * self._shear + config.lame_lambda * self._volumetric
 
     def refactor(self, config: SimulatorConfig) -> None:
-        """Numeric factorisation of K0 at `config`'s moduli."""
-        self.cholesky.refactor(self._values(config))
-        self._unit_halves.clear()
+        """K0 at `config`'s moduli for the rest responses from now on; the global step keeps the
+        factor of the moduli before (class doc)."""
+        current = self._current.settle()
+        spare = self._stepping if self._stepping is not current else _KeptFactor(current.cholesky.sibling(None))
+        spare.refactor(self._values(config), background=worker_threads.count() > 1)
+        self._stepping, self._current = current, spare
 
     def solve(self, forces: np.ndarray, held_rows: np.ndarray = _NO_ROWS, sliding_rows: np.ndarray = _NO_ROWS,
-              normals: np.ndarray | None = None) -> np.ndarray:
+              normals: np.ndarray | None = None, stepping: bool = False) -> np.ndarray:
         """K0^-1 forces for forces (3 n,) or (3 n, k), the movable vertices at `held_rows` (of
-        the movable set) held and those at `sliding_rows` not moving along their `normals` (s, 3)."""
-        half = self.cholesky.forward_solve(forces)
-        constraints = self._constraint_halves(held_rows, sliding_rows, normals)
+        the movable set) held and those at `sliding_rows` not moving along their `normals` (s, 3);
+        `stepping`: through the global step's factor (class doc)."""
+        kept = self._stepping if stepping else self._current.settle()
+        half = kept.cholesky.forward_solve(forces)
+        constraints = self._constraint_halves(kept, held_rows, sliding_rows, normals)
         if constraints.shape[1]:
             half = half - constraints @ np.linalg.solve(constraints.T @ constraints, constraints.T @ half)
-        return self.cholesky.back_solve(half)
+        return kept.cholesky.back_solve(half)
 
-    def _constraint_halves(self, held_rows, sliding_rows, normals) -> np.ndarray:
-        """W = L^-1 P E (3 n, 3 h + s): the held vertices' unit columns, then the sliding ones' normals."""
+    def _constraint_halves(self, kept: _KeptFactor, held_rows, sliding_rows, normals) -> np.ndarray:
+        """W = L^-1 P E (3 n, 3 h + s) through `kept`'s factor: the held vertices' unit columns,
+        then the sliding ones' normals."""
         rows = np.concatenate([held_rows, sliding_rows]).astype(np.int64)
-        missing = [int(row) for row in np.unique(rows) if int(row) not in self._unit_halves]
+        unit_halves = kept.unit_halves
+        missing = [int(row) for row in np.unique(rows) if int(row) not in unit_halves]
         if missing:
             dofs = (3 * np.asarray(missing)[:, None] + _DIAGONAL).reshape(-1)
-            units = np.zeros((self.cholesky.size, dofs.size))
+            units = np.zeros((self.size, dofs.size))
             units[dofs, np.arange(dofs.size)] = 1.0
-            halves = self.cholesky.forward_solve(units)
+            halves = kept.cholesky.forward_solve(units)
             for k, row in enumerate(missing):
-                self._unit_halves[row] = np.ascontiguousarray(halves[:, 3 * k:3 * k + 3])
-        columns = [self._unit_halves[int(row)] for row in held_rows]
+                unit_halves[row] = np.ascontiguousarray(halves[:, 3 * k:3 * k + 3])
+        columns = [unit_halves[int(row)] for row in held_rows]
         if sliding_rows.size:
-            columns.append(np.stack([self._unit_halves[int(row)] @ normal
+            columns.append(np.stack([unit_halves[int(row)] @ normal
                                      for row, normal in zip(sliding_rows, normals)], axis=1))
-        while len(self._unit_halves) * 3 * self.cholesky.size * 8 > _UNIT_HALVES_BYTES:
-            del self._unit_halves[next(iter(self._unit_halves))]  # the oldest
-        return np.concatenate(columns, axis=1) if columns else np.zeros((self.cholesky.size, 0))
+        while len(unit_halves) * 3 * self.size * 8 > _UNIT_HALVES_BYTES:
+            del unit_halves[next(iter(unit_halves))]  # the oldest
+        return np.concatenate(columns, axis=1) if columns else np.zeros((self.size, 0))
 
 
 # ---------------------------------------------------------------------- solver strategies
@@ -682,7 +743,7 @@ class VertexBlockDescent(SimulatorSolver):
         energy, volume_ratio, forces = self._energy_and_volume_ratios(state, with_forces=True)
         movable = self.movable_vertices
         sliding_rows, normals = self._sliding_contacts(state[movable], tool_centre, held_mask[movable])
-        step = self.rest_stiffness.solve(forces[movable].reshape(-1), held_rows, sliding_rows, normals)
+        step = self.rest_stiffness.solve(forces[movable].reshape(-1), held_rows, sliding_rows, normals, stepping=True)
         step = step.reshape(-1, 3)
         trial = state.copy()
         for _ in range(_MAX_STEP_HALVINGS):

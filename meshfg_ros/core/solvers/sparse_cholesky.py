@@ -25,7 +25,7 @@ import scipy.sparse
 import pymetis
 
 import meshfg_ros.core.worker_threads as worker_threads
-from meshfg_ros.core.solvers import cholmod_solve
+from meshfg_ros.core.solvers import cholmod_without_gil
 
 __all__ = ["NotPositiveDefiniteError", "SparseCholesky", "nested_dissection"]
 
@@ -93,8 +93,11 @@ class SparseCholesky:
         # cvxopt stores column-major; the lower entries in that order, so a refactor only
         # assigns values to one kept spmatrix (2 ms against 24 ms to build one, organ scale).
         self._lower = lower[np.lexsort((rows[lower], csr.indices[lower]))]
+        # The same lower triangle in compressed columns, for CHOLMOD's factorisation without the GIL.
+        self._rows = rows[self._lower]
+        self._column_starts = np.concatenate([[0], np.cumsum(np.bincount(csr.indices[self._lower], minlength=self.size))])
         cvxopt = _cvxopt()
-        self._matrix = cvxopt.spmatrix(self._values(csr.data), cvxopt.matrix(rows[self._lower]),
+        self._matrix = cvxopt.spmatrix(self._values(csr.data), cvxopt.matrix(self._rows),
                                        cvxopt.matrix(csr.indices[self._lower].astype(np.int64)), (self.size, self.size))
         order = nested_dissection(csr, node_size)
         self._ordering = {} if order is None else {"p": cvxopt.matrix(order.tolist(), tc="i")}
@@ -127,15 +130,21 @@ class SparseCholesky:
                 and np.array_equal(matrix_.indices, self._indices))
 
     def refactor(self, data: np.ndarray) -> None:
-        """Numeric factorisation of the matrix with values `data` on the analysed csr pattern."""
+        """Numeric factorisation of the matrix with values `data` on the analysed csr pattern;
+        through cholmod_without_gil.py where it binds, which releases the GIL (a refactor can run on a
+        thread of its own while Python works on)."""
         if not np.all(np.isfinite(data)):
             raise NotPositiveDefiniteError("Cholesky of a matrix with non-finite entries")
-        try:
-            self._matrix.V = self._values(data)
-            self._numeric = False
-            _cvxopt().cholmod.numeric(self._matrix, self._factor)
-        except ArithmeticError as error:
-            raise NotPositiveDefiniteError(f"Cholesky failed: pivot {error} not positive") from None
+        self._numeric = False
+        if cholmod_without_gil.available():
+            if not cholmod_without_gil.factorize(self._factor, self._column_starts, self._rows, data[self._lower]):
+                raise NotPositiveDefiniteError("Cholesky failed: a pivot is not positive")
+        else:
+            try:
+                self._matrix.V = self._values(data)
+                _cvxopt().cholmod.numeric(self._matrix, self._factor)
+            except ArithmeticError as error:
+                raise NotPositiveDefiniteError(f"Cholesky failed: pivot {error} not positive") from None
         self._numeric = True
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
@@ -156,7 +165,7 @@ class SparseCholesky:
     def _substitutions(self, rhs: np.ndarray, systems: tuple[int, ...]) -> np.ndarray:
         """CHOLMOD's `systems` applied in turn to rhs (n,) or (n, k). The columns are split over
         the worker threads (worker_threads.py), each part one CHOLMOD call without the GIL
-        (cholmod_solve.py): at organ scale (31k dofs) four columns in 24 ms on two threads
+        (cholmod_without_gil.py): at organ scale (31k dofs) four columns in 24 ms on two threads
         against 39 ms in one call. Without that binding, through cvxopt on one thread: its
         sparse solve hands CHOLMOD blocks of columns, where its dense one solves a column at a
         time (two columns in 0.82 of the time of two single solves, three in 0.65)."""
@@ -168,10 +177,10 @@ class SparseCholesky:
         if rhs.size == 0:
             return rhs.copy()
         columns = rhs.reshape(self.size, -1)
-        if cholmod_solve.available():
+        if cholmod_without_gil.available():
             most = columns.shape[1] if self.size >= PARALLEL_MIN_SIZE else 1
             parts = [(self._factor, columns[:, share], systems) for share in worker_threads.ranges(columns.shape[1], most)]
-            return np.hstack(worker_threads.run_parts(cholmod_solve.solve, parts)).reshape(rhs.shape)
+            return np.hstack(worker_threads.run_parts(cholmod_without_gil.solve, parts)).reshape(rhs.shape)
         cvxopt = _cvxopt()
         if columns.shape[1] == 1:
             solution = cvxopt.matrix(columns)
