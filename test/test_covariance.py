@@ -80,6 +80,28 @@ def test_sampled_marginals_are_the_same_for_the_same_seed_and_refactor_on_the_ke
     np.testing.assert_allclose(b, 0.5 * a, rtol=1e-9)
 
 
+@pytest.mark.parametrize("threads", ["1", "2"])
+def test_prepared_draws_give_the_blocks_drawn_on_demand_and_stale_ones_are_not_used(monkeypatch, threads):
+    """Draws prepared ahead through a factor (`prepare`, beside the caller with two worker
+    threads, not at all with one) give the blocks drawn on demand through it; prepared for
+    another seed, or through a factor refactored since, they are not used."""
+    monkeypatch.setenv("MESHFG_WORKER_THREADS", threads)
+    information = _chain_information(DENSE_MAX_DOFS // 3 + 100, seed=4)
+    factor = SparseCholesky(information, node_size=3)
+    on_demand = MarginalCovariance().blocks(information, seed=7, factor=factor)
+    marginals = MarginalCovariance()
+    for prepared_seed in (7, 8):
+        marginals.prepare(factor, seed=prepared_seed)
+        np.testing.assert_allclose(marginals.blocks(information, seed=7, factor=factor), on_demand, rtol=1e-12, atol=0)
+    marginals.prepare(factor, seed=7)
+    nearby = (information + 0.3 * scipy.sparse.diags(information.diagonal())).tocsr()
+    nearby.sort_indices()
+    factor.refactor(nearby.data)  # after the prepared draws have ended: they are of the old values
+    refactored = MarginalCovariance().blocks(information, seed=7, factor=factor)
+    assert not np.allclose(refactored, on_demand, rtol=1e-3)
+    np.testing.assert_allclose(marginals.blocks(information, seed=7, factor=factor), refactored, rtol=1e-12, atol=0)
+
+
 def test_a_matrix_that_is_not_positive_definite_is_refused():
     matrix = -scipy.sparse.identity(6, format="csr")
     with pytest.raises(NotPositiveDefiniteError):

@@ -183,3 +183,25 @@ def test_refactor_without_the_gil_matches_cvxopts_and_lets_python_run(monkeypatc
     through_cvxopt = SparseCholesky(stiffness, node_size=3)
     np.testing.assert_allclose(solution, through_cvxopt.solve(vector), rtol=1e-12, atol=0)
     np.testing.assert_allclose(stiffness @ solution, vector, rtol=1e-9)
+
+
+def test_a_refactor_waits_for_the_solves_reading_the_factor(stiffness):
+    """A refactor begun while another thread reads the factor (`reading`) starts once the
+    reading ends, and counts in `revision`."""
+    factor = SparseCholesky(stiffness)
+    revision = factor.revision
+    refactored = threading.Event()
+
+    def refactor():
+        factor.refactor(2.0 * stiffness.data)
+        refactored.set()
+
+    with factor.reading():
+        refactoring = threading.Thread(target=refactor)
+        refactoring.start()
+        assert not refactored.wait(0.5)  # a few milliseconds' work, held back
+        assert factor.revision == revision
+    refactoring.join()
+    assert factor.revision == revision + 1
+    vector = np.ones(stiffness.shape[0])
+    np.testing.assert_allclose(2.0 * (stiffness @ factor.solve(vector)), vector, rtol=1e-9)

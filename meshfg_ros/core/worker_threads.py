@@ -24,7 +24,7 @@ import threading
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, Sequence, TypeVar
 
-__all__ = ["WorkerThreadsSettingError", "count", "ranges", "run_parts", "split"]
+__all__ = ["Background", "WorkerThreadsSettingError", "count", "ranges", "run_parts", "split", "start_background"]
 
 DEFAULT_MAX_THREADS = 2
 
@@ -117,3 +117,35 @@ def run_parts(function: Callable[..., T], parts: Sequence[tuple]) -> list[T]:
         if error is not None:
             raise error
     return [first] + [future.result() for future in futures]
+
+
+class Background:
+    """function(*args) running on a thread of its own, started by `start_background`."""
+
+    def __init__(self, function: Callable[..., T], args: tuple):
+        self._outcome: tuple | None = None
+        self._thread = threading.Thread(target=self._run, args=(function, args), name="meshfg-background", daemon=True)
+        self._thread.start()
+
+    def _run(self, function, args) -> None:
+        _mark_worker()  # its own splits run in line: the pool stays the caller's
+        try:
+            self._outcome = (function(*args), None)
+        except BaseException as error:  # raised to the caller of result()
+            self._outcome = (None, error)
+
+    def result(self):
+        """The function's value once it has ended; its exception, if it raised one."""
+        self._thread.join()
+        value, error = self._outcome
+        if error is not None:
+            raise error
+        return value
+
+
+def start_background(function: Callable[..., T], *args) -> Background:
+    """Run function(*args) on a thread of its own, beside the caller's work (work the caller
+    needs later, such as a factor for the next step), one part at a time: its run_parts calls
+    run in line, leaving the worker threads to the caller. The work should release the GIL
+    (CHOLMOD through cholmod_without_gil.py) or it only takes turns with the caller."""
+    return Background(function, args)

@@ -844,7 +844,11 @@ class SlidingWindowEstimator:
         graph = self.graph
         key, prior = pending.key, None
         try:
-            posterior = self.marginals.blocks(graph.newest_information(), seed=key, factor=self.solver.state_factor(key))
+            factor = self.solver.state_factor(key)
+            posterior = self.marginals.blocks(graph.newest_information(), seed=key, factor=factor)
+            # The next state borrows this factor unless its block drifts: its draws start now,
+            # to run while the next cloud and prediction are awaited.
+            self.marginals.prepare(factor, seed=key + 1)
         except NotPositiveDefiniteError:
             posterior, clamped = clipped_inverse(graph.newest_vertex_information())
             messages.append("posterior information not positive definite: vertex-conditional covariance"

@@ -36,7 +36,6 @@ threads, no randomness).
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass, replace
 
 import numba
@@ -477,39 +476,27 @@ def _outside_tool(points: np.ndarray, centre: np.ndarray, radius: float) -> np.n
 
 class _KeptFactor:
     """One numeric factor of K0, the unit columns forward-substituted through it (movable row ->
-    L^-1 P of its three unit columns, (3 n, 3)), and the thread that is refactoring it, if any."""
+    L^-1 P of its three unit columns, (3 n, 3)), and its refactor running beside the loop, if any."""
 
     def __init__(self, cholesky: SparseCholesky):
         self.cholesky = cholesky
         self.unit_halves: dict[int, np.ndarray] = {}
-        self._refactoring: threading.Thread | None = None
-        self._error: BaseException | None = None
+        self._refactoring: worker_threads.Background | None = None
 
     def refactor(self, values: np.ndarray, background: bool) -> None:
         """Refactor with `values`, on a thread of its own with `background` (SparseCholesky's
         refactor releases the GIL): `settle` waits for it."""
         self.unit_halves.clear()
-        if not background:
+        if background:
+            self._refactoring = worker_threads.start_background(self.cholesky.refactor, values)
+        else:
             self.cholesky.refactor(values)
-            return
-        self._refactoring = threading.Thread(target=self._refactor, args=(values,), name="meshfg-k0-refactor",
-                                             daemon=True)
-        self._refactoring.start()
-
-    def _refactor(self, values: np.ndarray) -> None:
-        try:
-            self.cholesky.refactor(values)
-        except BaseException as error:  # raised to the caller of settle
-            self._error = error
 
     def settle(self) -> _KeptFactor:
         """This factor once its refactor has ended; its error, if it failed."""
-        if self._refactoring is not None:
-            self._refactoring.join()
-            self._refactoring = None
-        if self._error is not None:
-            error, self._error = self._error, None
-            raise error
+        refactoring, self._refactoring = self._refactoring, None
+        if refactoring is not None:
+            refactoring.result()
         return self
 
 
