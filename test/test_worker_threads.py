@@ -76,6 +76,28 @@ def test_a_worker_splits_no_further_and_one_thread_splits_nothing(two_threads, m
     assert worker_threads.split(list(range(5)), 4) == [[0, 1, 2, 3, 4]]
 
 
+def test_background_work_runs_beside_the_caller_in_line_and_raises_at_its_result(two_threads):
+    """start_background: the function runs on a thread of its own while the caller goes on, its
+    own splits run in line on that thread, and result() gives its value or raises its error."""
+    release = threading.Event()
+
+    def work(value):
+        release.wait(5.0)
+        idents = worker_threads.run_parts(lambda part: threading.get_ident(), [(0,), (1,)])
+        return value, threading.get_ident(), idents
+
+    running = worker_threads.start_background(work, 7)
+    release.set()  # the caller got here while the work waited: it runs beside the caller
+    value, ident, idents = running.result()
+    assert value == 7 and ident != threading.get_ident() and idents == [ident, ident]
+
+    def fail():
+        raise ValueError("the background work failed")
+
+    with pytest.raises(ValueError, match="background work failed"):
+        worker_threads.start_background(fail).result()
+
+
 def test_a_forked_child_splits_on_a_pool_of_its_own(two_threads):
     import os
     import signal

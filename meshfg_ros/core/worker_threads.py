@@ -124,7 +124,9 @@ class Background:
 
     def __init__(self, function: Callable[..., T], args: tuple):
         self._outcome: tuple | None = None
-        self._thread = threading.Thread(target=self._run, args=(function, args), name="meshfg-background", daemon=True)
+        # Not a daemon: the interpreter's exit waits for it (under a second), rather than freeing
+        # a factor that CHOLMOD is still writing.
+        self._thread = threading.Thread(target=self._run, args=(function, args), name="meshfg-background")
         self._thread.start()
 
     def _run(self, function, args) -> None:
