@@ -366,7 +366,8 @@ def _rest_stiffness(mesh, simulator, poisson_ratio: float) -> np.ndarray:
 def test_rest_factor_steps_with_the_factor_of_the_ratio_before(pushed_block, monkeypatch, threads):
     """After a Poisson ratio change the rest responses use K0 at the new ratio and the global
     step K0 at the one before (its refactor on a thread of its own with two worker threads, on
-    the calling thread with one); before any change both are the first ratio's."""
+    the calling thread with one); before any change, and after a restart, both are the current
+    ratio's."""
     monkeypatch.setenv("MESHFG_WORKER_THREADS", threads)
     simulator = ElasticSimulator(pushed_block, SimulatorConfig(youngs_modulus=YOUNGS_MODULUS,
                                                                poisson_ratio=POISSON_RATIO))
@@ -384,6 +385,8 @@ def test_rest_factor_steps_with_the_factor_of_the_ratio_before(pushed_block, mon
     assert_solves(ratios[1], ratios[0])
     simulator.poisson_ratio = ratios[2]
     assert_solves(ratios[2], ratios[1])
+    simulator.restart_rest_factor()  # a new timeline steps as a newly made simulator
+    assert_solves(ratios[2], ratios[2])
 
 
 def test_predictions_do_not_depend_on_where_k0_is_refactored(pushed_block, monkeypatch):
@@ -406,10 +409,11 @@ def test_predictions_do_not_depend_on_where_k0_is_refactored(pushed_block, monke
     np.testing.assert_allclose(runs[0], runs[1], rtol=0, atol=1e-12)
 
 
-def test_a_failed_background_refactor_is_raised_where_its_factor_is_needed(pushed_block, monkeypatch):
-    """A refactor that fails on its own thread raises at the next use of the current factor,
-    and the global step's factor (the ratio before) still solves."""
-    monkeypatch.setenv("MESHFG_WORKER_THREADS", "2")
+@pytest.mark.parametrize("threads", ["1", "2"])
+def test_a_failed_refactor_is_raised_where_its_factor_is_needed(pushed_block, monkeypatch, threads):
+    """A refactor that fails, on its own thread or in line, raises at the next use of the
+    current factor, and the global step's factor (the ratio before) still solves."""
+    monkeypatch.setenv("MESHFG_WORKER_THREADS", threads)
     simulator = ElasticSimulator(pushed_block, SimulatorConfig(youngs_modulus=YOUNGS_MODULUS,
                                                                poisson_ratio=POISSON_RATIO))
     factor = simulator.solver.rest_stiffness

@@ -1,6 +1,8 @@
 """SparseCholesky: CHOLMOD factor with the symbolic analysis kept across numeric refactors."""
 
+import sys
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -163,24 +165,58 @@ def test_nested_dissection_fills_less_than_amd():
     assert fill_metis < 0.9 * fill_amd
 
 
+def _python_passes_during_a_factorisation(factor, data, module, name, monkeypatch) -> int:
+    """Passes of a Python loop on this thread while another thread is inside module.name, the
+    C factorisation `factor.refactor(data)` calls. Threads hand over the GIL only where one
+    blocks or releases it (the switch interval set beyond the test's length; each pass sleeps
+    for 0 s, so that the other takes the GIL back when its call returns), so a factorisation
+    that holds the GIL leaves none."""
+    entered, left = threading.Event(), threading.Event()
+    original = getattr(module, name)
+
+    def factorisation(*args):
+        entered.set()
+        try:
+            return original(*args)
+        finally:
+            left.set()
+
+    monkeypatch.setattr(module, name, factorisation)
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(100.0)
+    try:
+        refactoring = threading.Thread(target=factor.refactor, args=(data,))
+        refactoring.start()
+        entered.wait()
+        passes = 0
+        while not left.is_set():
+            passes += 1
+            time.sleep(0.0)
+        refactoring.join()
+    finally:
+        sys.setswitchinterval(interval)
+        monkeypatch.setattr(module, name, original)
+    return passes
+
+
 def test_refactor_without_the_gil_matches_cvxopts_and_lets_python_run(monkeypatch):
     """Refactored through cholmod_without_gil (CHOLMOD's factorisation without the GIL), a factor
-    solves as one refactored through cvxopt does, and another thread runs Python meanwhile."""
+    solves as one refactored through cvxopt does, and another thread runs Python meanwhile,
+    which cvxopt's factorisation does not let it."""
     if not cholmod_without_gil.available():
         pytest.skip("CHOLMOD cannot be bound here: refactors go through cvxopt")
+    import cvxopt.cholmod
+
     stiffness = box_stiffness(3000)
     vector = np.random.default_rng(2).normal(size=stiffness.shape[0])
     factor = SparseCholesky(stiffness, node_size=3, numeric=False)
-    passes = 0
-    refactoring = threading.Thread(target=factor.refactor, args=(stiffness.data,))
-    refactoring.start()
-    while refactoring.is_alive():
-        passes += 1
-    refactoring.join()
-    assert passes > 100  # a factorisation that held the GIL would leave this thread a pass or two
+    assert _python_passes_during_a_factorisation(factor, stiffness.data, cholmod_without_gil, "factorize",
+                                                 monkeypatch) > 0
     solution = factor.solve(vector)
     monkeypatch.setattr(cholmod_without_gil, "available", lambda: False)
     through_cvxopt = SparseCholesky(stiffness, node_size=3)
+    assert _python_passes_during_a_factorisation(through_cvxopt, stiffness.data, cvxopt.cholmod, "numeric",
+                                                 monkeypatch) == 0
     np.testing.assert_allclose(solution, through_cvxopt.solve(vector), rtol=1e-12, atol=0)
     np.testing.assert_allclose(stiffness @ solution, vector, rtol=1e-9)
 

@@ -10,9 +10,10 @@ each core an update slows in proportion to the CPU it gets (`meshfg bench` measu
 is unlike a threaded BLAS, which meets all its threads at every supernode (blas.py).
 
 `MESHFG_WORKER_THREADS` sets how many threads split such work, the calling thread included:
-1 computes everything on the calling thread. With more than one, the simulator also makes the
-stiffness factor of a newly learnt Poisson ratio on a thread of its own (core/physics/simulator.py,
-RestFactor). The default is the number of cores the process
+1 computes everything on the calling thread. With more than one, work needed only later also
+runs beside the caller (`start_background`): the simulator's stiffness factor of a newly learnt
+Poisson ratio (core/physics/simulator.py, RestFactor) and the next update's covariance draws
+(core/estimation/covariance.py). The default is the number of cores the process
 may run on, at most 2 (on this package's 2-core target the estimator and the simulator take
 turns, so both cores serve whichever computes).
 """
@@ -21,10 +22,10 @@ from __future__ import annotations
 
 import os
 import threading
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Callable, Sequence, TypeVar
 
-__all__ = ["Background", "WorkerThreadsSettingError", "count", "ranges", "run_parts", "split", "start_background"]
+__all__ = ["WorkerThreadsSettingError", "count", "ranges", "run_parts", "split", "start_background"]
 
 DEFAULT_MAX_THREADS = 2
 
@@ -33,6 +34,7 @@ T = TypeVar("T")
 _usable_cores: int | None = None  # the cores the process may use, read at the first count()
 _pool: ThreadPoolExecutor | None = None
 _pool_workers = 0
+_background: ThreadPoolExecutor | None = None  # start_background's thread
 _pool_lock = threading.Lock()
 _local = threading.local()
 
@@ -93,10 +95,11 @@ def _mark_worker() -> None:
 
 
 def _forget_pool() -> None:
-    """In a forked child: the parent's pool threads do not exist there, so a new pool is made
-    at the child's first split instead of waiting on them (and its cores are read again)."""
-    global _pool, _pool_workers, _pool_lock, _usable_cores
-    _pool, _pool_workers, _pool_lock, _usable_cores = None, 0, threading.Lock(), None
+    """In a forked child: the parent's pool and background threads do not exist there, so new
+    ones are made at the child's first use instead of waiting on them (and its cores are read
+    again)."""
+    global _pool, _pool_workers, _pool_lock, _usable_cores, _background
+    _pool, _pool_workers, _pool_lock, _usable_cores, _background = None, 0, threading.Lock(), None, None
 
 
 os.register_at_fork(after_in_child=_forget_pool)
@@ -119,35 +122,17 @@ def run_parts(function: Callable[..., T], parts: Sequence[tuple]) -> list[T]:
     return [first] + [future.result() for future in futures]
 
 
-class Background:
-    """function(*args) running on a thread of its own, started by `start_background`."""
-
-    def __init__(self, function: Callable[..., T], args: tuple):
-        self._outcome: tuple | None = None
-        # Not a daemon: the interpreter's exit waits for it (under a second), rather than freeing
-        # a factor that CHOLMOD is still writing.
-        self._thread = threading.Thread(target=self._run, args=(function, args), name="meshfg-background")
-        self._thread.start()
-
-    def _run(self, function, args) -> None:
-        _mark_worker()  # its own splits run in line: the pool stays the caller's
-        try:
-            self._outcome = (function(*args), None)
-        except BaseException as error:  # raised to the caller of result()
-            self._outcome = (None, error)
-
-    def result(self):
-        """The function's value once it has ended; its exception, if it raised one."""
-        self._thread.join()
-        value, error = self._outcome
-        if error is not None:
-            raise error
-        return value
-
-
-def start_background(function: Callable[..., T], *args) -> Background:
-    """Run function(*args) on a thread of its own, beside the caller's work (work the caller
-    needs later, such as a factor for the next step), one part at a time: its run_parts calls
-    run in line, leaving the worker threads to the caller. The work should release the GIL
-    (CHOLMOD through cholmod_without_gil.py) or it only takes turns with the caller."""
-    return Background(function, args)
+def start_background(function: Callable[..., T], *args) -> Future:
+    """Run function(*args) beside the caller, on the process's background thread (work the
+    caller needs later, such as a factor for the next step); its `result()` waits for it and
+    gives its value or raises its exception. One thread, made once and blocking on its queue
+    between tasks, takes them in turn: CHOLMOD keeps workspace in each thread's cholmod_common,
+    so a thread per task would leave it behind. Its own splits run in line, leaving the worker
+    threads to the caller. The work should release the GIL (CHOLMOD through
+    cholmod_without_gil.py), or it only takes turns with the caller."""
+    global _background
+    with _pool_lock:
+        if _background is None:
+            _background = ThreadPoolExecutor(max_workers=1, thread_name_prefix="meshfg-background",
+                                             initializer=_mark_worker)
+        return _background.submit(function, *args)

@@ -39,8 +39,9 @@ and a fresh factor would cost about 0.1 s of an update at 5,000 vertices and 0.3
 The next state borrows the same factor while its block stays close, so the draws of the next
 update are made beside the caller as soon as this one's are taken (`MarginalCovariance.prepare`),
 while the estimator waits for its next cloud: at organ scale the covariance then takes about
-17 ms of an update instead of 45 (the draws' solves). Prepared or not, the draws are one CHOLMOD
-call on one thread, so that both give the same numbers.
+17 ms of an update instead of 45 (the draws' solves). Prepared or not, the draws are made on
+the background thread, their columns in the same CHOLMOD calls, so that both give the same
+numbers.
 
 lambda^2, the prior's real error relative to its model, is learnt from the innovation: the
 distances d_k of a cloud's points to the predicted surface, each with the model's variance
@@ -69,6 +70,7 @@ from scipy.stats import chi2
 
 import meshfg_ros.core.worker_threads as worker_threads
 from meshfg_ros.core.inputs.input_checks import innovation_spread
+from meshfg_ros.core.solvers import cholmod_without_gil
 from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError
 from meshfg_ros.core.solvers.sparse_cholesky import SparseCholesky
 from meshfg_ros.core.estimation.weights import MIN_POINTS
@@ -113,10 +115,11 @@ class MarginalCovariance:
         borrows in turn. `blocks` uses them only if they were made for its factor, unchanged
         since (SparseCholesky.revision), and its seed; a refactor waits for them to end."""
         self._prepared = None
-        if factor is None or factor.size <= DENSE_MAX_DOFS or worker_threads.count() < 2:
+        if (factor is None or factor.size <= DENSE_MAX_DOFS or worker_threads.count() < 2
+                or not cholmod_without_gil.available()):
             return
-        draws = worker_threads.start_background(self._draw_through, factor, seed)
-        self._prepared = (factor, factor.revision, seed, draws)
+        revision = factor.revision
+        self._prepared = (factor, revision, seed, worker_threads.start_background(self._draw_through, factor, seed))
 
     def blocks(self, information: scipy.sparse.csr_matrix, seed: int = 0,
                factor: SparseCholesky | None = None) -> np.ndarray:
@@ -144,18 +147,23 @@ class MarginalCovariance:
         vertices = draws.reshape(size // 3, 3, self.samples)
         return np.einsum("vis,vjs->vij", vertices, vertices) / self.samples
 
-
     def _draws(self, factor: SparseCholesky, seed: int) -> np.ndarray:
         """x = P^T L^-T z (size, samples) through `factor`, z ~ N(0, I) seeded by `seed`: the
-        prepared ones where they match (`prepare`), else drawn now the same way, in one CHOLMOD
-        call on one thread (beside the caller, which waits), so that both give the same numbers."""
+        prepared ones where they match (`prepare`; others, and whatever they met, are left), else
+        drawn now the same way, on the background thread, whose solves take their columns in the
+        same calls, so that both give the same numbers."""
         prepared, self._prepared = self._prepared, None
         if prepared is not None:
             prepared_factor, revision, prepared_seed, draws = prepared
-            result = draws.result()
-            if prepared_factor is factor and revision == factor.revision and prepared_seed == seed:
-                return result
-        if worker_threads.count() < 2:
+            if prepared_factor is factor and prepared_seed == seed:
+                try:
+                    result = draws.result()
+                except NotPositiveDefiniteError:  # through a failed factor that may be refactored since
+                    result = None
+                # The revision read once they ended: a refactor waits for them.
+                if result is not None and revision == factor.revision:
+                    return result
+        if worker_threads.count() < 2 or not cholmod_without_gil.available():  # never prepared
             return self._draw_through(factor, seed)
         return worker_threads.start_background(self._draw_through, factor, seed).result()
 

@@ -57,14 +57,16 @@ class LearningSimulator:
         return self.elastic.predict(previous_state, tool_pose, dt)
 
     def reset(self, tool_pose: np.ndarray) -> None:
-        """Start again with the tool at `tool_pose` and forget what was learnt: a new timeline
-        starts from the initial mesh, and after a failed prediction the learnt load may be what
-        failed (kept, every later prediction could fail alike)."""
+        """Start again with the tool at `tool_pose` and forget what was learnt, predicting as a
+        newly made simulator would: a new timeline starts from the initial mesh, and after a
+        failed prediction the learnt load may be what failed (kept, every later prediction
+        could fail alike)."""
         self.elastic.reset(tool_pose)
         if self.body_load is not None:
             self.body_load.reset()
         if self.poisson_ratio_estimate is not None:
             self.poisson_ratio_estimate.reset()
+        self.elastic.restart_rest_factor()
 
     def learn(self, predicted: np.ndarray, estimate: np.ndarray, position_std: np.ndarray | None) -> None:
         """Fit the body load's and the Poisson ratio's increments to the correction `estimate` -

@@ -12,7 +12,8 @@ API; how a sub-step moves the tissue is a strategy chosen by SimulatorConfig.sol
     with SPD Hessian V (mu |g|^2 I + lambda' (cof F g)(cof F g)^T): each block solve is exact,
     never raises the energy, and the largest move keeping every incident volume positive is
     closed-form (J is affine along the move). Each iteration is one coloured vertex sweep, then
-    a quasi-Newton step with the rest Hessian K0 (factorised once; constrained at the tool) for
+    a quasi-Newton step with the rest Hessian K0 (factorised once per Poisson ratio, the step
+    one ratio behind: RestFactor; constrained at the tool) for
     the smooth, global error that Gauss-Seidel alone removes in O(n^2) sweeps. The fixed point
     is the true equilibrium whatever the iteration count.
 "xpbd" (`ExtendedPositionBasedDynamics`, Macklin et al. 2016): damped dynamics; per
@@ -36,6 +37,7 @@ threads, no randomness).
 
 from __future__ import annotations
 
+from concurrent.futures import Future
 from dataclasses import dataclass, replace
 
 import numba
@@ -47,7 +49,8 @@ from scipy.spatial.transform import Rotation, Slerp
 import meshfg_ros.core.worker_threads as worker_threads
 from meshfg_ros.core.physics.fem import ElasticModel
 from meshfg_ros.core.geometry.kernel_types import read_only, writable
-from meshfg_ros.core.solvers.sparse_cholesky import SparseCholesky
+from meshfg_ros.core.solvers import cholmod_without_gil
+from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError, SparseCholesky
 from meshfg_ros.core.geometry.mesh import TetMesh, name_elements, signed_volumes
 from meshfg_ros.core.inputs.pose_history import InvalidPoseError, as_pose
 from meshfg_ros.core.physics.tissue_and_tool import TissueAndTool
@@ -476,21 +479,26 @@ def _outside_tool(points: np.ndarray, centre: np.ndarray, radius: float) -> np.n
 
 class _KeptFactor:
     """One numeric factor of K0, the unit columns forward-substituted through it (movable row ->
-    L^-1 P of its three unit columns, (3 n, 3)), and its refactor running beside the loop, if any."""
+    L^-1 P of its three unit columns, (3 n, 3)), and its refactor: running beside the loop, or
+    ended in line with the error it met, if any."""
 
     def __init__(self, cholesky: SparseCholesky):
         self.cholesky = cholesky
         self.unit_halves: dict[int, np.ndarray] = {}
-        self._refactoring: worker_threads.Background | None = None
+        self._refactoring: Future | None = None
 
     def refactor(self, values: np.ndarray, background: bool) -> None:
-        """Refactor with `values`, on a thread of its own with `background` (SparseCholesky's
-        refactor releases the GIL): `settle` waits for it."""
+        """Refactor with `values`, beside the caller with `background` (SparseCholesky's refactor
+        releases the GIL), else now; either way a failure is raised by `settle`."""
         self.unit_halves.clear()
         if background:
             self._refactoring = worker_threads.start_background(self.cholesky.refactor, values)
-        else:
-            self.cholesky.refactor(values)
+            return
+        self._refactoring = Future()
+        try:
+            self._refactoring.set_result(self.cholesky.refactor(values))
+        except NotPositiveDefiniteError as error:
+            self._refactoring.set_exception(error)
 
     def settle(self) -> _KeptFactor:
         """This factor once its refactor has ended; its error, if it failed."""
@@ -555,8 +563,13 @@ class RestFactor:
         factor of the moduli before (class doc)."""
         current = self._current.settle()
         spare = self._stepping if self._stepping is not current else _KeptFactor(current.cholesky.sibling(None))
-        spare.refactor(self._values(config), background=worker_threads.count() > 1)
         self._stepping, self._current = current, spare
+        spare.refactor(self._values(config), background=worker_threads.count() > 1 and cholmod_without_gil.available())
+
+    def catch_up(self) -> None:
+        """The global step from now on through the factor of the current moduli too (waiting for
+        it): the next prediction steps as a newly made simulator's would."""
+        self._stepping = self._current.settle()
 
     def solve(self, forces: np.ndarray, held_rows: np.ndarray = _NO_ROWS, sliding_rows: np.ndarray = _NO_ROWS,
               normals: np.ndarray | None = None, stepping: bool = False) -> np.ndarray:
@@ -721,6 +734,8 @@ class VertexBlockDescent(SimulatorSolver):
 
     def _global_step(self, state, tool_centre, held_mask, held_rows) -> None:
         """Quasi-Newton step with the rest Hessian K0, in place: the smooth, global part of the error.
+        K0 is the factor of the Poisson ratio before the last change (RestFactor), a metric
+        only: the line search below judges the step with the energy at the current moduli.
 
         Held vertices (`held_rows` of the movable ones) do not move and other vertices touching
         the tool may only slide along it: the step is constrained through a Schur complement on
@@ -1025,6 +1040,13 @@ class ElasticSimulator:
     def stuck_vertices(self) -> np.ndarray:
         """Vertices stuck to the tool at the end of the last prediction (stick contact)."""
         return self._stuck.copy()
+
+    def restart_rest_factor(self) -> None:
+        """Predict from now on as a newly made simulator at the current moduli would: the global
+        step leaves the factor of the Poisson ratio before the last change (RestFactor) for the
+        current one. A new timeline (LearningSimulator.reset) starts so."""
+        if self.solver.rest_stiffness is not None:
+            self.solver.rest_stiffness.catch_up()
 
     def rest_response(self, forces: np.ndarray, held: np.ndarray | None = None) -> np.ndarray:
         """Displacements K0^-1 f of the movable dofs under forces (3 n,) or (3 n, k) on them, the

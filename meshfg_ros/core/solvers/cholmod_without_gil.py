@@ -25,7 +25,7 @@ import threading
 
 import numpy as np
 
-__all__ = ["available", "solve"]
+__all__ = ["available", "factorize", "solve"]
 
 # cholmod_common is a C struct of about 2 KB in CHOLMOD 3; its size is not exported, so each
 # thread's is given room to spare.
@@ -105,7 +105,7 @@ def _bind() -> bool:
 
 
 def available() -> bool:
-    """Whether CHOLMOD's solve can be called without the GIL here."""
+    """Whether CHOLMOD's solve and factorisation can be called without the GIL here."""
     return _bound if _bound is not None else _bind()
 
 
