@@ -39,7 +39,7 @@ and a fresh factor would cost about 0.1 s of an update at 5,000 vertices and 0.3
 The next state borrows the same factor while its block stays close, so the draws of the next
 update are made beside the caller as soon as this one's are taken (`MarginalCovariance.prepare`),
 while the estimator waits for its next cloud: at organ scale the covariance then takes about
-17 ms of an update instead of 45 (the draws' solves). Prepared or not, the draws are made on
+17 ms of an update instead of 40-45 (the draws' solves). Prepared or not, the draws are made on
 the background thread, their columns in the same CHOLMOD calls, so that both give the same
 numbers.
 
