@@ -76,9 +76,10 @@ def test_a_worker_splits_no_further_and_one_thread_splits_nothing(two_threads, m
     assert worker_threads.split(list(range(5)), 4) == [[0, 1, 2, 3, 4]]
 
 
-def test_background_work_runs_beside_the_caller_in_line_and_raises_at_its_result(two_threads):
+def test_background_work_runs_beside_the_caller_in_line_and_raises_at_its_result(two_threads, monkeypatch):
     """start_background: the function runs on a thread of its own while the caller goes on, its
-    own splits run in line on that thread, and result() gives its value or raises its error."""
+    own splits run in line on that thread, and result() gives its value or raises its error;
+    with one worker thread it runs on the calling thread, its error still raised by result()."""
     release = threading.Event()
 
     def work(value):
@@ -96,6 +97,11 @@ def test_background_work_runs_beside_the_caller_in_line_and_raises_at_its_result
 
     with pytest.raises(ValueError, match="background work failed"):
         worker_threads.start_background(fail).result()
+    monkeypatch.setenv("MESHFG_WORKER_THREADS", "1")  # one thread: now, on the caller's
+    assert worker_threads.start_background(threading.get_ident).result() == threading.get_ident()
+    failed = worker_threads.start_background(fail)  # raised by result(), not by the call
+    with pytest.raises(ValueError, match="background work failed"):
+        failed.result()
 
 
 def test_a_forked_child_splits_on_a_pool_of_its_own(two_threads):

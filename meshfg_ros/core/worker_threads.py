@@ -125,12 +125,20 @@ def run_parts(function: Callable[..., T], parts: Sequence[tuple]) -> list[T]:
 def start_background(function: Callable[..., T], *args) -> Future:
     """Run function(*args) beside the caller, on the process's background thread (work the
     caller needs later, such as a factor for the next step); its `result()` waits for it and
-    gives its value or raises its exception. One thread, made once and blocking on its queue
-    between tasks, takes them in turn: CHOLMOD keeps workspace in each thread's cholmod_common,
-    so a thread per task would leave it behind. Its own splits run in line, leaving the worker
-    threads to the caller. The work should release the GIL (CHOLMOD through
-    cholmod_without_gil.py), or it only takes turns with the caller."""
+    gives its value or raises its exception. With one worker thread it runs now, on the
+    calling thread. One thread, made once and blocking on its queue between tasks, takes them
+    in turn: CHOLMOD keeps workspace in each thread's cholmod_common, so a thread per task
+    would leave it behind. Its own splits run in line, leaving the worker threads to the
+    caller. The work should release the GIL (CHOLMOD through cholmod_without_gil.py), or it
+    only takes turns with the caller."""
     global _background
+    if count() < 2:
+        done = Future()
+        try:
+            done.set_result(function(*args))
+        except Exception as error:  # raised by result(), as from the background thread
+            done.set_exception(error)
+        return done
     with _pool_lock:
         if _background is None:
             _background = ThreadPoolExecutor(max_workers=1, thread_name_prefix="meshfg-background",

@@ -70,7 +70,6 @@ from scipy.stats import chi2
 
 import meshfg_ros.core.worker_threads as worker_threads
 from meshfg_ros.core.inputs.input_checks import innovation_spread
-from meshfg_ros.core.solvers import cholmod_without_gil
 from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError
 from meshfg_ros.core.solvers.sparse_cholesky import SparseCholesky
 from meshfg_ros.core.estimation.weights import MIN_POINTS
@@ -115,8 +114,7 @@ class MarginalCovariance:
         borrows in turn. `blocks` uses them only if they were made for its factor, unchanged
         since (SparseCholesky.revision), and its seed; a refactor waits for them to end."""
         self._prepared = None
-        if (factor is None or factor.size <= DENSE_MAX_DOFS or worker_threads.count() < 2
-                or not cholmod_without_gil.available()):
+        if factor is None or factor.size <= DENSE_MAX_DOFS or worker_threads.count() < 2:  # nothing to gain
             return
         revision = factor.revision
         self._prepared = (factor, revision, seed, worker_threads.start_background(self._draw_through, factor, seed))
@@ -150,8 +148,8 @@ class MarginalCovariance:
     def _draws(self, factor: SparseCholesky, seed: int) -> np.ndarray:
         """x = P^T L^-T z (size, samples) through `factor`, z ~ N(0, I) seeded by `seed`: the
         prepared ones where they match (`prepare`; others, and whatever they met, are left), else
-        drawn now the same way, on the background thread, whose solves take their columns in the
-        same calls, so that both give the same numbers."""
+        drawn now the same way (start_background: on the background thread, whose solves take
+        their columns in the same calls), so that both give the same numbers."""
         prepared, self._prepared = self._prepared, None
         if prepared is not None:
             prepared_factor, revision, prepared_seed, draws = prepared
@@ -163,8 +161,6 @@ class MarginalCovariance:
                 # The revision read once they ended: a refactor waits for them.
                 if result is not None and revision == factor.revision:
                     return result
-        if worker_threads.count() < 2 or not cholmod_without_gil.available():  # never prepared
-            return self._draw_through(factor, seed)
         return worker_threads.start_background(self._draw_through, factor, seed).result()
 
     def _draw_through(self, factor: SparseCholesky, seed: int) -> np.ndarray:

@@ -49,8 +49,7 @@ from scipy.spatial.transform import Rotation, Slerp
 import meshfg_ros.core.worker_threads as worker_threads
 from meshfg_ros.core.physics.fem import ElasticModel
 from meshfg_ros.core.geometry.kernel_types import read_only, writable
-from meshfg_ros.core.solvers import cholmod_without_gil
-from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError, SparseCholesky
+from meshfg_ros.core.solvers.sparse_cholesky import SparseCholesky
 from meshfg_ros.core.geometry.mesh import TetMesh, name_elements, signed_volumes
 from meshfg_ros.core.inputs.pose_history import InvalidPoseError, as_pose
 from meshfg_ros.core.physics.tissue_and_tool import TissueAndTool
@@ -479,26 +478,20 @@ def _outside_tool(points: np.ndarray, centre: np.ndarray, radius: float) -> np.n
 
 class _KeptFactor:
     """One numeric factor of K0, the unit columns forward-substituted through it (movable row ->
-    L^-1 P of its three unit columns, (3 n, 3)), and its refactor: running beside the loop, or
-    ended in line with the error it met, if any."""
+    L^-1 P of its three unit columns, (3 n, 3)), and its last refactor (running beside the
+    loop, or ended, with what it met)."""
 
     def __init__(self, cholesky: SparseCholesky):
         self.cholesky = cholesky
         self.unit_halves: dict[int, np.ndarray] = {}
-        self._refactoring: Future | None = None
+        self._refactoring: Future | None = None  # start_background's
 
-    def refactor(self, values: np.ndarray, background: bool) -> None:
-        """Refactor with `values`, beside the caller with `background` (SparseCholesky's refactor
-        releases the GIL), else now; either way a failure is raised by `settle`."""
+    def refactor(self, values: np.ndarray) -> None:
+        """Refactor with `values` beside the caller (worker_threads.start_background: in line
+        with one worker thread; SparseCholesky's refactor releases the GIL); `settle` waits for
+        it and raises what it met."""
         self.unit_halves.clear()
-        if background:
-            self._refactoring = worker_threads.start_background(self.cholesky.refactor, values)
-            return
-        self._refactoring = Future()
-        try:
-            self._refactoring.set_result(self.cholesky.refactor(values))
-        except NotPositiveDefiniteError as error:
-            self._refactoring.set_exception(error)
+        self._refactoring = worker_threads.start_background(self.cholesky.refactor, values)
 
     def settle(self) -> _KeptFactor:
         """This factor once its refactor has ended; its error, if it failed."""
@@ -564,7 +557,7 @@ class RestFactor:
         current = self._current.settle()
         spare = self._stepping if self._stepping is not current else _KeptFactor(current.cholesky.sibling(None))
         self._stepping, self._current = current, spare
-        spare.refactor(self._values(config), background=worker_threads.count() > 1 and cholmod_without_gil.available())
+        spare.refactor(self._values(config))
 
     def catch_up(self) -> None:
         """The global step from now on through the factor of the current moduli too (waiting for
