@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import scipy.optimize
 import scipy.sparse
+import scipy.sparse.linalg
 
 from meshfg_ros.benchmarks.baselines import compare_single_update
 from meshfg_ros.core.estimation.factor_graph import MIN_VOLUME_RATIO_PER_STEP, FactorGraph
@@ -294,12 +295,37 @@ def test_block_factors_are_refreshed_by_revision_and_drift(cube, model):  # noqa
     damped = system.with_added_diagonal(1e-4 * system.diagonal())
     assert pcg.solve(damped, rhs)[1].factorizations == 0
     blocks = list(system.blocks)
-    blocks[0] = blocks[0] * 1.5
+    blocks[0] = blocks[0] + scipy.sparse.diags(blocks[0].diagonal())  # not a multiple of the block
     relinearized = WindowSystem(blocks, system.couplings, system.keys, system.diagonal_index,
                                 system.coupling_diagonal, revisions=["new"] + system.revisions[1:])
     x, stats = pcg.solve(relinearized, rhs)
     assert stats.factorizations == 1
     np.testing.assert_allclose(relinearized.matvec(x), rhs, rtol=1e-8, atol=1e-8 * np.abs(rhs).max())
+
+
+def test_a_scaled_block_keeps_its_factor_and_is_solved_through_it(cube, model):  # noqa: F811
+    """A window that is a multiple c of the one its factors were made from (a new noise
+    estimate weighs whole blocks) keeps the factors, which serve it divided by c: PCG takes
+    the iterations it took on the unscaled window, and the decrement of one state's block,
+    exact through its own factor, stays exact."""
+    system, rhs = window_system(cube, model)
+    newest = np.array([len(system.keys) - 1])
+    single, part = system.restricted(newest), system.split(rhs)[-1]
+    pcg, one_state = PCGSolver(tolerance=1e-10, preconditioner="block"), PCGSolver(preconditioner="block")
+    _, first = pcg.solve(system, rhs)
+    exact = 0.5 * float(part @ scipy.sparse.linalg.spsolve(single.to_csr().tocsc(), part))
+    assert one_state.decrement(single, part) == pytest.approx(exact, rel=1e-9)
+    for scale in (4.0, 0.01):
+        scaled = WindowSystem([block * scale for block in system.blocks], system.couplings * scale, system.keys,
+                              system.diagonal_index, system.coupling_diagonal * scale,
+                              revisions=[f"scaled {scale}"] * len(system.keys))
+        np.testing.assert_allclose(scaled.to_csr().toarray(), scale * system.to_csr().toarray(), rtol=1e-12,
+                                   atol=1e-12 * scale * abs(system.to_csr()).max())
+        x, stats = pcg.solve(scaled, rhs)
+        assert stats.factorizations == 0 and stats.iterations == first.iterations
+        np.testing.assert_allclose(scaled.matvec(x), rhs, rtol=1e-8, atol=1e-8 * np.abs(rhs).max())
+        assert one_state.decrement(scaled.restricted(newest), part) == pytest.approx(exact / scale, rel=1e-9)
+    assert one_state.factorizations == 1
 
 
 @pytest.mark.parametrize("reserved", [0, 3])

@@ -133,36 +133,52 @@ class SuperLUSolver(LinearSolver):
 
 
 class _BlockFactor:
-    """A state block's cached Cholesky factor and the block values it was made from.
+    """A state block's cached Cholesky factor and the block values R it was made from.
 
-    `change` is the relative Frobenius distance of a block to those values. Blocks of one
-    revision (WindowSystem.revisions) differ only on the diagonal, so the off-diagonal part of
-    the distance is computed once per revision and the diagonal (1/36 of the entries) per call.
+    `fit` gives the multiple c of R closest to a block B (least squares) and B's relative
+    distance to c R. A factor of R serves c R exactly once its solves are divided by c, and
+    whole blocks scale so: the estimated measurement sigma weighs the prior too (the prior's
+    sigma is a tenth of it), so a new noise estimate scales a state's block and nothing else.
+    Blocks of one revision (WindowSystem.revisions) differ only on the diagonal, so the
+    off-diagonal parts of <B, R> and |B|^2 are computed once per revision and the diagonal's
+    (1/36 of the entries) per call.
     """
 
-    def __init__(self, factor: SparseCholesky, reference: np.ndarray, revision, borrowed: bool = False):
+    def __init__(self, factor: SparseCholesky, reference: np.ndarray, diagonal_index: np.ndarray, revision,
+                 borrowed: bool = False):
         self.factor = factor
         self.reference = reference
-        self.reference_norm = max(float(np.linalg.norm(reference)), 1e-300)
-        self.seen_revision = revision    # the revision off_diagonal_squared was computed for
-        self.off_diagonal_squared = 0.0
+        self.diagonal_index = diagonal_index
+        self.reference_squared = max(float(reference @ reference), 1e-300)
+        # (<B, R>, |B|^2) over the off-diagonal entries for blocks of revision seen_revision
+        # (B = R for the revision the factor was made from)
+        self.seen_revision = revision
+        off_diagonal_squared = self.reference_squared - float(np.sum(reference[diagonal_index] ** 2))
+        self.off_diagonal = (off_diagonal_squared, off_diagonal_squared)
         self.borrowed = borrowed         # another state's factor (PCGSolver: borrowing)
 
     def lent(self) -> _BlockFactor:
         """This factor, borrowed by a state that has none."""
-        return _BlockFactor(self.factor, self.reference, None, borrowed=True)
+        return _BlockFactor(self.factor, self.reference, self.diagonal_index, None, borrowed=True)
 
-    def change(self, system: WindowSystem, t: int) -> float:
-        """Relative distance of block t of `system` to the values this factor was made from."""
+    def fit(self, system: WindowSystem, t: int) -> tuple[float, float]:
+        """(c, distance) for block t of `system`: c = <B, R> / |R|^2 and |B - c R| / |B|."""
         if system.pattern.data.shape != self.reference.shape:
-            return np.inf
+            return 1.0, np.inf
         diagonal_index, revision = system.diagonal_index, system.revisions[t]
-        diagonal_squared = float(np.sum((system.block_diagonal(t) - self.reference[diagonal_index]) ** 2))
+        diagonal = system.block_diagonal(t)
+        reference_diagonal = self.reference[diagonal_index]
+        diagonal_product, diagonal_squared = float(diagonal @ reference_diagonal), float(diagonal @ diagonal)
         if revision is None or revision != self.seen_revision:
             data = system.block_data(t)
-            self.off_diagonal_squared = max(float(np.sum((data - self.reference) ** 2)) - diagonal_squared, 0.0)
+            self.off_diagonal = (float(data @ self.reference) - diagonal_product, float(data @ data) - diagonal_squared)
             self.seen_revision = revision
-        return np.sqrt(self.off_diagonal_squared + diagonal_squared) / self.reference_norm
+        product = self.off_diagonal[0] + diagonal_product
+        squared = max(self.off_diagonal[1] + diagonal_squared, 1e-300)
+        scale = product / self.reference_squared
+        if not scale > 0.0:
+            return 1.0, np.inf
+        return scale, float(np.sqrt(max(squared - product * scale, 0.0) / squared))
 
 
 class PCGSolver(LinearSolver):
@@ -171,8 +187,9 @@ class PCGSolver(LinearSolver):
     Preconditioners (`preconditioner`):
       "block"   block Jacobi over the time steps: each state's block Cholesky-factored
                 (sparse_cholesky.py) and cached by its key, refreshed when the block drifts by
-                more than `refresh_change` (relative Frobenius norm: a re-linearisation,
-                damping, a new temporal neighbour) or PCG needs more than
+                more than `refresh_change` from a multiple of the values it was made from
+                (relative Frobenius norm: a re-linearisation, damping, a new temporal
+                neighbour; a factor of R serves c R divided by c) or PCG needs more than
                 `refresh_iterations` iterations; a state that joins the window borrows the
                 newest factor (below). Exact without couplings.
       "vertex"  M = I (x) Bbar + T (x) I, Bbar the 3x3 vertex blocks of the states' mean block
@@ -231,6 +248,7 @@ class PCGSolver(LinearSolver):
         self.refresh_change = float(refresh_change)
         self.cholesky_max_block = int(cholesky_max_block)
         self._block_factors: dict = {}   # key -> _BlockFactor
+        self._scales: dict = {}          # key -> c: its block is c times its factor's values (_BlockFactor.fit)
         self._spare: list = []           # factors not in use (reserved, or left), their symbolic analysis reusable
         self._latest: _BlockFactor | None = None  # the factor last made or borrowed: the one to lend
         self._vertex: dict | None = None  # "vertex": laplacian, eigenvectors, inverse blocks, mean data
@@ -312,6 +330,7 @@ class PCGSolver(LinearSolver):
     def _release(self, key) -> None:
         """Drop state `key`'s factor; it becomes a spare unless another state borrowed it."""
         factor = self._block_factors.pop(key).factor
+        self._scales.pop(key, None)
         if not self._in_use(factor):
             self._spare.append(factor)
 
@@ -347,13 +366,14 @@ class PCGSolver(LinearSolver):
             return None
         return latest
 
-    def _outdated(self, cached: _BlockFactor, system: WindowSystem, t: int, borrowed_only: bool) -> bool:
-        """Whether block t needs a factor of its own instead of `cached`: a borrowed one when
-        `borrowed_only` (PCG missed the tolerance with it), else an own one that drifted beyond
-        refresh_change (a borrowed factor is judged by PCG's iterations, not by its distance)."""
+    def _outdated(self, cached: _BlockFactor, distance: float, borrowed_only: bool) -> bool:
+        """Whether a block at `distance` from a multiple of `cached`'s values needs a factor of
+        its own instead: a borrowed one when `borrowed_only` (PCG missed the tolerance with it),
+        else an own one that drifted beyond refresh_change (a borrowed factor is judged by PCG's
+        iterations, not by its distance)."""
         if borrowed_only:
             return cached.borrowed
-        return not cached.borrowed and cached.change(system, t) > self.refresh_change
+        return not cached.borrowed and distance > self.refresh_change
 
     def _refresh(self, system: WindowSystem, mode: str, force: bool, borrowed_only: bool = False) -> None:
         """Factors that fit `system`: a joining state borrows (see the class doc), a factor of
@@ -363,19 +383,21 @@ class PCGSolver(LinearSolver):
             lender = None if force or borrowed_only else self._lender(system)
             for t, key in enumerate(system.keys):
                 cached = self._block_factors.get(key)
-                if cached is None:
-                    if lender is not None:
-                        self._block_factors[key] = self._latest = lender.lent()
-                        self._revision += 1
-                        continue
-                elif force or self._outdated(cached, system, t, borrowed_only):
+                if cached is None and lender is not None:
+                    cached = self._block_factors[key] = self._latest = lender.lent()
+                    self._revision += 1
+                scale, distance = (1.0, np.inf) if cached is None else cached.fit(system, t)
+                if cached is not None and (force or self._outdated(cached, distance, borrowed_only)):
                     self._release(key)
-                else:
-                    continue
-                data = system.block_data(t)
-                self._revision += 1
-                self._block_factors[key] = self._latest = _BlockFactor(self._factor(data, system.pattern), data,
-                                                                      system.revisions[t])
+                    cached = None
+                if cached is None:
+                    data = system.block_data(t)
+                    cached = self._block_factors[key] = self._latest = _BlockFactor(
+                        self._factor(data, system.pattern), data, system.diagonal_index, system.revisions[t])
+                    scale = 1.0
+                if self._scales.get(key) != scale:
+                    self._scales[key] = scale
+                    self._revision += 1
             return
         laplacian = system.time_laplacian()
         mean = self._mean_block_data(system)
@@ -406,6 +428,8 @@ class PCGSolver(LinearSolver):
             out = np.zeros_like(parts)
             for factor, blocks in sharing.values():
                 out[blocks] = factor.solve(parts[blocks].T).T
+            # A factor of R serves the block c R (_BlockFactor.fit): (c R)^-1 = R^-1 / c.
+            out /= np.array([self._scales[key] for key in system.keys])[:, None]
             return out.reshape(-1)
         eigenvectors = self._vertex["eigenvectors"]
         rotated = eigenvectors.T @ parts
