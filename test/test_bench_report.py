@@ -142,7 +142,8 @@ def test_a_live_run_is_judged_against_the_offline_replay_and_the_truth():
     def run(positions) -> LiveRun:
         count = len(stamps)
         return LiveRun(stamps, np.arange(count), np.array(positions), np.zeros((count, len(positions[0]))),
-                       np.full(count, 100.0), np.zeros(count, bool), np.full(count, 50.0), count, count, 15, {}, {}, {})
+                       np.full(count, 100.0), np.zeros(count, bool), np.full(count, 50.0), count, count,
+                       np.ones(count, bool), 15, {}, {}, {})
 
     as_replay = reference.judge(run([step.result.positions for step in steps]))
     assert abs(as_replay["live_over_replay"] - 1.0) < 1e-12
@@ -150,3 +151,22 @@ def test_a_live_run_is_judged_against_the_offline_replay_and_the_truth():
     assert 0 < as_replay["vertex_rmse_live_m"] < as_replay["vertex_rmse_simulation_m"]
     as_truth = reference.judge(run([reference.truth[stamp] for stamp in stamps]))
     assert as_truth["vertex_rmse_live_m"] == 0.0 and as_truth["live_over_replay"] == 0.0
+
+
+def test_live_figures_after_start_up_cover_the_clouds_that_came_after_the_first_estimate():
+    """A cloud that arrived while the first was still being estimated waited for the nodes'
+    start-up too: the after-start figures (latency max, degraded) leave it out, as the count of
+    clouds after the start does; the figures over all keep it."""
+    import numpy as np
+
+    from meshfg_ros.benchmarks.latency import LiveRun, live_figures
+
+    latency = np.array([1500.0, 1100.0, 400.0, 650.0, 500.0])
+    degraded = np.array([False, True, False, False, True])
+    after_start = np.array([False, False, True, True, True])
+    run = LiveRun(np.arange(5) * 10**9, np.arange(5), np.zeros((5, 2, 3)), np.zeros((5, 2)), latency, degraded,
+                  np.full(5, 300.0), 3, 3, after_start, 5, {}, {}, {})
+    figures = live_figures(run)
+    assert figures["latency_ms_max_after_start"] == 650.0 and figures["degraded_after_start"] == 1
+    assert figures["latency_ms_max"] == 1500.0 and figures["degraded_steps"] == 2
+    assert figures["first_latency_ms"] == 1500.0 and figures["estimated_after_start"] == 3

@@ -74,6 +74,7 @@ class LiveRun:
     solve_time_ms: np.ndarray  # (S,) from the status of the same stamp
     clouds_after_start: int  # clouds that arrived after the first estimate (the nodes' start-up is over)
     estimated_after_start: int  # how many of those got an estimate
+    after_start: np.ndarray  # (S,) bool: the estimate's cloud arrived after the first estimate
     expected_steps: int  # clouds in the recording
     exit_codes: dict[str, int]
     logs: dict[str, str]  # stderr of each process
@@ -174,7 +175,7 @@ def run_live_pipeline(
         stamps_ns=received["stamps_ns"], steps=received["steps"], positions=received["positions"],
         position_std=received["position_std"], latency_ms=received["latency_ms"], degraded=received["degraded"],
         solve_time_ms=received["solve_time_ms"], clouds_after_start=int(received["clouds_after_start"]),
-        estimated_after_start=int(received["estimated_after_start"]),
+        estimated_after_start=int(received["estimated_after_start"]), after_start=received["after_start"],
         expected_steps=expected, exit_codes=exit_codes, logs=texts,
         parameters=params,
     )
@@ -241,14 +242,21 @@ def measure_live_latency(
     degraded_steps, rate and single_process; and the same after the start-up (the first estimate
     includes the nodes' set-up on the mesh, which the clouds played from a recording's start wait
     for): first_latency_ms, clouds_after_start and estimated_after_start (clouds that arrived after
-    the first estimate, and how many of them were estimated), latency_ms_max_after_start and
-    degraded_after_start. With a `reference` (the recording's ground truth and its offline replay)
+    the first estimate, and how many of them were estimated), and latency_ms_max_after_start and
+    degraded_after_start over those same clouds (a cloud that arrived while the first was still
+    being estimated waited for the start-up too). With a `reference` (the recording's ground truth and its offline replay)
     also the accuracy of the live estimates beside the replay's (ReplayErrors.judge).
     """
     with tempfile.TemporaryDirectory(prefix="meshfg-live-") as workdir:
         run = run_live_pipeline(bag, workdir, rate, overrides, timeout_s, single_process=single_process)
     accuracy = reference.judge(run) if reference is not None else {}
-    return {**accuracy,
+    return {**accuracy, **live_figures(run), "rate": float(rate), "single_process": single_process}
+
+
+def live_figures(run: LiveRun) -> dict[str, float]:
+    """measure_live_latency's figures of `run`, its accuracy, rate and process layout aside."""
+    after_start = run.after_start
+    return {
         "steps": int(run.stamps_ns.size),
         "expected_steps": run.expected_steps,
         "latency_ms_median": float(np.median(run.latency_ms)),
@@ -260,10 +268,8 @@ def measure_live_latency(
         "first_latency_ms": float(run.latency_ms[0]),
         "clouds_after_start": run.clouds_after_start,
         "estimated_after_start": run.estimated_after_start,
-        "latency_ms_max_after_start": float(np.max(run.latency_ms[1:])) if run.latency_ms.size > 1 else float("nan"),
-        "degraded_after_start": int(np.count_nonzero(run.degraded[1:])),
-        "rate": float(rate),
-        "single_process": single_process,
+        "latency_ms_max_after_start": float(np.max(run.latency_ms[after_start])) if after_start.any() else float("nan"),
+        "degraded_after_start": int(np.count_nonzero(run.degraded[after_start])),
     }
 
 
@@ -350,10 +356,11 @@ def record(out: Path, clouds: int, timeout_s: float, args: list[str]) -> int:
         return 2
     stamps = np.array([e[0] for e in estimates], dtype=np.int64)
     latency = np.array([(e[2] - cloud_arrivals.get(e[0], np.nan)) * 1e3 for e in estimates])
+    after_start = np.array([cloud_arrivals.get(e[0], -np.inf) > estimates[0][2] for e in estimates])
     np.savez(out, stamps_ns=stamps, steps=np.array([e[1] for e in estimates], dtype=np.int64),
              positions=np.stack([e[3] for e in estimates]), position_std=np.stack([e[4] for e in estimates]),
              clouds_after_start=sum(arrival > estimates[0][2] for arrival in cloud_arrivals.values()),
-             estimated_after_start=sum(cloud_arrivals.get(e[0], -np.inf) > estimates[0][2] for e in estimates),
+             estimated_after_start=int(np.count_nonzero(after_start)), after_start=after_start,
              latency_ms=latency, degraded=np.array([statuses.get(s, (True, np.nan))[0] for s in stamps]),
              solve_time_ms=np.array([statuses.get(s, (True, np.nan))[1] for s in stamps]))
     if not newest_estimated():
