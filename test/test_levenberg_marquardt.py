@@ -326,6 +326,18 @@ def test_a_scaled_block_keeps_its_factor_and_is_solved_through_it(cube, model): 
         np.testing.assert_allclose(scaled.matvec(x), rhs, rtol=1e-8, atol=1e-8 * np.abs(rhs).max())
         assert one_state.decrement(scaled.restricted(newest), part) == pytest.approx(exact / scale, rel=1e-9)
     assert one_state.factorizations == 1
+    # Each block its own multiple: the preconditioner is each scaled block's exact inverse.
+    scales = np.array([4.0, 0.5, 2.0])[:len(system.keys)]
+    mixed = WindowSystem([block * c for block, c in zip(system.blocks, scales)], system.couplings, system.keys,
+                         system.diagonal_index, revisions=["mixed"] * len(system.keys))
+    x, stats = pcg.solve(mixed, rhs)
+    assert stats.factorizations == 0
+    np.testing.assert_allclose(mixed.matvec(x), rhs, rtol=1e-8, atol=1e-8 * np.abs(rhs).max())
+    residual = np.random.default_rng(7).normal(size=mixed.size)
+    applied = mixed.split(pcg._precondition(mixed, "block", residual))
+    for t, block in enumerate(mixed.blocks):
+        expected = scipy.sparse.linalg.spsolve(block.tocsc(), mixed.split(residual)[t])
+        np.testing.assert_allclose(applied[t], expected, rtol=1e-9, atol=1e-12 * np.abs(expected).max())
 
 
 @pytest.mark.parametrize("reserved", [0, 3])

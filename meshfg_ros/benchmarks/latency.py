@@ -244,8 +244,9 @@ def measure_live_latency(
     for): first_latency_ms, clouds_after_start and estimated_after_start (clouds that arrived after
     the first estimate, and how many of them were estimated), and latency_ms_max_after_start and
     degraded_after_start over those same clouds (a cloud that arrived while the first was still
-    being estimated waited for the start-up too). With a `reference` (the recording's ground truth and its offline replay)
-    also the accuracy of the live estimates beside the replay's (ReplayErrors.judge).
+    being estimated waited for the start-up too). With a `reference` (the recording's ground
+    truth and its offline replay) also the accuracy of the live estimates beside the replay's
+    (ReplayErrors.judge).
     """
     with tempfile.TemporaryDirectory(prefix="meshfg-live-") as workdir:
         run = run_live_pipeline(bag, workdir, rate, overrides, timeout_s, single_process=single_process)

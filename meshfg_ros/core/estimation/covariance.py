@@ -28,12 +28,12 @@ prior's factor) would triple the draws' cost for a few per cent of NEES (docs/de
 "Published uncertainty").
 
 The factor. LM's linear solver already holds a Cholesky factor for the newest state's block
-(PCGSolver's block preconditioner: the state's own, refreshed when its block drifts by 5 %,
-damping included, or one it borrows from an earlier state, 1-25 % off on the bench's boxes);
-the draws go through it, and the block is factored here only where the solver holds none.
-A factor of M draws N(0, M^-1); where M is close to c H (a borrowed block carries an earlier
-noise estimate's scale: the whole block scales with 1 / sigma_m^2), E[x^T H x] = n / c, so the
-draws are rescaled by sqrt(n / mean x^T H x), one product with H. Rescaled draws through a
+(PCGSolver's block preconditioner: the state's own, refreshed when its block drifts by 5 % from
+a multiple of the values it was made from, damping included, or one it borrows from an earlier
+state, 1-25 % off on the bench's boxes); the draws go through it, and the block is factored
+here only where the solver holds none. A factor of M draws N(0, M^-1); where M is close to c H
+(a factor made at an earlier noise estimate: the whole block scales with 1 / sigma_m^2),
+E[x^T H x] = n / c, so the draws are rescaled by sqrt(n / mean x^T H x), one product with H. Rescaled draws through a
 borrowed factor give the NEES of a fresh factor's within a few per cent (docs/design-notes.md),
 and a fresh factor would cost about 0.1 s of an update at 5,000 vertices and 0.3 s at 10,000.
 The next state borrows the same factor while its block stays close, so the draws of the next
@@ -55,19 +55,21 @@ while most points see the noise alone, and the median follows those (on the airw
 14-16). The published lambda^2 is therefore the larger of the median and a second estimate
 that weighs the soft points: the slope of the points' d_k^2 / c over p_k (the medians of
 PRIOR_VARIANCE_BINS bins of equal count, a least-squares line through them; its intercept takes
-the noise's variance, so the estimated sigma_m does not enter it). Where the error follows the
-prior's shape the two agree; where it is concentrated on the soft parts the slope is the
-larger. The larger one guards the hidden, soft parts, where an overconfident std misleads a
-planner most; scenes whose error is spread evenly keep the median. Only the points within the caller's gate (robust spreads of the distances, as
-the measurement factor gates its points) count: a cloud may hold leaks, which lie farther from
-the surface than the tissue's points. Leaks within the gate still raise the estimate (a
-conservative bias: with 20 % leaks spread over 10 spreads, about 15 %). One cloud's estimate is noisy where the prediction's error is below the
-measurement noise (it often reaches the bound 0 there), so the published lambda^2 is the mean of
-the recent updates' estimates, each weighted by PRIOR_ERROR_MEMORY times the next one's weight,
-and of the model's own lambda^2 = 1, weighted as an estimate made before the first update: the
-prediction's error grows as the simulation drifts, and the mean follows within a few updates.
-A^-1's blocks at the rest shape are computed once, when the estimator is
-made, and scaled with the simulation sigma of each update.
+the noise's variance, so the estimated sigma_m does not enter it), less two of its standard
+errors, so that only a slope the clouds clearly show counts. Where the error follows the
+prior's shape the median is the larger (the slope's margin); where the error is concentrated
+on the soft parts the slope is. It guards the hidden, soft parts, where an overconfident std
+misleads a planner most. Only the points within the caller's gate (robust spreads of the
+distances, as the measurement factor gates its points) count: a cloud may hold leaks, which lie
+farther from the surface than the tissue's points. Leaks within the gate still raise the
+estimate (a conservative bias: with 20 % leaks spread over 10 spreads, about 15 %). One cloud's
+estimate is noisy where the prediction's error is below the measurement noise (it often reaches
+the bound 0 there), so the published lambda^2 is the mean of the recent updates' estimates, each
+weighted by PRIOR_ERROR_MEMORY times the next one's weight, and of the model's own lambda^2 = 1,
+weighted as an estimate made before the first update: the prediction's error grows as the
+simulation drifts, and the mean follows within a few updates. A^-1's blocks at the rest shape
+are computed once, when the estimator is made, and scaled with the simulation sigma of each
+update.
 """
 
 from __future__ import annotations
@@ -90,12 +92,17 @@ __all__ = ["DENSE_MAX_DOFS", "MARGINAL_SAMPLES", "PRIOR_ERROR_MEMORY", "Forgetti
 DENSE_MAX_DOFS = 600
 # Draws per marginal estimate beyond DENSE_MAX_DOFS (see the module doc).
 MARGINAL_SAMPLES = 16
-# Bins of the points' prior variance for the slope estimate of lambda^2 (module doc).
+# The slope estimate of lambda^2 (module doc): bins of the points' prior variance, and the
+# standard errors taken off the slope.
 PRIOR_VARIANCE_BINS = 8
+SLOPE_STANDARD_ERRORS = 2.0
 # Weight of an update's lambda^2 estimate relative to the next one's (module doc).
 PRIOR_ERROR_MEMORY = 0.7
 # The median of chi^2 with one degree of freedom: of d^2 / variance for a normal d.
 _CHI2_1_MEDIAN = float(chi2.ppf(0.5, 1))
+# The standard error of the median of n values v x / c (x ~ chi^2(1)) is _MEDIAN_ERROR v / sqrt(n):
+# 1 / (2 sqrt(n) f(v)), the density of v x / c at its median v being c pdf_chi2(c) / v.
+_MEDIAN_ERROR = 1.0 / (2.0 * _CHI2_1_MEDIAN * float(chi2.pdf(_CHI2_1_MEDIAN, 1)))
 # Bounds of lambda^2 (a prior's std 1000 times too small or too large).
 _SCALE_RANGE = (1e-6, 1e6)
 
@@ -228,16 +235,24 @@ def _slope_estimate(squared: np.ndarray, variance: np.ndarray) -> float:
     """lambda^2 as the slope of the points' d_k^2 / c over their prior variance p_k: the points
     in PRIOR_VARIANCE_BINS bins of equal count by p_k, each bin's median of d_k^2 / c against
     its mean p_k, and the least-squares line through them, whose intercept is the noise's
-    variance (not the estimated sigma, which the optimum's residuals set). -inf where the
-    points' prior variances do not spread."""
+    variance (not the estimated sigma, which the optimum's residuals set). Returned less
+    SLOPE_STANDARD_ERRORS of its standard errors, propagated from each bin median's own
+    sampling error (that of a median of n scaled chi^2(1) values: _MEDIAN_ERROR times the
+    median over sqrt(n)), so that a slope the noise makes up counts for nothing (a narrow
+    spread of p_k gives the line little leverage and a large error), whereas a hinge (an error
+    on the soft points only) still counts; -inf with fewer than 3 bins or prior variances all
+    alike."""
     order = np.argsort(variance, kind="stable")
     bins = np.array_split(order, min(PRIOR_VARIANCE_BINS, order.size))
     mean_variance = np.array([variance[group].mean() for group in bins])
-    if not np.ptp(mean_variance) > 0.0:
+    centred = mean_variance - mean_variance.mean()
+    leverage = float(centred @ centred)
+    if len(bins) < 3 or not leverage > 0.0:
         return -np.inf
     median_squared = np.array([np.median(squared[group]) for group in bins])
-    slope, _ = np.polyfit(mean_variance, median_squared, 1)
-    return float(slope)
+    median_errors = _MEDIAN_ERROR * median_squared / np.sqrt([group.size for group in bins])
+    slope = float(centred @ median_squared) / leverage
+    return slope - SLOPE_STANDARD_ERRORS * float(np.sqrt(centred**2 @ median_errors**2)) / leverage
 
 
 def published_covariance(posterior: np.ndarray, prior: np.ndarray | None, alpha: float, scale: float) -> np.ndarray:

@@ -16,6 +16,8 @@ by raising the damping.
 
 from __future__ import annotations
 
+import copy
+
 import time
 from dataclasses import dataclass
 
@@ -144,22 +146,23 @@ class _BlockFactor:
     (1/36 of the entries) per call.
     """
 
-    def __init__(self, factor: SparseCholesky, reference: np.ndarray, diagonal_index: np.ndarray, revision,
-                 borrowed: bool = False):
+    def __init__(self, factor: SparseCholesky, reference: np.ndarray, diagonal_index: np.ndarray, revision):
         self.factor = factor
         self.reference = reference
-        self.diagonal_index = diagonal_index
         self.reference_squared = max(float(reference @ reference), 1e-300)
         # (<B, R>, |B|^2) over the off-diagonal entries for blocks of revision seen_revision
         # (B = R for the revision the factor was made from)
         self.seen_revision = revision
         off_diagonal_squared = self.reference_squared - float(np.sum(reference[diagonal_index] ** 2))
         self.off_diagonal = (off_diagonal_squared, off_diagonal_squared)
-        self.borrowed = borrowed         # another state's factor (PCGSolver: borrowing)
+        self.borrowed = False            # another state's factor (PCGSolver: borrowing)
 
     def lent(self) -> _BlockFactor:
-        """This factor, borrowed by a state that has none."""
-        return _BlockFactor(self.factor, self.reference, self.diagonal_index, None, borrowed=True)
+        """This factor, borrowed by a state that has none (its sums to be computed for that
+        state's block)."""
+        borrowed = copy.copy(self)
+        borrowed.seen_revision, borrowed.borrowed = None, True
+        return borrowed
 
     def fit(self, system: WindowSystem, t: int) -> tuple[float, float]:
         """(c, distance) for block t of `system`: c = <B, R> / |R|^2 and |B - c R| / |B|."""
@@ -331,6 +334,7 @@ class PCGSolver(LinearSolver):
         """Drop state `key`'s factor; it becomes a spare unless another state borrowed it."""
         factor = self._block_factors.pop(key).factor
         self._scales.pop(key, None)
+        self._revision += 1  # a preconditioner without this block's factor is another one
         if not self._in_use(factor):
             self._spare.append(factor)
 
@@ -386,10 +390,11 @@ class PCGSolver(LinearSolver):
                 if cached is None and lender is not None:
                     cached = self._block_factors[key] = self._latest = lender.lent()
                     self._revision += 1
-                scale, distance = (1.0, np.inf) if cached is None else cached.fit(system, t)
-                if cached is not None and (force or self._outdated(cached, distance, borrowed_only)):
-                    self._release(key)
-                    cached = None
+                if cached is not None:
+                    scale, distance = cached.fit(system, t)
+                    if force or self._outdated(cached, distance, borrowed_only):
+                        self._release(key)
+                        cached = None
                 if cached is None:
                     data = system.block_data(t)
                     cached = self._block_factors[key] = self._latest = _BlockFactor(
