@@ -137,23 +137,26 @@ class SuperLUSolver(LinearSolver):
 class _BlockFactor:
     """A state block's cached Cholesky factor and the block values R it was made from.
 
-    `fit` gives the multiple c of R closest to a block B (least squares) and B's relative
-    distance to c R. A factor of R serves c R exactly once its solves are divided by c, and
-    whole blocks scale so: the estimated measurement sigma weighs the prior too (the prior's
-    sigma is a tenth of it), so a new noise estimate scales a state's block and nothing else.
-    Blocks of one revision (WindowSystem.revisions) differ only on the diagonal, so the
-    off-diagonal parts of <B, R> and |B|^2 are computed once per revision and the diagonal's
-    (1/36 of the entries) per call.
+    A factor of R serves c R exactly once its solves are divided by c, and whole blocks scale
+    so: the estimated measurement sigma weighs the prior too (the prior's sigma is a tenth of
+    it), so a new noise estimate scales a state's block and nothing else. `scale` gives c from
+    the diagonals (a thirty-sixth of the entries; exact for a multiple of R), as every solve
+    needs it; `distance` gives |B - c R| / |B|, as only a state's own factor needs it (a
+    borrowed one is judged by PCG's iterations). Blocks of one revision
+    (WindowSystem.revisions) differ only on the diagonal, so the off-diagonal parts of <B, R>
+    and |B|^2 are computed once per revision and the diagonal's per call.
     """
 
     def __init__(self, factor: SparseCholesky, reference: np.ndarray, diagonal_index: np.ndarray, revision):
         self.factor = factor
         self.reference = reference
         self.reference_squared = max(float(reference @ reference), 1e-300)
+        self.reference_diagonal = reference[diagonal_index]
+        self.reference_diagonal_squared = max(float(self.reference_diagonal @ self.reference_diagonal), 1e-300)
         # (<B, R>, |B|^2) over the off-diagonal entries for blocks of revision seen_revision
         # (B = R for the revision the factor was made from)
         self.seen_revision = revision
-        off_diagonal_squared = self.reference_squared - float(np.sum(reference[diagonal_index] ** 2))
+        off_diagonal_squared = self.reference_squared - self.reference_diagonal_squared
         self.off_diagonal = (off_diagonal_squared, off_diagonal_squared)
         self.borrowed = False            # another state's factor (PCGSolver: borrowing)
 
@@ -164,24 +167,29 @@ class _BlockFactor:
         borrowed.seen_revision, borrowed.borrowed = None, True
         return borrowed
 
-    def fit(self, system: WindowSystem, t: int) -> tuple[float, float]:
-        """(c, distance) for block t of `system`: c = <B, R> / |R|^2 and |B - c R| / |B|."""
+    def scale(self, system: WindowSystem, t: int) -> float:
+        """c = <b, r> / |r|^2 for the diagonals b of block t of `system` and r of R (1 where it
+        is not positive, or the pattern differs)."""
         if system.pattern.data.shape != self.reference.shape:
-            return 1.0, np.inf
-        diagonal_index, revision = system.diagonal_index, system.revisions[t]
+            return 1.0
+        scale = float(system.block_diagonal(t) @ self.reference_diagonal) / self.reference_diagonal_squared
+        return scale if scale > 0.0 else 1.0
+
+    def distance(self, system: WindowSystem, t: int, scale: float) -> float:
+        """|B - c R| / |B| for block t of `system` and c = `scale`."""
+        if system.pattern.data.shape != self.reference.shape:
+            return np.inf
+        revision = system.revisions[t]
         diagonal = system.block_diagonal(t)
-        reference_diagonal = self.reference[diagonal_index]
-        diagonal_product, diagonal_squared = float(diagonal @ reference_diagonal), float(diagonal @ diagonal)
+        diagonal_product, diagonal_squared = float(diagonal @ self.reference_diagonal), float(diagonal @ diagonal)
         if revision is None or revision != self.seen_revision:
             data = system.block_data(t)
             self.off_diagonal = (float(data @ self.reference) - diagonal_product, float(data @ data) - diagonal_squared)
             self.seen_revision = revision
         product = self.off_diagonal[0] + diagonal_product
         squared = max(self.off_diagonal[1] + diagonal_squared, 1e-300)
-        scale = product / self.reference_squared
-        if not scale > 0.0:
-            return 1.0, np.inf
-        return scale, float(np.sqrt(max(squared - product * scale, 0.0) / squared))
+        remainder = squared - 2.0 * scale * product + scale**2 * self.reference_squared
+        return float(np.sqrt(max(remainder, 0.0) / squared))
 
 
 class PCGSolver(LinearSolver):
@@ -251,7 +259,7 @@ class PCGSolver(LinearSolver):
         self.refresh_change = float(refresh_change)
         self.cholesky_max_block = int(cholesky_max_block)
         self._block_factors: dict = {}   # key -> _BlockFactor
-        self._scales: dict = {}          # key -> c: its block is c times its factor's values (_BlockFactor.fit)
+        self._scales: dict = {}          # key -> c: its block is c times its factor's values (_BlockFactor.scale)
         self._spare: list = []           # factors not in use (reserved, or left), their symbolic analysis reusable
         self._latest: _BlockFactor | None = None  # the factor last made or borrowed: the one to lend
         self._vertex: dict | None = None  # "vertex": laplacian, eigenvectors, inverse blocks, mean data
@@ -370,14 +378,15 @@ class PCGSolver(LinearSolver):
             return None
         return latest
 
-    def _outdated(self, cached: _BlockFactor, distance: float, borrowed_only: bool) -> bool:
-        """Whether a block at `distance` from a multiple of `cached`'s values needs a factor of
-        its own instead: a borrowed one when `borrowed_only` (PCG missed the tolerance with it),
-        else an own one that drifted beyond refresh_change (a borrowed factor is judged by PCG's
-        iterations, not by its distance)."""
+    def _outdated(self, cached: _BlockFactor, system: WindowSystem, t: int, scale: float,
+                  borrowed_only: bool) -> bool:
+        """Whether block t, `scale` times `cached`'s values give or take its distance, needs a
+        factor of its own instead: a borrowed one when `borrowed_only` (PCG missed the tolerance
+        with it), else an own one that drifted beyond refresh_change (a borrowed factor is
+        judged by PCG's iterations, not by its distance)."""
         if borrowed_only:
             return cached.borrowed
-        return not cached.borrowed and distance > self.refresh_change
+        return not cached.borrowed and cached.distance(system, t, scale) > self.refresh_change
 
     def _refresh(self, system: WindowSystem, mode: str, force: bool, borrowed_only: bool = False) -> None:
         """Factors that fit `system`: a joining state borrows (see the class doc), a factor of
@@ -391,8 +400,8 @@ class PCGSolver(LinearSolver):
                     cached = self._block_factors[key] = self._latest = lender.lent()
                     self._revision += 1
                 if cached is not None:
-                    scale, distance = cached.fit(system, t)
-                    if force or self._outdated(cached, distance, borrowed_only):
+                    scale = cached.scale(system, t)
+                    if force or self._outdated(cached, system, t, scale, borrowed_only):
                         self._release(key)
                         cached = None
                 if cached is None:
@@ -433,7 +442,7 @@ class PCGSolver(LinearSolver):
             out = np.zeros_like(parts)
             for factor, blocks in sharing.values():
                 out[blocks] = factor.solve(parts[blocks].T).T
-            # A factor of R serves the block c R (_BlockFactor.fit): (c R)^-1 = R^-1 / c.
+            # A factor of R serves the block c R (_BlockFactor.scale): (c R)^-1 = R^-1 / c.
             out /= np.array([self._scales[key] for key in system.keys])[:, None]
             return out.reshape(-1)
         eigenvectors = self._vertex["eigenvectors"]
