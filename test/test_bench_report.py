@@ -142,7 +142,7 @@ def test_a_live_run_is_judged_against_the_offline_replay_and_the_truth():
     def run(positions) -> LiveRun:
         count = len(stamps)
         return LiveRun(stamps, np.arange(count), np.array(positions), np.zeros((count, len(positions[0]))),
-                       np.full(count, 100.0), np.zeros(count, bool), np.full(count, 50.0), count, count,
+                       np.full(count, 100.0), np.zeros(count, bool), np.full(count, 50.0), count,
                        np.ones(count, bool), 15, {}, {}, {})
 
     as_replay = reference.judge(run([step.result.positions for step in steps]))
@@ -164,9 +164,16 @@ def test_live_figures_after_start_up_cover_the_clouds_that_came_after_the_first_
     latency = np.array([1500.0, 1100.0, 400.0, 650.0, 500.0])
     degraded = np.array([False, True, False, False, True])
     after_start = np.array([False, False, True, True, True])
-    run = LiveRun(np.arange(5) * 10**9, np.arange(5), np.zeros((5, 2, 3)), np.zeros((5, 2)), latency, degraded,
-                  np.full(5, 300.0), 3, 3, after_start, 5, {}, {}, {})
-    figures = live_figures(run)
+
+    def run(after_start) -> LiveRun:
+        return LiveRun(stamps_ns=np.arange(5) * 10**9, steps=np.arange(5), positions=np.zeros((5, 2, 3)),
+                       position_std=np.zeros((5, 2)), latency_ms=latency, degraded=degraded,
+                       solve_time_ms=np.full(5, 300.0), clouds_after_start=int(after_start.sum()),
+                       after_start=after_start, expected_steps=5, exit_codes={}, logs={}, parameters={})
+
+    figures = live_figures(run(after_start))
     assert figures["latency_ms_max_after_start"] == 650.0 and figures["degraded_after_start"] == 1
     assert figures["latency_ms_max"] == 1500.0 and figures["degraded_steps"] == 2
     assert figures["first_latency_ms"] == 1500.0 and figures["estimated_after_start"] == 3
+    none_after = live_figures(run(np.zeros(5, bool)))  # every cloud came during the start-up
+    assert np.isnan(none_after["latency_ms_max_after_start"]) and none_after["estimated_after_start"] == 0

@@ -2,6 +2,8 @@
 inverses, the mixing formula against a Monte Carlo of the linear-Gaussian model it describes,
 and the prior's error scale learnt from an innovation."""
 
+import threading
+
 import numpy as np
 import pytest
 import scipy.sparse
@@ -90,9 +92,17 @@ def test_prepared_draws_give_the_blocks_drawn_on_demand_and_stale_ones_are_not_u
     factor = SparseCholesky(information, node_size=3)
     on_demand = MarginalCovariance().blocks(information, seed=7, factor=factor)
     marginals = MarginalCovariance()
+    caller, drawn_by = threading.get_ident(), []
+    original = MarginalCovariance._draw_through
+    monkeypatch.setattr(MarginalCovariance, "_draw_through",
+                        lambda self, *args: drawn_by.append(threading.get_ident()) or original(self, *args))
     for prepared_seed in (7, 8):
         marginals.prepare(factor, seed=prepared_seed)
+        before = drawn_by.count(caller)
         np.testing.assert_allclose(marginals.blocks(information, seed=7, factor=factor), on_demand, rtol=1e-12, atol=0)
+        # Prepared for its seed, beside the caller: the blocks draw nothing of their own.
+        used = threads == "2" and prepared_seed == 7
+        assert drawn_by.count(caller) - before == (0 if used else 1)
     marginals.prepare(factor, seed=7)
     nearby = (information + 0.3 * scipy.sparse.diags(information.diagonal())).tocsr()
     nearby.sort_indices()

@@ -73,8 +73,7 @@ class LiveRun:
     degraded: np.ndarray  # (S,) bool, from the status of the same stamp
     solve_time_ms: np.ndarray  # (S,) from the status of the same stamp
     clouds_after_start: int  # clouds that arrived after the first estimate (the nodes' start-up is over)
-    estimated_after_start: int  # how many of those got an estimate
-    after_start: np.ndarray  # (S,) bool: the estimate's cloud arrived after the first estimate
+    after_start: np.ndarray  # (S,) bool: the estimate's cloud is one of those
     expected_steps: int  # clouds in the recording
     exit_codes: dict[str, int]
     logs: dict[str, str]  # stderr of each process
@@ -175,7 +174,7 @@ def run_live_pipeline(
         stamps_ns=received["stamps_ns"], steps=received["steps"], positions=received["positions"],
         position_std=received["position_std"], latency_ms=received["latency_ms"], degraded=received["degraded"],
         solve_time_ms=received["solve_time_ms"], clouds_after_start=int(received["clouds_after_start"]),
-        estimated_after_start=int(received["estimated_after_start"]), after_start=received["after_start"],
+        after_start=received["after_start"],
         expected_steps=expected, exit_codes=exit_codes, logs=texts,
         parameters=params,
     )
@@ -268,7 +267,7 @@ def live_figures(run: LiveRun) -> dict[str, float]:
         "degraded_steps": int(np.count_nonzero(run.degraded)),
         "first_latency_ms": float(run.latency_ms[0]),
         "clouds_after_start": run.clouds_after_start,
-        "estimated_after_start": run.estimated_after_start,
+        "estimated_after_start": int(np.count_nonzero(after_start)),
         "latency_ms_max_after_start": float(np.max(run.latency_ms[after_start])) if after_start.any() else float("nan"),
         "degraded_after_start": int(np.count_nonzero(run.degraded[after_start])),
     }
@@ -361,7 +360,7 @@ def record(out: Path, clouds: int, timeout_s: float, args: list[str]) -> int:
     np.savez(out, stamps_ns=stamps, steps=np.array([e[1] for e in estimates], dtype=np.int64),
              positions=np.stack([e[3] for e in estimates]), position_std=np.stack([e[4] for e in estimates]),
              clouds_after_start=sum(arrival > estimates[0][2] for arrival in cloud_arrivals.values()),
-             estimated_after_start=int(np.count_nonzero(after_start)), after_start=after_start,
+             after_start=after_start,
              latency_ms=latency, degraded=np.array([statuses.get(s, (True, np.nan))[0] for s in stamps]),
              solve_time_ms=np.array([statuses.get(s, (True, np.nan))[1] for s in stamps]))
     if not newest_estimated():

@@ -33,15 +33,16 @@ a multiple of the values it was made from, damping included, or one it borrows f
 state, 1-25 % off on the bench's boxes); the draws go through it, and the block is factored
 here only where the solver holds none. A factor of M draws N(0, M^-1); where M is close to c H
 (a factor made at an earlier noise estimate: the whole block scales with 1 / sigma_m^2),
-E[x^T H x] = n / c, so the draws are rescaled by sqrt(n / mean x^T H x), one product with H. Rescaled draws through a
-borrowed factor give the NEES of a fresh factor's within a few per cent (docs/design-notes.md),
-and a fresh factor would cost about 0.1 s of an update at 5,000 vertices and 0.3 s at 10,000.
+E[x^T H x] = n / c, so the draws are rescaled by sqrt(n / mean x^T H x), one product with H.
+Rescaled draws through a borrowed factor give the NEES of a fresh factor's within a few per
+cent (docs/design-notes.md), and a fresh factor would cost about 0.1 s of an update at 5,000
+vertices and 0.3 s at 10,000.
 The next state borrows the same factor while its block stays close, so the draws of the next
 update are made beside the caller as soon as this one's are taken (`MarginalCovariance.prepare`),
 while the estimator waits for its next cloud: at organ scale the covariance then takes about
-17 ms of an update instead of 40-45 (the draws' solves). Prepared or not, the draws are made on
-the background thread, their columns in the same CHOLMOD calls, so that both give the same
-numbers.
+17 ms of an update instead of 40-45 (the draws' solves). Prepared or drawn in the update, the
+draws are one CHOLMOD call, so that both give the same numbers; drawn in the update, they do
+not queue behind other work beside the loop (the simulator's refactor, in one process).
 
 lambda^2, the prior's real error relative to its model, is learnt from the innovation: the
 distances d_k of a cloud's points to the predicted surface, each with the model's variance
@@ -52,7 +53,7 @@ lambda^2 is below s_k = (d_k^2 / c - sigma_m^2) / p_k, so that lambda^2 is the m
 in closed form. The prediction's error is not lambda^2 A^-1 everywhere, though: a drift far from
 the fixed boundary (the airway's sticky tool) shows in the few points where the prior is soft,
 while most points see the noise alone, and the median follows those (on the airway, mean NEES
-14-16). The published lambda^2 is therefore the larger of the median and a second estimate
+11-27 on seeds 0-2). The published lambda^2 is therefore the larger of the median and a second estimate
 that weighs the soft points: the slope of the points' d_k^2 / c over p_k (the medians of
 PRIOR_VARIANCE_BINS bins of equal count, a least-squares line through them; its intercept takes
 the noise's variance, so the estimated sigma_m does not enter it), less two of its standard
@@ -85,8 +86,8 @@ from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError
 from meshfg_ros.core.solvers.sparse_cholesky import SparseCholesky
 from meshfg_ros.core.estimation.weights import MIN_POINTS
 
-__all__ = ["DENSE_MAX_DOFS", "MARGINAL_SAMPLES", "PRIOR_ERROR_MEMORY", "ForgettingMean", "MarginalCovariance",
-           "clipped_inverse", "prior_error_scale", "published_covariance"]
+__all__ = ["DENSE_MAX_DOFS", "MARGINAL_SAMPLES", "PRIOR_ERROR_MEMORY", "PRIOR_VARIANCE_BINS", "SLOPE_STANDARD_ERRORS",
+           "ForgettingMean", "MarginalCovariance", "clipped_inverse", "prior_error_scale", "published_covariance"]
 
 # Up to this many unknowns the marginals are exact (a dense inverse takes a few milliseconds).
 DENSE_MAX_DOFS = 600
@@ -134,8 +135,7 @@ class MarginalCovariance:
         self._prepared = None
         if factor is None or factor.size <= DENSE_MAX_DOFS or worker_threads.count() < 2:  # nothing to gain
             return
-        revision = factor.revision
-        self._prepared = (factor, revision, seed, worker_threads.start_background(self._draw_through, factor, seed))
+        self._prepared = (factor, factor.revision, seed, worker_threads.start_background(self._draw_through, factor, seed))
 
     def blocks(self, information: scipy.sparse.csr_matrix, seed: int = 0,
                factor: SparseCholesky | None = None) -> np.ndarray:
@@ -165,13 +165,14 @@ class MarginalCovariance:
 
     def _draws(self, factor: SparseCholesky, seed: int) -> np.ndarray:
         """x = P^T L^-T z (size, samples) through `factor`, z ~ N(0, I) seeded by `seed`: the
-        prepared ones where they match (`prepare`; others, and whatever they met, are left), else
-        drawn now the same way (start_background: on the background thread, whose solves take
-        their columns in the same calls), so that both give the same numbers."""
+        prepared ones where they match (`prepare`; others are cancelled, or left with whatever
+        they met), else drawn now, on this thread, the same way (_draw_through)."""
         prepared, self._prepared = self._prepared, None
         if prepared is not None:
             prepared_factor, revision, prepared_seed, draws = prepared
-            if prepared_factor is factor and prepared_seed == seed:
+            if prepared_factor is not factor or prepared_seed != seed:
+                draws.cancel()
+            else:
                 try:
                     result = draws.result()
                 except NotPositiveDefiniteError:  # through a failed factor that may be refactored since
@@ -179,12 +180,14 @@ class MarginalCovariance:
                 # The revision read once they ended: a refactor waits for them.
                 if result is not None and revision == factor.revision:
                     return result
-        return worker_threads.start_background(self._draw_through, factor, seed).result()
+        return self._draw_through(factor, seed)
 
     def _draw_through(self, factor: SparseCholesky, seed: int) -> np.ndarray:
+        """The draws in one CHOLMOD call (not split over the worker threads), so that they are
+        the same numbers whichever thread makes them."""
         normal = np.random.default_rng(seed).standard_normal((factor.size, self.samples))
         with factor.reading():
-            return factor.back_solve(normal)
+            return factor.back_solve(normal, split=False)
 
 
 def _dense_inverse(matrix: scipy.sparse.csr_matrix) -> np.ndarray:

@@ -526,7 +526,7 @@ class RestFactor:
     unit columns and a sliding vertex's is its normal there, so W is made of the forward
     substitutions of the three unit columns of each such vertex, which are kept until the next
     refactor: a vertex in contact costs three half-solves once, instead of a full solve per
-    constraint column at every global step (cvxopt's CHOLMOD solves one column at a time).
+    constraint column at every global step (a single-column solve reads the whole factor).
     """
 
     def __init__(self, body: _Body):

@@ -123,12 +123,17 @@ def _common() -> ctypes.Array:
     return common
 
 
+def _factor(capsule) -> int:
+    """The cholmod_factor in cvxopt's `capsule` (RuntimeError where CHOLMOD cannot be bound)."""
+    if not available():
+        raise RuntimeError("CHOLMOD cannot be bound here (see cholmod_without_gil.available)")
+    return _capsule_pointer(capsule, _capsule_name(capsule))
+
+
 def solve(capsule, rhs: np.ndarray, systems: tuple[int, ...]) -> np.ndarray:
     """CHOLMOD's `systems` (its sys codes: 0 A, 4 L, 5 L^T, 7 P, 8 P^T) applied in turn to the
     columns of rhs (n, k), for the factor in cvxopt's `capsule`; a new (n, k) array."""
-    if not available():
-        raise RuntimeError("CHOLMOD's solve cannot be bound here (see cholmod_without_gil.available)")
-    factor = _capsule_pointer(capsule, _capsule_name(capsule))
+    factor = _factor(capsule)
     common = _common()
     solution = np.asfortranarray(rhs, dtype=np.float64)
     rows, columns = solution.shape
@@ -152,15 +157,13 @@ def factorize(capsule, column_starts: np.ndarray, rows: np.ndarray, values: np.n
     what cvxopt's `cholmod.numeric` does, without the GIL. Returns whether the matrix is
     positive definite (False: CHOLMOD stopped at a non-positive pivot, and the factor must
     not be used)."""
-    if not available():
-        raise RuntimeError("CHOLMOD's factorisation cannot be bound here (see cholmod_without_gil.available)")
+    factor = _factor(capsule)
     column_starts = np.ascontiguousarray(column_starts, dtype=np.int64)
     rows = np.ascontiguousarray(rows, dtype=np.int64)
     values = np.ascontiguousarray(values, dtype=np.float64)
     size = column_starts.size - 1
     matrix = _Sparse(size, size, values.size, column_starts.ctypes.data, rows.ctypes.data, None, values.ctypes.data,
                      None, _LOWER_STORED, _CHOLMOD_LONG, _CHOLMOD_REAL, _CHOLMOD_DOUBLE, 1, 1)
-    factor = _capsule_pointer(capsule, _capsule_name(capsule))
     if not _library.cholmod_l_factorize(ctypes.byref(matrix), factor, _common()):
         raise MemoryError(f"CHOLMOD's factorisation of a {size} x {size} matrix failed")
     head = _FactorHead.from_address(factor)

@@ -17,7 +17,6 @@ by raising the damping.
 from __future__ import annotations
 
 import copy
-
 import time
 from dataclasses import dataclass
 
@@ -159,12 +158,12 @@ class _BlockFactor:
         off_diagonal_squared = self.reference_squared - self.reference_diagonal_squared
         self.off_diagonal = (off_diagonal_squared, off_diagonal_squared)
         self.borrowed = False            # another state's factor (PCGSolver: borrowing)
+        self.multiple = 1.0              # c: the block it serves is c R (PCGSolver._refresh sets it)
 
     def lent(self) -> _BlockFactor:
-        """This factor, borrowed by a state that has none (its sums to be computed for that
-        state's block)."""
+        """This factor, borrowed by a state that has none (a copy: its multiple is that state's)."""
         borrowed = copy.copy(self)
-        borrowed.seen_revision, borrowed.borrowed = None, True
+        borrowed.borrowed = True
         return borrowed
 
     def scale(self, system: WindowSystem, t: int) -> float:
@@ -259,7 +258,6 @@ class PCGSolver(LinearSolver):
         self.refresh_change = float(refresh_change)
         self.cholesky_max_block = int(cholesky_max_block)
         self._block_factors: dict = {}   # key -> _BlockFactor
-        self._scales: dict = {}          # key -> c: its block is c times its factor's values (_BlockFactor.scale)
         self._spare: list = []           # factors not in use (reserved, or left), their symbolic analysis reusable
         self._latest: _BlockFactor | None = None  # the factor last made or borrowed: the one to lend
         self._vertex: dict | None = None  # "vertex": laplacian, eigenvectors, inverse blocks, mean data
@@ -341,7 +339,6 @@ class PCGSolver(LinearSolver):
     def _release(self, key) -> None:
         """Drop state `key`'s factor; it becomes a spare unless another state borrowed it."""
         factor = self._block_factors.pop(key).factor
-        self._scales.pop(key, None)
         self._revision += 1  # a preconditioner without this block's factor is another one
         if not self._in_use(factor):
             self._spare.append(factor)
@@ -408,9 +405,10 @@ class PCGSolver(LinearSolver):
                     data = system.block_data(t)
                     cached = self._block_factors[key] = self._latest = _BlockFactor(
                         self._factor(data, system.pattern), data, system.diagonal_index, system.revisions[t])
+                    self._revision += 1
                     scale = 1.0
-                if self._scales.get(key) != scale:
-                    self._scales[key] = scale
+                if cached.multiple != scale:
+                    cached.multiple = scale
                     self._revision += 1
             return
         laplacian = system.time_laplacian()
@@ -443,7 +441,7 @@ class PCGSolver(LinearSolver):
             for factor, blocks in sharing.values():
                 out[blocks] = factor.solve(parts[blocks].T).T
             # A factor of R serves the block c R (_BlockFactor.scale): (c R)^-1 = R^-1 / c.
-            out /= np.array([self._scales[key] for key in system.keys])[:, None]
+            out /= np.array([self._block_factors[key].multiple for key in system.keys])[:, None]
             return out.reshape(-1)
         eigenvectors = self._vertex["eigenvectors"]
         rotated = eigenvectors.T @ parts

@@ -95,12 +95,11 @@ class SparseCholesky:
         # cvxopt stores column-major; the lower entries in that order, so a refactor only
         # assigns values to one kept spmatrix (2 ms against 24 ms to build one, organ scale).
         self._lower = lower[np.lexsort((rows[lower], csr.indices[lower]))]
-        # The same lower triangle in compressed columns, for CHOLMOD's factorisation without the GIL.
-        self._rows = rows[self._lower]
-        self._column_starts = np.concatenate([[0], np.cumsum(np.bincount(csr.indices[self._lower], minlength=self.size))])
         cvxopt = _cvxopt()
-        self._matrix = cvxopt.spmatrix(self._values(csr.data), cvxopt.matrix(self._rows),
+        self._matrix = cvxopt.spmatrix(self._values(csr.data), cvxopt.matrix(rows[self._lower]),
                                        cvxopt.matrix(csr.indices[self._lower].astype(np.int64)), (self.size, self.size))
+        # Its lower triangle's compressed columns, for CHOLMOD's factorisation without the GIL.
+        self._column_starts, self._rows = (np.array(part, dtype=np.int64).ravel() for part in self._matrix.CCS[:2])
         order = nested_dissection(csr, node_size)
         self._ordering = {} if order is None else {"p": cvxopt.matrix(order.tolist(), tc="i")}
         self._analyse(csr.data if numeric else None)
@@ -173,12 +172,13 @@ class SparseCholesky:
         of forward_solve(B)'s columns."""
         return self._substitutions(rhs, (7, 4))
 
-    def back_solve(self, rhs: np.ndarray) -> np.ndarray:
+    def back_solve(self, rhs: np.ndarray, split: bool = True) -> np.ndarray:
         """P^T L^-T rhs for rhs (n,) or (n, k), the second half of `solve`: with rhs ~ N(0, I),
-        samples of N(0, A^-1), since A = P^T L L^T P."""
-        return self._substitutions(rhs, (5, 8))
+        samples of N(0, A^-1), since A = P^T L L^T P. `split`: the columns over the worker
+        threads (else one call, whose results do not depend on the thread count)."""
+        return self._substitutions(rhs, (5, 8), split)
 
-    def _substitutions(self, rhs: np.ndarray, systems: tuple[int, ...]) -> np.ndarray:
+    def _substitutions(self, rhs: np.ndarray, systems: tuple[int, ...], split: bool = True) -> np.ndarray:
         """CHOLMOD's `systems` applied in turn to rhs (n,) or (n, k). The columns are split over
         the worker threads (worker_threads.py), each part one CHOLMOD call without the GIL
         (cholmod_without_gil.py): at organ scale (31k dofs) four columns in 24 ms on two threads
@@ -194,7 +194,7 @@ class SparseCholesky:
             return rhs.copy()
         columns = rhs.reshape(self.size, -1)
         if cholmod_without_gil.available():
-            most = columns.shape[1] if self.size >= PARALLEL_MIN_SIZE else 1
+            most = columns.shape[1] if split and self.size >= PARALLEL_MIN_SIZE else 1
             parts = [(self._factor, columns[:, share], systems) for share in worker_threads.ranges(columns.shape[1], most)]
             return np.hstack(worker_threads.run_parts(cholmod_without_gil.solve, parts)).reshape(rhs.shape)
         cvxopt = _cvxopt()
