@@ -373,16 +373,21 @@ def bench_organ_live(bag: Path, timeout_s: float = 900.0) -> dict:
     return {"recording": str(bag), "idle": idle, "loaded": {"busy_processes": loops, **loaded}}
 
 
+def _huge_pages_text(advised: bool | None) -> str:
+    return "numpy's default" if advised is None else ("advised" if advised else "not advised")
+
+
 def machine() -> dict:
-    """The CPU and the sparse Cholesky BLAS the figures of this process are measured on
-    (blas.configure, as the `meshfg` command and the nodes call it)."""
-    from meshfg_ros import blas
+    """The CPU, the sparse Cholesky BLAS and numpy's huge-page advice the figures of this process
+    are measured with (blas.configure, huge_pages.configure, as the `meshfg` command and the
+    nodes call them)."""
+    from meshfg_ros import blas, huge_pages
 
     import meshfg_ros.core.worker_threads as worker_threads
 
     backend = blas.configure()
     return {"cpu": backend.cpu, "blas": backend.name, "blas_threads": backend.threads, "blas_detail": backend.detail,
-            "worker_threads": worker_threads.count()}
+            "worker_threads": worker_threads.count(), "numpy_huge_pages": huge_pages.configure()}
 
 
 def run_bench(sections=("core", "estimator", "baselines", "live"), bag: Path | None = None,
@@ -433,6 +438,11 @@ def target_figures(result: dict) -> list[dict]:
     if "organ_live" in result:
         for load in ("idle", "loaded"):
             live = result["organ_live"][load]
+            value = live["latency_ms_max"]
+            met = (value <= CLOUD_PERIOD_MS and live["degraded_after_first"] == 0
+                   and live["steps"] == live["expected_steps"])
+            figures.append({"figure": f"organ-scale live latency max over every cloud, {load}", "value": value,
+                            "unit": "ms", "target": CLOUD_PERIOD_MS, "met": met})
             value = live["latency_ms_max_after_start"]
             met = (value <= CLOUD_PERIOD_MS and live["degraded_after_start"] == 0
                    and live["estimated_after_start"] == live["clouds_after_start"])
@@ -495,7 +505,9 @@ def format_report(result: dict) -> str:
         on = result["machine"]
         lines.append(f"CPU: {on['cpu']}; sparse Cholesky BLAS: {on['blas']}, {on['blas_threads']} thread(s) "
                      f"({on['blas_detail']})" + (f"; worker threads: {on['worker_threads']} (MESHFG_WORKER_THREADS)"
-                                                  if "worker_threads" in on else ""))
+                                                  if "worker_threads" in on else "")
+                     + (f"; numpy huge pages: {_huge_pages_text(on['numpy_huge_pages'])} (NUMPY_MADVISE_HUGEPAGE)"
+                        if "numpy_huge_pages" in on else ""))
     if "core" in result:
         lines.append("Core (ms): mesh, vertices, K linear, K corotational, one simulator step, "
                      "learning the load and the Poisson ratio from an estimate")
@@ -555,12 +567,15 @@ def format_report(result: dict) -> str:
             live = result["organ_live"][load]
             busy = f", {live['busy_processes']} busy processes" if load == "loaded" else ""
             lines.append(f"Live pipeline at organ scale ({Path(result['organ_live']['recording']).name}{busy}): "
-                         f"the first estimate {live['first_latency_ms']:.0f} ms after its cloud (the nodes' start-up "
-                         f"on the mesh); after it {live['estimated_after_start']} of {live['clouds_after_start']} clouds "
+                         f"the first estimate {live['first_latency_ms']:.0f} ms after its cloud (which came as the "
+                         f"nodes set up on the mesh); after it {live['estimated_after_start']} of {live['clouds_after_start']} clouds "
                          f"estimated, latency max {live['latency_ms_max_after_start']:.0f} ms (target "
                          f"{CLOUD_PERIOD_MS:g} ms), {live['degraded_after_start']} degraded; over all "
                          f"{live['steps']} of {live['expected_steps']} clouds estimated, latency median "
-                         f"{live['latency_ms_median']:.0f} ms, p95 {live['latency_ms_p95']:.0f} ms{_on(result['organ_live'])}")
+                         f"{live['latency_ms_median']:.0f} ms, p95 {live['latency_ms_p95']:.0f} ms, max "
+                         f"{live['latency_ms_max']:.0f} ms (target {CLOUD_PERIOD_MS:g} ms), "
+                         f"{live['degraded_after_first']} degraded after the first"
+                         f"{_on(result['organ_live'])}")
             if "vertex_rmse_live_m" in live:
                 lines.append(f"  accuracy over the clouds it estimated: vertex RMSE live {1e3 * live['vertex_rmse_live_m']:.3f} mm, "
                              f"offline replay {1e3 * live['vertex_rmse_replay_m']:.3f} mm (live / replay "

@@ -238,7 +238,8 @@ def measure_live_latency(
     Returns steps, expected_steps, latency_ms_median / _p95 / _max, solve_time_ms_median,
     overhead_ms_median (latency minus the estimator's own solve time: prediction, transport,
     pairing, and waiting behind earlier steps when a solve outlasts the cloud period),
-    degraded_steps, rate and single_process; and the same after the start-up (the first estimate
+    degraded_steps, degraded_after_first (the estimates after the first), rate and single_process;
+    and the same after the start-up (the first estimate
     includes the nodes' set-up on the mesh, which the clouds played from a recording's start wait
     for): first_latency_ms, clouds_after_start and estimated_after_start (clouds that arrived after
     the first estimate, and how many of them were estimated), and latency_ms_max_after_start and
@@ -265,6 +266,7 @@ def live_figures(run: LiveRun) -> dict[str, float]:
         "solve_time_ms_median": float(np.median(run.solve_time_ms)),
         "overhead_ms_median": float(np.median(run.latency_ms - run.solve_time_ms)),
         "degraded_steps": int(np.count_nonzero(run.degraded)),
+        "degraded_after_first": int(np.count_nonzero(run.degraded[1:])),
         "first_latency_ms": float(run.latency_ms[0]),
         "clouds_after_start": run.clouds_after_start,
         "estimated_after_start": int(np.count_nonzero(after_start)),
