@@ -603,3 +603,20 @@ def test_estimator_window_problem_matches_scipy():
     assert results["meshfg"].cost < 0.9 * start_cost
     assert results["scipy"].cost == pytest.approx(results["meshfg"].cost, rel=1e-6)
     assert np.abs(results["scipy"].x - results["meshfg"].x).max() < 1e-6
+
+
+def test_the_whole_windows_residual_of_a_partial_solve_needs_no_product_with_the_blocks(cube, model):  # noqa: F811
+    """b - A x for an x that is zero outside the kept blocks: the kept blocks' rows are their own
+    system's residual, a left-out block's rows b minus its couplings to its neighbours' x."""
+    from meshfg_ros.core.solvers.linear_solvers import _whole_residual
+
+    system, rhs = window_system(cube, model)
+    kept = np.array([1, 3]) if len(system.keys) > 3 else np.array([len(system.keys) - 1])
+    x = np.zeros_like(rhs)
+    system.split(x)[kept] = np.random.default_rng(0).standard_normal((len(kept), system.block_size))
+    restricted = system.restricted(kept)
+    kept_x = system.split(x)[kept].reshape(-1)
+    kept_residual = system.split(rhs)[kept].reshape(-1) - restricted.matvec(kept_x)
+    expected = rhs - system.matvec(x)
+    assert np.allclose(_whole_residual(system, rhs, x, kept, kept_residual), expected,
+                       rtol=0.0, atol=1e-12 * np.abs(expected).max())

@@ -458,21 +458,22 @@ class PCGSolver(LinearSolver):
         kept_system, kept_b, kept = self._solved_part(system, b)
         x, total = np.zeros_like(b), 0
         if kept is not None:
-            kept_x, total = self._solve_to(kept_system, mode, kept_b, KEPT_SHARE * target)
+            kept_x, kept_residual, total = self._solve_to(kept_system, mode, kept_b, KEPT_SHARE * target)
             system.split(x)[kept] = kept_x.reshape(len(kept), -1)
-            if np.linalg.norm(b - system.matvec(x)) > target:
-                x, more = self._solve_to(system, mode, b, target, x)
+            if np.linalg.norm(_whole_residual(system, b, x, kept, kept_residual)) > target:
+                x, _, more = self._solve_to(system, mode, b, target, x)
                 total += more
         else:
-            x, total = self._solve_to(system, mode, b, target)
+            x, _, total = self._solve_to(system, mode, b, target)
         stats = SolveStats(f"{self.name}/{mode}", 1e3 * (time.perf_counter() - start), total,
                            self.factorizations - before)
         return x, stats
 
     def _solve_to(self, system: WindowSystem, mode: str, b: np.ndarray, target: float,
-                  x: np.ndarray | None = None) -> tuple[np.ndarray, int]:
-        """PCG from x (default 0) until |b - A x| <= target: (x, iterations). Factors that
-        fail to get there within refresh_iterations are refreshed once, and PCG goes on."""
+                  x: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
+        """PCG from x (default 0) until |b - A x| <= target: (x, PCG's residual b - A x,
+        iterations). Factors that fail to get there within refresh_iterations are refreshed
+        once, and PCG goes on."""
         before = self.factorizations
         self._prepare(system, mode, force=False)
         x = np.zeros_like(b) if x is None else x
@@ -484,11 +485,11 @@ class PCGSolver(LinearSolver):
                 limit = self.max_iterations - total
             else:
                 limit = min(BORROWED_ITERATIONS if borrowing else self.refresh_iterations, self.max_iterations - total)
-            x, iterations, converged = self._pcg(system, mode, b, x, limit, target, first)
+            x, residual, iterations, converged = self._pcg(system, mode, b, x, limit, target, first)
             first = None
             total += iterations
             if converged:
-                return x, total
+                return x, residual, total
             if refreshed or total >= self.max_iterations:
                 raise LinearSolveError(f"PCG did not reach relative residual {self.tolerance:g} in {total} iterations")
             if borrowing:  # the borrowing states get factors of their own, the others keep theirs
@@ -526,13 +527,14 @@ class PCGSolver(LinearSolver):
     def _pcg(self, system: WindowSystem, mode: str, b: np.ndarray, x: np.ndarray, limit: int,
              target: float, first: np.ndarray | None = None):
         """Preconditioned CG from x for at most `limit` iterations, until |b - A x| <= target:
-        (x, iterations, converged). `first`: M^-1 b when it is known (for a cold start, x = 0, only)."""
+        (x, the residual b - A x as CG updates it, iterations, converged). `first`: M^-1 b when
+        it is known (for a cold start, x = 0, only)."""
         if not b.any():
-            return np.zeros_like(b), 0, True
+            return np.zeros_like(b), b, 0, True
         cold = not x.any()
         residual = b if cold else b - system.matvec(x)  # a cold start needs no product
         if np.linalg.norm(residual) <= target:
-            return x, 0, True
+            return x, residual, 0, True
         z = first if cold and first is not None else self._precondition(system, mode, residual)
         direction = z.copy()
         rz = residual @ z
@@ -547,12 +549,28 @@ class PCGSolver(LinearSolver):
             x = x + step * direction
             residual = residual - step * product
             if np.linalg.norm(residual) <= target:
-                return x, iteration, True
+                return x, residual, iteration, True
             z = self._precondition(system, mode, residual)
             rz_new = residual @ z
             direction = z + (rz_new / rz) * direction
             rz = rz_new
-        return x, limit, False
+        return x, residual, limit, False
+
+
+def _whole_residual(system: WindowSystem, b: np.ndarray, x: np.ndarray, kept: np.ndarray,
+                    kept_residual: np.ndarray) -> np.ndarray:
+    """b - A x over the whole window for an x that is zero outside the blocks `kept`, from the
+    residual of the kept blocks' own system (restricted: the same rows, as x is zero in the
+    columns it leaves out): a left-out block's row of A x is its couplings to its neighbours'
+    parts of x alone, so no product with the blocks is needed."""
+    parts = system.split(x)
+    coupled = np.zeros_like(parts)
+    if len(system.couplings):
+        coupled[:-1] += system.couplings[:, None] * parts[1:]
+        coupled[1:] += system.couplings[:, None] * parts[:-1]
+    residual = system.split(b) - coupled
+    residual[kept] = kept_residual.reshape(len(kept), -1)
+    return residual.reshape(-1)
 
 
 class FallbackSolver(LinearSolver):
