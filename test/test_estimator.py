@@ -107,6 +107,49 @@ def test_the_published_estimate_keeps_the_share_of_each_correction_that_persists
         assert rmse(result.positions, step.predicted) < 0.2 * rmse(step.predicted, step.truth)
 
 
+def test_a_new_state_starts_from_its_prediction_plus_the_persisting_share_of_the_last_correction(scene):
+    """The share of the correction that persisted is where the next correction is expected to
+    go: LM starts there, on the prediction's objective (the prior's mean stays the prediction),
+    and ends at the optimum it reaches from the prediction, within its stopping rule, in fewer
+    iterations."""
+    mesh, sequence = scene
+    persistent = _persistent(sequence)
+    settings = dict(factors="full", window_size=3, measurement_sigma=5e-4, temporal_sigma=5e-3)
+    warm, _ = run(mesh, persistent, len(persistent) - 1, **settings)
+    cold, _ = run(mesh, persistent, len(persistent) - 1, **settings)  # the same estimator, run again
+    step = persistent[-1]
+    carried = warm.carried_correction.copy()
+    assert np.linalg.norm(carried) > 0.5 * np.linalg.norm(step.predicted - step.truth)  # most of the missed load
+    pending = warm.prepare(step.stamp_ns, step.points, step.predicted)
+    np.testing.assert_allclose(warm.graph.states[pending.key], step.predicted + carried, rtol=0, atol=1e-15)
+    prior = next(f for f in warm.graph.state_factors(pending.key) if isinstance(f, estimator_module.PhysicsPriorFactor))
+    np.testing.assert_array_equal(prior.predicted, step.predicted)
+    warm_result = warm.solve(pending)
+
+    cold._starting_state = lambda prediction: None
+    cold_result = cold.update(step.stamp_ns, step.points, step.predicted)
+    assert warm_result.converged and cold_result.converged
+    assert warm_result.iterations < cold_result.iterations
+    # the same objective: the warm start ends no higher on it
+    assert warm_result.final_cost <= cold_result.final_cost + estimator_module.ABSOLUTE_COST_TOLERANCE
+    free = np.setdiff1d(np.arange(mesh.vertex_count), mesh.fixed_vertices)
+    assert rmse(warm_result.positions, cold_result.positions) < np.median(warm_result.position_std[free])
+
+
+def test_a_carried_correction_that_would_flatten_an_element_is_not_started_from(scene):
+    mesh, sequence = scene
+    estimator = SlidingWindowEstimator(mesh, EstimatorConfig(factors="full", window_size=3))
+    prediction = sequence[1].predicted
+    tetrahedron = mesh.tetrahedra[0]
+    carried = np.zeros_like(prediction)
+    # the element's fourth corner pulled onto its first: its volume goes to zero
+    carried[tetrahedron[3]] = prediction[tetrahedron[0]] - prediction[tetrahedron[3]]
+    estimator.carried_correction = carried
+    assert estimator._starting_state(prediction) is None
+    estimator.carried_correction = 0.01 * carried
+    np.testing.assert_allclose(estimator._starting_state(prediction), prediction + 0.01 * carried)
+
+
 def test_missing_prediction_degrades_to_copy_forward(scene):
     mesh, sequence = scene
     estimator = SlidingWindowEstimator(mesh, EstimatorConfig(factors="full", window_size=3))

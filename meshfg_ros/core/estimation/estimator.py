@@ -101,6 +101,7 @@ from meshfg_ros.core.estimation.covariance import (
 )
 from meshfg_ros.core.estimation.factor_graph import FactorGraph
 from meshfg_ros.core.estimation.factors import (
+    BARRIER_VOLUME_RATIO,
     PhysicsPriorFactor,
     PointToSurfaceFactor,
     TemporalFactor,
@@ -412,6 +413,9 @@ class SlidingWindowEstimator:
         self._prior_error_memory = ForgettingMean(PRIOR_ERROR_MEMORY, initial=self.prior_error_scale)
         self.noise = MeasurementNoise(self.config.measurement_sigma)
         self.persistence = CorrectionPersistence()
+        # (N, 3) the persisting share of the last update's correction, which the next state
+        # starts from on top of its prediction (`_starting_state`); None: the prediction alone.
+        self.carried_correction: np.ndarray | None = None
         # The window's W block factors are made (ordering, symbolic analysis, memory first
         # touched) here, not by the first updates.
         self.solver = make_linear_solver(self.config.linear_solver, tolerance=LINEAR_TOLERANCE)
@@ -653,6 +657,9 @@ class SlidingWindowEstimator:
             else:
                 graph.add_factor(TemporalFactor(key, cfg.temporal_sigma, previous_key=previous_key))
         self._slide()
+        starting_state = self._starting_state(pending.prediction) if predicted is not None else None
+        if starting_state is not None:
+            graph.set_state(key, starting_state)
         graph.exact_keys = {key}
         for factor in graph.factors:
             if isinstance(factor, PhysicsPriorFactor):
@@ -780,13 +787,31 @@ class SlidingWindowEstimator:
         (core/estimation/persistence.py), for an update with a simulator prediction and a cloud."""
         if (not self.config.keep_persistent_correction or "simulation" not in self.enabled or pending.degraded
                 or not pending.num_points):
+            self.carried_correction = None
             return
         key = pending.key
         correction = self.graph.states[key] - pending.prediction
         share = self.persistence.observe(correction)
         pending.published_share = share
-        self.graph.set_state(key, pending.prediction + share * correction)
+        self.carried_correction = share * correction
+        self.graph.set_state(key, pending.prediction + self.carried_correction)
         pending.messages.append(f"correction kept {share:.2f} (the share persisting between updates)")
+
+    def _starting_state(self, prediction: np.ndarray) -> np.ndarray | None:
+        """Where LM starts a new state: its prediction plus the persisting share of the last
+        correction, the part of it the next correction is expected to repeat (persistence.py:
+        alpha c_t estimates what the simulation keeps getting wrong). The objective, and so its
+        optimum, is the prediction's; only the iterations it takes to get there change. None
+        (start at the prediction) without such a share, or where the sum would shrink an
+        element to BARRIER_VOLUME_RATIO of its predicted volume, where the volume barrier starts."""
+        carried = self.carried_correction
+        if carried is None or carried.shape != prediction.shape or not carried.any():
+            return None
+        start = prediction + carried
+        tetrahedra = self.model.tetrahedra
+        if np.any(signed_volumes(start, tetrahedra) / signed_volumes(prediction, tetrahedra) <= BARRIER_VOLUME_RATIO):
+            return None
+        return start
 
     @property
     def simulation_sigma(self) -> float:
