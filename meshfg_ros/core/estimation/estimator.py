@@ -52,6 +52,10 @@ Design decisions (see also factors.py, factor_graph.py, levenberg_marquardt.py, 
   persists from one update to the next (core/estimation/persistence.py, keep_persistent_correction): the
   lag-one correlation of the corrections over their mean energy, 0 at the first update. The
   newest state is moved there, so the next update's window starts from what was published.
+- LM starts a new state at its prediction plus the persisting share of the last update's
+  correction (`_starting_state`): what persistence.py expects the next correction to repeat.
+  The objective stays the prediction's (the prior's mean, the barrier's reference, the points'
+  selection); only the path to its optimum is shorter (docs/design-notes.md, "Optimiser").
 - The physics prior's scale makes mean(diag(scale K_rest)) = 1 / simulation_sigma^2 on the
   free dofs (factors.prior_scale); a ridge PRIOR_RIDGE / simulation_sigma^2 (1e-6 of the
   mean information) gives a free body's 6 rigid modes a tiny information. The prior
