@@ -620,3 +620,24 @@ def test_the_whole_windows_residual_of_a_partial_solve_needs_no_product_with_the
     expected = rhs - system.matvec(x)
     assert np.allclose(_whole_residual(system, rhs, x, kept, kept_residual), expected,
                        rtol=0.0, atol=1e-12 * np.abs(expected).max())
+
+
+def test_a_miss_with_borrowed_factors_gives_the_newest_borrower_alone_a_factor_of_its_own(cube, model):  # noqa: F811
+    """Two joining states borrow one factor in turn; the newest block is far from it (50 times
+    its damping), the other close (2 % more on the diagonal). PCG misses with the borrowed
+    factors: one factorisation, the newest state's, and PCG goes on to the solution; the other
+    state keeps borrowing."""
+    system, rhs = window_system(cube, model)
+    blocks = list(system.blocks)
+    blocks[1] = blocks[0] + scipy.sparse.diags(0.02 * blocks[0].diagonal())
+    blocks[2] = blocks[2] + scipy.sparse.diags(50.0 * np.abs(blocks[2].diagonal()))
+    system = WindowSystem(blocks, 3e-3 * system.couplings, system.keys, system.diagonal_index)
+    reference = np.linalg.solve(system.to_csr().toarray(), rhs)
+    pcg = PCGSolver(tolerance=1e-12, preconditioner="block")
+    pcg.solve(system.restricted([0]), system.split(rhs)[0])
+    pcg.solve(system.restricted([0, 1]), system.split(rhs)[:2].reshape(-1))
+    assert pcg._block_factors[system.keys[1]].borrowed
+    x, stats = pcg.solve(system, rhs)
+    assert stats.factorizations == 1 and stats.iterations > BORROWED_ITERATIONS
+    assert pcg._block_factors[system.keys[1]].borrowed and not pcg._block_factors[system.keys[2]].borrowed
+    np.testing.assert_allclose(x, reference, rtol=1e-8, atol=1e-10 * np.abs(reference).max())

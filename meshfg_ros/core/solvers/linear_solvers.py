@@ -219,9 +219,12 @@ class PCGSolver(LinearSolver):
     a state that joins the window borrows the newest factor (that of the state before it, or
     the one that state borrowed) instead of making its own: consecutive states' blocks differ
     by what one step moved and saw. With it, PCG needs 2-3 iterations there, and updates
-    take 0.7 of the time with the same LM iterations and vertex RMSE. A borrowing state gets a
-    factor of its own when PCG misses the tolerance within BORROWED_ITERATIONS, so a borrowed
-    factor serves while it is good enough, however old. Only one joining state borrows: a
+    take 0.7 of the time with the same LM iterations and vertex RMSE. When PCG misses the
+    tolerance within BORROWED_ITERATIONS, the newest borrowing state gets a factor of its own
+    (and lends it to the next state), the others keep borrowing until a further miss, so a
+    borrowed factor serves while it is good enough, however old, and a miss costs one
+    factorisation (on the organ-scale live recording, the 10th update's solves took 204 ms with
+    one, against 421 ms when every borrowing state got its own: three). Only one joining state borrows: a
     solver facing a window of states without factors factors each (a borrowed factor for a
     whole window would serve none well). Other ways to save factorisations cost more than
     they save: Cholesky for the two newest states and vertex blocks for the rest (some
@@ -375,22 +378,32 @@ class PCGSolver(LinearSolver):
             return None
         return latest
 
-    def _outdated(self, cached: _BlockFactor, system: WindowSystem, t: int, scale: float,
-                  borrowed_only: bool) -> bool:
+    def _outdated(self, cached: _BlockFactor, system: WindowSystem, t: int, scale: float) -> bool:
         """Whether block t, `scale` times `cached`'s values give or take its distance, needs a
-        factor of its own instead: a borrowed one when `borrowed_only` (PCG missed the tolerance
-        with it), else an own one that drifted beyond refresh_change (a borrowed factor is
-        judged by PCG's iterations, not by its distance)."""
-        if borrowed_only:
-            return cached.borrowed
+        factor of its own instead: an own factor that drifted beyond refresh_change (a borrowed
+        one is judged by PCG's iterations, `_own_factor_for_newest_borrower`)."""
         return not cached.borrowed and cached.distance(system, t, scale) > self.refresh_change
 
-    def _refresh(self, system: WindowSystem, mode: str, force: bool, borrowed_only: bool = False) -> None:
+    def _own_factor_for_newest_borrower(self, system: WindowSystem) -> None:
+        """PCG missed the tolerance with borrowed factors: the newest state that borrows gets a
+        factor of its own, and the next one joining borrows it. The other borrowing states keep
+        theirs (their parts of a step are the small ones), so that a miss costs one
+        factorisation, not one per borrowing state; a further miss gives the next one its own
+        (`_solve_to`)."""
+        t = max(t for t, key in enumerate(system.keys) if self._block_factors[key].borrowed)
+        key = system.keys[t]
+        self._release(key)
+        data = system.block_data(t)
+        self._block_factors[key] = self._latest = _BlockFactor(
+            self._factor(data, system.pattern), data, system.diagonal_index, system.revisions[t])
+        self._revision += 1
+
+    def _refresh(self, system: WindowSystem, mode: str, force: bool) -> None:
         """Factors that fit `system`: a joining state borrows (see the class doc), a factor of
         its own is made where a block has none or drifted beyond refresh_change; with `force`,
-        for every block, with `borrowed_only`, for the blocks that borrow."""
+        for every block."""
         if mode == "block":
-            lender = None if force or borrowed_only else self._lender(system)
+            lender = None if force else self._lender(system)
             for t, key in enumerate(system.keys):
                 cached = self._block_factors.get(key)
                 if cached is None and lender is not None:
@@ -398,7 +411,7 @@ class PCGSolver(LinearSolver):
                     self._revision += 1
                 if cached is not None:
                     scale = cached.scale(system, t)
-                    if force or self._outdated(cached, system, t, scale, borrowed_only):
+                    if force or self._outdated(cached, system, t, scale):
                         self._release(key)
                         cached = None
                 if cached is None:
@@ -492,8 +505,8 @@ class PCGSolver(LinearSolver):
                 return x, residual, total
             if refreshed or total >= self.max_iterations:
                 raise LinearSolveError(f"PCG did not reach relative residual {self.tolerance:g} in {total} iterations")
-            if borrowing:  # the borrowing states get factors of their own, the others keep theirs
-                self._refresh(system, mode, force=False, borrowed_only=True)
+            if borrowing:  # the newest borrowing state gets a factor of its own, the others keep theirs
+                self._own_factor_for_newest_borrower(system)
             else:
                 self._refresh(system, mode, force=True)
                 refreshed = True
