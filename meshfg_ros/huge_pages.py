@@ -34,8 +34,13 @@ ENVIRONMENT_VARIABLE = "NUMPY_MADVISE_HUGEPAGE"
 
 
 def _toggle():
-    multiarray = getattr(getattr(np, "_core", None), "multiarray", None)
-    return getattr(multiarray, "_set_madvise_hugepage", None)
+    """numpy's switch (it returns the setting in force before the call), or None."""
+    for package in ("_core", "core"):  # numpy 2, numpy 1
+        multiarray = getattr(getattr(np, package, None), "multiarray", None)
+        toggle = getattr(multiarray, "_set_madvise_hugepage", None)
+        if toggle is not None:
+            return toggle
+    return None
 
 
 def configure() -> bool | None:
@@ -45,9 +50,8 @@ def configure() -> bool | None:
     toggle = _toggle()
     if toggle is None:
         return None
-    user_setting = os.environ.get(ENVIRONMENT_VARIABLE, "").strip()
-    if user_setting:
-        enabled = bool(toggle(False))  # the setting numpy read from the variable at import
+    if ENVIRONMENT_VARIABLE in os.environ:
+        enabled = bool(toggle(False))  # the setting in force, which is left as it is
         toggle(enabled)
         return enabled
     toggle(False)

@@ -84,13 +84,21 @@ def test_every_figure_line_names_the_cpu_and_the_blas():
 
 def test_machine_is_what_the_blas_and_thread_configuration_reports(monkeypatch):
     backend = blas.configure()  # this session's choice (conftest)
+    from meshfg_ros import huge_pages
+
+    advice = [True]  # numpy's switch, faked: the test process keeps its own setting
+
+    def switch(enabled):
+        before, advice[0] = advice[0], enabled
+        return before
+
+    monkeypatch.setattr(huge_pages, "_toggle", lambda: switch)
     monkeypatch.setenv("MESHFG_WORKER_THREADS", "3")
-    monkeypatch.setenv("NUMPY_MADVISE_HUGEPAGE", "1")  # numpy read it at import: the switch is read back
-    on = machine()
-    assert on == {"cpu": blas.cpu_model(), "blas": backend.name, "blas_threads": backend.threads,
-                  "blas_detail": backend.detail, "worker_threads": 3, "numpy_huge_pages": on["numpy_huge_pages"]}
+    monkeypatch.setenv("NUMPY_MADVISE_HUGEPAGE", "1")
+    assert machine() == {"cpu": blas.cpu_model(), "blas": backend.name, "blas_threads": backend.threads,
+                         "blas_detail": backend.detail, "worker_threads": 3, "numpy_huge_pages": True}
     monkeypatch.delenv("NUMPY_MADVISE_HUGEPAGE")
-    assert machine()["numpy_huge_pages"] is False
+    assert machine()["numpy_huge_pages"] is False and advice == [False]
     report = format_report({"machine": machine()})
     assert "worker threads: 3 (MESHFG_WORKER_THREADS); numpy huge pages: not advised (NUMPY_MADVISE_HUGEPAGE)" in report
 

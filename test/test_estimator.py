@@ -136,6 +136,26 @@ def test_a_new_state_starts_from_its_prediction_plus_the_persisting_share_of_the
     assert rmse(warm_result.positions, cold_result.positions) < np.median(warm_result.position_std[free])
 
 
+def test_an_update_whose_lm_fails_from_a_carried_start_publishes_its_prediction(scene, monkeypatch):
+    """No cloud confirmed the share LM started from: a failed optimisation leaves the new state at
+    its prediction, as one started there would, and carries nothing to the next state."""
+    mesh, sequence = scene
+    persistent = _persistent(sequence)
+    estimator, _ = run(mesh, persistent, len(persistent) - 1, factors="full", window_size=3,
+                       measurement_sigma=5e-4, temporal_sigma=5e-3)
+    assert estimator.carried_correction.any()
+
+    def failing(*args, **kwargs):
+        raise estimator_module.LinearSolveError("no step")
+
+    monkeypatch.setattr(estimator_module, "levenberg_marquardt", failing)
+    step = persistent[-1]
+    result = estimator.update(step.stamp_ns, step.points, step.predicted)
+    assert "optimisation failed" in result.message and not result.converged
+    np.testing.assert_allclose(result.positions, step.predicted, rtol=0, atol=1e-15)
+    assert not estimator.carried_correction.any()
+
+
 def test_a_carried_correction_that_would_flatten_an_element_is_not_started_from(scene):
     mesh, sequence = scene
     estimator = SlidingWindowEstimator(mesh, EstimatorConfig(factors="full", window_size=3))

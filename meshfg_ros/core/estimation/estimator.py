@@ -762,6 +762,10 @@ class SlidingWindowEstimator:
             messages.append(f"{NOISE_OFF_NOMINAL} (the points spread {1e3 * self.noise.spread:.3g} mm about the "
                             f"estimate, measurement_sigma is {1e3 * self.noise.nominal_sigma:.3g} mm; the noise "
                             f"estimate is held within {self.noise.bounds:g}x of it)")
+        if not accepted and not result["converged"]:
+            # LM failed or stopped where it started: not at a share of a correction that no
+            # cloud confirmed (_starting_state)
+            graph.set_state(pending.key, pending.prediction)
         self._keep_persistent_correction(pending)
         positions = graph.states[pending.key].copy()
         self.last_estimate = positions
@@ -804,10 +808,13 @@ class SlidingWindowEstimator:
     def _starting_state(self, prediction: np.ndarray) -> np.ndarray | None:
         """Where LM starts a new state: its prediction plus the persisting share of the last
         correction, the part of it the next correction is expected to repeat (persistence.py:
-        alpha c_t estimates what the simulation keeps getting wrong). The objective, and so its
-        optimum, is the prediction's; only the iterations it takes to get there change. None
+        alpha c_t estimates what the simulation keeps getting wrong). The objective is the
+        prediction's; the point where LM stops within its tolerance can differ (along directions
+        the clouds hardly constrain, docs/design-notes.md), and it takes fewer iterations. None
         (start at the prediction) without such a share, or where the sum would shrink an
-        element to BARRIER_VOLUME_RATIO of its predicted volume, where the volume barrier starts."""
+        element to BARRIER_VOLUME_RATIO of its predicted volume, where the volume barrier starts.
+        An update whose LM accepted no step and did not converge is put back at its prediction
+        (`solve`): no cloud confirmed the share it started from."""
         carried = self.carried_correction
         if carried is None or carried.shape != prediction.shape or not carried.any():
             return None

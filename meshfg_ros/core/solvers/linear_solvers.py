@@ -221,10 +221,10 @@ class PCGSolver(LinearSolver):
     by what one step moved and saw. With it, PCG needs 2-3 iterations there, and updates
     take 0.7 of the time with the same LM iterations and vertex RMSE. When PCG misses the
     tolerance within BORROWED_ITERATIONS, the newest borrowing state gets a factor of its own
-    (and lends it to the next state), the others keep borrowing until a further miss, so a
+    (lent to the next state when it is the newest), the others keep borrowing until a further miss, so a
     borrowed factor serves while it is good enough, however old, and a miss costs one
-    factorisation (on the organ-scale live recording, the 10th update's solves took 204 ms with
-    one, against 421 ms when every borrowing state got its own: three). Only one joining state borrows: a
+    factorisation (measured on the organ-scale live recording's 10th update: 204 ms of solves
+    with one, against 421 ms with a factor for each of its three borrowing states). Only one joining state borrows: a
     solver facing a window of states without factors factors each (a borrowed factor for a
     whole window would serve none well). Other ways to save factorisations cost more than
     they save: Cholesky for the two newest states and vertex blocks for the rest (some
@@ -386,7 +386,8 @@ class PCGSolver(LinearSolver):
 
     def _own_factor_for_newest_borrower(self, system: WindowSystem) -> None:
         """PCG missed the tolerance with borrowed factors: the newest state that borrows gets a
-        factor of its own, and the next one joining borrows it. The other borrowing states keep
+        factor of its own, which the next state joining borrows when it is the window's newest.
+        The other borrowing states keep
         theirs (their parts of a step are the small ones), so that a miss costs one
         factorisation, not one per borrowing state; a further miss gives the next one its own
         (`_solve_to`)."""
@@ -394,8 +395,10 @@ class PCGSolver(LinearSolver):
         key = system.keys[t]
         self._release(key)
         data = system.block_data(t)
-        self._block_factors[key] = self._latest = _BlockFactor(
+        own = self._block_factors[key] = _BlockFactor(
             self._factor(data, system.pattern), data, system.diagonal_index, system.revisions[t])
+        if t == len(system.keys) - 1:  # the newest state's: the one a joining state borrows
+            self._latest = own
         self._revision += 1
 
     def _refresh(self, system: WindowSystem, mode: str, force: bool) -> None:
@@ -485,8 +488,10 @@ class PCGSolver(LinearSolver):
     def _solve_to(self, system: WindowSystem, mode: str, b: np.ndarray, target: float,
                   x: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
         """PCG from x (default 0) until |b - A x| <= target: (x, PCG's residual b - A x,
-        iterations). Factors that fail to get there within refresh_iterations are refreshed
-        once, and PCG goes on."""
+        iterations). A miss within BORROWED_ITERATIONS with borrowed factors gives the newest
+        borrowing state a factor of its own (`_own_factor_for_newest_borrower`), one per miss;
+        a miss within refresh_iterations with none borrowed refactors every block once; PCG goes
+        on after each."""
         before = self.factorizations
         self._prepare(system, mode, force=False)
         x = np.zeros_like(b) if x is None else x
