@@ -126,7 +126,7 @@ def test_a_new_state_starts_from_its_prediction_plus_the_persisting_share_of_the
     np.testing.assert_array_equal(prior.predicted, step.predicted)
     warm_result = warm.solve(pending)
 
-    cold._starting_state = lambda prediction: None
+    cold._starting_state = lambda pending: None
     cold_result = cold.update(step.stamp_ns, step.points, step.predicted)
     assert warm_result.converged and cold_result.converged
     assert warm_result.iterations < cold_result.iterations
@@ -157,17 +157,21 @@ def test_an_update_whose_lm_fails_from_a_carried_start_publishes_its_prediction(
 
 
 def test_a_carried_correction_that_would_flatten_an_element_is_not_started_from(scene):
+    from meshfg_ros.core.geometry.mesh import signed_volumes
+
     mesh, sequence = scene
     estimator = SlidingWindowEstimator(mesh, EstimatorConfig(factors="full", window_size=3))
     prediction = sequence[1].predicted
+    pending = estimator_module.PendingStep(key=1, stamp_ns=1, start=0.0, prediction=prediction,
+                                           prediction_volumes=signed_volumes(prediction, mesh.tetrahedra))
     tetrahedron = mesh.tetrahedra[0]
     carried = np.zeros_like(prediction)
     # the element's fourth corner pulled onto its first: its volume goes to zero
     carried[tetrahedron[3]] = prediction[tetrahedron[0]] - prediction[tetrahedron[3]]
     estimator.carried_correction = carried
-    assert estimator._starting_state(prediction) is None
+    assert estimator._starting_state(pending) is None
     estimator.carried_correction = 0.01 * carried
-    np.testing.assert_allclose(estimator._starting_state(prediction), prediction + 0.01 * carried)
+    np.testing.assert_allclose(estimator._starting_state(pending), prediction + 0.01 * carried)
 
 
 def test_missing_prediction_degrades_to_copy_forward(scene):

@@ -55,7 +55,8 @@ Design decisions (see also factors.py, factor_graph.py, levenberg_marquardt.py, 
 - LM starts a new state at its prediction plus the persisting share of the last update's
   correction (`_starting_state`): what persistence.py expects the next correction to repeat.
   The objective stays the prediction's (the prior's mean, the barrier's reference, the points'
-  selection); only the path to its optimum is shorter (docs/design-notes.md, "Optimiser").
+  selection); LM takes fewer iterations, and where it stops within its tolerance can differ
+  along directions the clouds hardly constrain (docs/design-notes.md, "Optimiser").
 - The physics prior's scale makes mean(diag(scale K_rest)) = 1 / simulation_sigma^2 on the
   free dofs (factors.prior_scale); a ridge PRIOR_RIDGE / simulation_sigma^2 (1e-6 of the
   mean information) gives a free body's 6 rigid modes a tiny information. The prior
@@ -338,6 +339,7 @@ class PendingStep:
     messages: list = field(default_factory=list)
     points: np.ndarray | None = None      # the cloud after the tool gate
     prediction: np.ndarray | None = None  # (N, 3) the prior's mean, fixed vertices reset
+    prediction_volumes: np.ndarray | None = None  # (M,) signed element volumes of `prediction`
     viewpoint: np.ndarray | None = None   # (3,) the sensor's centre, for the back-face test
     # (vertices, Association of `points` on their surface): the innovation test's, which the
     # point selection reuses when the vertices are the prediction's.
@@ -652,6 +654,8 @@ class SlidingWindowEstimator:
         previous_key = graph.keys[-1] if graph.keys else None
         graph.add_state(key, prediction)
         pending.points, pending.prediction = points, graph.states[key].copy()
+        if "simulation" in self.enabled:  # the volume barrier's reference, and the starting state's
+            pending.prediction_volumes = signed_volumes(pending.prediction, self.model.tetrahedra)
         pending.prior_stiffness = prior_stiffness if predicted is not None else None
         for factor in self._state_factors(pending):
             graph.add_factor(factor)
@@ -661,7 +665,7 @@ class SlidingWindowEstimator:
             else:
                 graph.add_factor(TemporalFactor(key, cfg.temporal_sigma, previous_key=previous_key))
         self._slide()
-        starting_state = self._starting_state(pending.prediction) if predicted is not None else None
+        starting_state = self._starting_state(pending) if predicted is not None else None
         if starting_state is not None:
             graph.set_state(key, starting_state)
         graph.exact_keys = {key}
@@ -703,7 +707,7 @@ class SlidingWindowEstimator:
                                                   pending.prior_stiffness), "linear", False, given_scale,
                                                   PRIOR_RIDGE / sigma**2))
             factors.append(VolumeBarrierFactor(key, self.model.tetrahedra,
-                                               signed_volumes(pending.prediction, self.model.tetrahedra),
+                                               pending.prediction_volumes,
                                                scale * self.bulk_energy_scale,
                                                element_volumes=graph.element_volumes))
         pending.num_points, pending.num_points_gated = 0, 0
@@ -805,7 +809,7 @@ class SlidingWindowEstimator:
         self.graph.set_state(key, pending.prediction + self.carried_correction)
         pending.messages.append(f"correction kept {share:.2f} (the share persisting between updates)")
 
-    def _starting_state(self, prediction: np.ndarray) -> np.ndarray | None:
+    def _starting_state(self, pending: PendingStep) -> np.ndarray | None:
         """Where LM starts a new state: its prediction plus the persisting share of the last
         correction, the part of it the next correction is expected to repeat (persistence.py:
         alpha c_t estimates what the simulation keeps getting wrong). The objective is the
@@ -816,11 +820,10 @@ class SlidingWindowEstimator:
         An update whose LM accepted no step and did not converge is put back at its prediction
         (`solve`): no cloud confirmed the share it started from."""
         carried = self.carried_correction
-        if carried is None or carried.shape != prediction.shape or not carried.any():
+        if carried is None or not carried.any():
             return None
-        start = prediction + carried
-        tetrahedra = self.model.tetrahedra
-        if np.any(signed_volumes(start, tetrahedra) / signed_volumes(prediction, tetrahedra) <= BARRIER_VOLUME_RATIO):
+        start = pending.prediction + carried
+        if np.any(signed_volumes(start, self.model.tetrahedra) / pending.prediction_volumes <= BARRIER_VOLUME_RATIO):
             return None
         return start
 

@@ -221,11 +221,11 @@ class PCGSolver(LinearSolver):
     by what one step moved and saw. With it, PCG needs 2-3 iterations there, and updates
     take 0.7 of the time with the same LM iterations and vertex RMSE. When PCG misses the
     tolerance within BORROWED_ITERATIONS, the newest borrowing state gets a factor of its own
-    (lent to the next state when it is the newest), the others keep borrowing until a further miss, so a
-    borrowed factor serves while it is good enough, however old, and a miss costs one
-    factorisation (measured on the organ-scale live recording's 10th update: 204 ms of solves
-    with one, against 421 ms with a factor for each of its three borrowing states). Only one joining state borrows: a
-    solver facing a window of states without factors factors each (a borrowed factor for a
+    (lent to the next state when it is the newest), the others keep borrowing until a further
+    miss: a borrowed factor serves while it is good enough, however old, and a miss costs one
+    factorisation (in a replay of the organ-scale live recording, the 10th update's solves took
+    204 ms with one, against 421 ms with one for each of its three borrowing states). Only one
+    joining state borrows: a solver facing a window of states without factors factors each (a borrowed factor for a
     whole window would serve none well). Other ways to save factorisations cost more than
     they save: Cholesky for the two newest states and vertex blocks for the rest (some
     updates take 40 or more iterations), x/y/z-separated scalar blocks (a 9 times smaller
@@ -387,19 +387,22 @@ class PCGSolver(LinearSolver):
     def _own_factor_for_newest_borrower(self, system: WindowSystem) -> None:
         """PCG missed the tolerance with borrowed factors: the newest state that borrows gets a
         factor of its own, which the next state joining borrows when it is the window's newest.
-        The other borrowing states keep
-        theirs (their parts of a step are the small ones), so that a miss costs one
-        factorisation, not one per borrowing state; a further miss gives the next one its own
-        (`_solve_to`)."""
+        The other borrowing states keep theirs (their parts of a step are the small ones), so
+        that a miss costs one factorisation, not one per borrowing state; a further miss gives
+        the next one its own (`_solve_to`)."""
         t = max(t for t, key in enumerate(system.keys) if self._block_factors[key].borrowed)
-        key = system.keys[t]
-        self._release(key)
-        data = system.block_data(t)
-        own = self._block_factors[key] = _BlockFactor(
-            self._factor(data, system.pattern), data, system.diagonal_index, system.revisions[t])
+        self._release(system.keys[t])
+        own = self._own_factor(system, t)
         if t == len(system.keys) - 1:  # the newest state's: the one a joining state borrows
             self._latest = own
+
+    def _own_factor(self, system: WindowSystem, t: int) -> _BlockFactor:
+        """A factor of block t of `system`, made and kept as its state's own."""
+        data = system.block_data(t)
+        own = self._block_factors[system.keys[t]] = _BlockFactor(
+            self._factor(data, system.pattern), data, system.diagonal_index, system.revisions[t])
         self._revision += 1
+        return own
 
     def _refresh(self, system: WindowSystem, mode: str, force: bool) -> None:
         """Factors that fit `system`: a joining state borrows (see the class doc), a factor of
@@ -418,10 +421,7 @@ class PCGSolver(LinearSolver):
                         self._release(key)
                         cached = None
                 if cached is None:
-                    data = system.block_data(t)
-                    cached = self._block_factors[key] = self._latest = _BlockFactor(
-                        self._factor(data, system.pattern), data, system.diagonal_index, system.revisions[t])
-                    self._revision += 1
+                    cached = self._latest = self._own_factor(system, t)
                     scale = 1.0
                 if cached.multiple != scale:
                     cached.multiple = scale
