@@ -173,7 +173,7 @@ def test_camera_pose_places_camera_frame_clouds_when_tf_knows_nothing_of_it():
 
 # ---------------------------------------------------------------------------- derived from the fields
 def test_the_parameters_are_the_setting_fields_of_the_configurations():
-    # Renamed fields keep their user-visible parameter names.
+    # A field whose name differs from its parameter's keeps the user-visible parameter name.
     assert parameter_names(SimulatorConfig) == {
         "youngs_modulus": "youngs_modulus", "poisson_ratio": "poisson_ratio", "density": "density",
         "tool_radius": "tool_radius", "tool_mode": "tool_mode", "tool_contact": "tool_contact",

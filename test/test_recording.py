@@ -15,7 +15,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from scipy.spatial.transform import Rotation
 
 from meshfg_ros.io.messages import (
-    EARLIER_MSG_DEFINITIONS,
+    SHORTER_MSG_DEFINITIONS,
     MSG_DEFINITIONS,
     TETRA_MESH,
     MeshState,
@@ -506,16 +506,16 @@ CUT_FIELDS = ("invalid_vertices", "removed_elements")
 
 @pytest.mark.parametrize("missing", [CUT_FIELDS, (*CUT_FIELDS, "position_covariance"),
                                      (*CUT_FIELDS, "position_covariance", "degraded")])
-def test_a_recording_with_an_earlier_tetra_mesh_is_read_with_its_own_definition(tmp_path, missing):
-    """Recordings made before TetraMesh's cut fields, before position_covariance too, or before
-    degraded too (the bundled ones), stay readable; their meshes read as uncut, without
-    covariance and not degraded."""
-    (earlier,) = [text for text in EARLIER_MSG_DEFINITIONS[TETRA_MESH]
+def test_a_recording_with_a_shorter_tetra_mesh_is_read_with_its_own_definition(tmp_path, missing):
+    """Recordings whose TetraMesh lacks the cut fields, position_covariance too, or degraded too
+    (the bundled ones) are readable; their meshes read as uncut, without covariance and not
+    degraded."""
+    (shorter,) = [text for text in SHORTER_MSG_DEFINITIONS[TETRA_MESH]
                   if all(f" {name} " not in text for name in missing)
                   and all(f" {name} " in text for name in {"position_covariance", "degraded"} - set(missing))]
     assert all(f" {name} " in MSG_DEFINITIONS[TETRA_MESH] for name in missing)
     store = get_typestore(Stores.ROS2_JAZZY)
-    store.register(get_types_from_msg(earlier, TETRA_MESH))
+    store.register(get_types_from_msg(shorter, TETRA_MESH))
     corners = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
     fields = dict(header=header_msg(5, "tissue", RosbagsMessageFactory(store)), step=3, positions=corners.reshape(-1),
                   tetrahedra=np.array([0, 1, 2, 3], np.uint32), surface_triangles=np.zeros(0, np.uint32),
@@ -524,10 +524,10 @@ def test_a_recording_with_an_earlier_tetra_mesh_is_read_with_its_own_definition(
         fields["degraded"] = True
     if "position_covariance" not in missing:
         fields["position_covariance"] = np.zeros(0, np.float32)
-    with Writer(tmp_path / "earlier", version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+    with Writer(tmp_path / "shorter", version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         connection = writer.add_connection("/meshfg/mesh", TETRA_MESH, typestore=store)
         writer.write(connection, 5, store.serialize_cdr(store.types[TETRA_MESH](**fields), TETRA_MESH))
-    with RecordingReader(tmp_path / "earlier") as reader:
+    with RecordingReader(tmp_path / "shorter") as reader:
         (state,) = list(reader.records("/meshfg/mesh", MeshState))
     assert state.step == 3 and state.degraded is ("degraded" not in missing) and state.fixed_vertices.tolist() == [0]
     np.testing.assert_array_equal(state.positions[3], [0.0, 0.0, 1.0])
@@ -537,7 +537,7 @@ def test_a_recording_with_an_earlier_tetra_mesh_is_read_with_its_own_definition(
 
 @pytest.mark.parametrize("bag", sorted(path.name for path in (REPO / "bags").iterdir() if path.is_dir()))
 def test_the_bundled_recordings_meshes_still_load(bag):
-    """The bundled recordings hold TetraMesh as it was before degraded and position_covariance."""
+    """The bundled recordings hold TetraMesh without degraded and position_covariance."""
     with RecordingReader(REPO / "bags" / bag) as reader:
         (initial,) = list(reader.records("/meshfg/initial_mesh", MeshState))
         truths = list(reader.records("/meshfg/ground_truth", MeshState))

@@ -74,12 +74,12 @@ _TETRA_MESH_CUT_LINES = (
 _TETRA_MESH_DEGRADED_LINE = (
     "bool degraded               # an estimate whose update ran without a simulator prediction "
     "(as EstimatorStatus.degraded)\n")
-# Earlier definitions a recording may hold, read with their own definition (fields added since
-# take their defaults): TetraMesh before `invalid_vertices` and `removed_elements`, before
-# `position_covariance` too, and before `degraded` too (the bundled recordings').
+# Shorter TetraMesh definitions a recording may hold, each read with its own definition (the
+# fields it lacks take their defaults): without `invalid_vertices` and `removed_elements`;
+# without `position_covariance` too; and without `degraded` too (the bundled recordings').
 _TETRA_MESH_UNCUT = MSG_DEFINITIONS[TETRA_MESH].replace(_TETRA_MESH_CUT_LINES, "")
 _TETRA_MESH_NO_COVARIANCE = _TETRA_MESH_UNCUT.replace(_TETRA_MESH_COVARIANCE_LINE, "")
-EARLIER_MSG_DEFINITIONS: dict[str, tuple[str, ...]] = {
+SHORTER_MSG_DEFINITIONS: dict[str, tuple[str, ...]] = {
     TETRA_MESH: (
         _TETRA_MESH_UNCUT,
         _TETRA_MESH_NO_COVARIANCE,
@@ -113,12 +113,12 @@ def meshfg_typestore() -> Typestore:
 
 @functools.lru_cache(maxsize=1)
 def readable_definition_hashes() -> dict[str, frozenset[str]]:
-    """RIHS01 hashes of the definitions of each meshfg_msgs type that recordings may hold: this
-    version's and the earlier ones (EARLIER_MSG_DEFINITIONS)."""
+    """RIHS01 hashes of the definitions of each meshfg_msgs type that recordings may hold: the
+    package's own and the shorter ones it reads (SHORTER_MSG_DEFINITIONS)."""
     hashes = {}
     for typename in MSG_DEFINITIONS:
         known = {meshfg_typestore().hash_rihs01(typename)}
-        for text in EARLIER_MSG_DEFINITIONS.get(typename, ()):
+        for text in SHORTER_MSG_DEFINITIONS.get(typename, ()):
             store = get_typestore(Stores.ROS2_JAZZY)
             store.register(get_types_from_msg(text, typename))
             known.add(store.hash_rihs01(typename))
