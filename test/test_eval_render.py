@@ -1,9 +1,12 @@
 """Evaluation (the paper's metrics, observable split, calibration of the published std, tables,
 JSON) and pictures of a replay."""
+import dataclasses
 import json
 
 import numpy as np
 import pytest
+from matplotlib import colormaps
+from matplotlib.colors import Normalize
 from matplotlib.image import imread
 from offline_helpers import tiny_scenario, write_fake_replay
 from scipy.stats import chi2
@@ -23,7 +26,9 @@ from meshfg_ros.evaluation.evaluate import (
     write_json,
 )
 from meshfg_ros.io.messages import MeshState
-from meshfg_ros.evaluation.render import OutputDirectoryError, render, write_calibration_plot
+from meshfg_ros.io.recording import RecordingReader
+from meshfg_ros.topics import ESTIMATED_MESH_TOPIC
+from meshfg_ros.evaluation.render import OutputDirectoryError, _estimate_figure, render, write_calibration_plot
 from meshfg_ros.synthetic.recordings import write_scenario
 
 SAMPLES = 4000
@@ -188,6 +193,21 @@ def test_render_writes_pictures(camera_scene, evaluation, tmp_path):
 def test_render_without_truth_colours_by_std(camera_scene, tmp_path):
     written = render(camera_scene[2], tmp_path / "pictures")
     assert [p.name for p in written] == ["estimate.png", "measurements.png", "convergence.png"]
+    with RecordingReader(camera_scene[2]) as reader:
+        final = list(reader.records(ESTIMATED_MESH_TOPIC, MeshState))[-1]
+    # A std that grows along x, so that the faces' colours must differ.
+    x = final.positions[:, 0]
+    final = dataclasses.replace(final, position_std=1e-4 * (1.0 + (x - x.min()) / np.ptp(x)),
+                                position_covariance=np.zeros((0, 3, 3)))
+    faces = final.surface_triangles[evaluated_faces(final)]
+    figure = _estimate_figure({"factor graph": final}, None, faces)
+    (surface,) = [c for c in figure.axes[0].collections if len(c.get_facecolor()) == len(faces)]
+    face_std_mm = 1e3 * final.position_std[faces].mean(axis=1)
+    expected = colormaps["coolwarm"](Normalize(0.0, 1e3 * final.position_std.max())(face_std_mm))
+    assert np.ptp(expected[:, 0]) > 0.2  # from blue towards red
+    # Matplotlib draws the faces sorted by depth: the same colours, in another order.
+    np.testing.assert_allclose(np.unique(surface.get_facecolor(), axis=0), np.unique(expected, axis=0), atol=1e-12)
+    assert figure.axes[-1].get_ylabel() == "posterior std (mm)"
 
 
 def test_render_refuses_a_non_empty_directory(camera_scene, tmp_path):

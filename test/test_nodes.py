@@ -4,6 +4,7 @@ Start-up with parameters files and overrides, clean shutdown on SIGINT, the simu
 prediction semantics, the estimator's robustness to bad input (diagnostics counters, never a
 NaN), degraded steps without the simulator and recovery, and the bag player.
 """
+import ast
 import os
 import py_compile
 import re
@@ -805,6 +806,38 @@ def test_launch_file_is_valid_python():
     namespace = {}
     exec(compile(launch_file.read_text(), str(launch_file), "exec"), namespace)
     assert isinstance(namespace["generate_launch_description"](), launch.LaunchDescription)
+
+
+def _launch_file_calls(tree: ast.Module, name: str) -> list[ast.Call]:
+    return [node for node in ast.walk(tree)
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == name]
+
+
+def test_launch_file_starts_installed_executables_with_the_arguments_it_declares():
+    """What the launch file does, read without launch_ros (not on PyPI, so the test above skips
+    here): every executable it starts is a console script of setup.py, the arguments it declares
+    are those its usage line advertises and those it reads, and bag_player takes what it passes."""
+    launch_file = REPOSITORY / "launch" / "meshfg.launch.py"
+    tree = ast.parse(launch_file.read_text())
+    scripts = set(re.findall(r'"(\w+) = meshfg_ros[\w.]*:main"', (REPOSITORY / "setup.py").read_text()))
+    started = {call.args[0].value for call in _launch_file_calls(tree, "pipeline_node")}
+    started |= {keyword.value.value for call in _launch_file_calls(tree, "Node") for keyword in call.keywords
+                if keyword.arg == "executable" and isinstance(keyword.value, ast.Constant)}
+    assert started == {"simulation_node", "estimator_node", "meshfg_stack", "bag_player"}
+    assert started <= scripts, started - scripts
+    declared = {call.args[0].value for call in _launch_file_calls(tree, "DeclareLaunchArgument")}
+    advertised = set(re.findall(r"(\w+):=", ast.get_docstring(tree)))
+    read = {call.args[0].value for call in _launch_file_calls(tree, "LaunchConfiguration")}
+    assert declared == advertised == read == {"namespace", "params_file", "single_process", "bag", "rate",
+                                              "use_sim_time"}
+    (player,) = [call for call in _launch_file_calls(tree, "Node")
+                 if any(keyword.arg == "executable" and getattr(keyword.value, "value", None) == "bag_player"
+                        for keyword in call.keywords)]
+    (arguments,) = [keyword.value for keyword in player.keywords if keyword.arg == "arguments"]
+    options = [element.value for element in arguments.elts if isinstance(element, ast.Constant)]
+    from meshfg_ros.nodes.bag_player import parse_arguments
+
+    assert parse_arguments(["bag_player", "recording", *[part for option in options for part in (option, "2.0")]]).rate == 2.0
 
 
 def test_position_std_of_an_estimate_is_taken_unless_malformed():
