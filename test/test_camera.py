@@ -227,7 +227,7 @@ def test_pose_and_frame_round_trips():
     quaternion = rng.normal(size=4)
     camera = PinholeCamera(rng.normal(size=3), quaternion, 32, 24, 30.0, 31.0, 15.0, 12.0)
     np.testing.assert_allclose(camera.orientation, quaternion / np.linalg.norm(quaternion))
-    rebuilt = PinholeCamera.from_pose(camera.pose, 32, 24, 30.0, 31.0, 15.0, 12.0)
+    rebuilt = PinholeCamera(camera.pose[:3], camera.pose[3:], 32, 24, 30.0, 31.0, 15.0, 12.0)
     np.testing.assert_array_equal(rebuilt.pose, camera.pose)
     points = rng.normal(size=(10, 3))
     np.testing.assert_allclose(camera.camera_to_world(camera.world_to_camera(points)), points, atol=1e-12)

@@ -1,5 +1,6 @@
-"""Evaluation metrics: known answers for vertex RMSE, surface distances, observable split, and the
-calibration of a published per-vertex standard deviation."""
+"""Evaluation metrics: known answers for vertex RMSE, the surface metrics of the evaluation
+(d_CD, d_RMSE, d_H95 as evaluation/evaluate.py computes them, split by what the camera sees),
+the observable split, and the calibration of a published per-vertex standard deviation."""
 
 import numpy as np
 import pytest
@@ -7,13 +8,33 @@ import trimesh
 from scipy.stats import chi2
 
 from meshfg_ros.evaluation import metrics
+from meshfg_ros.evaluation.evaluate import SURFACE_METRICS, EvaluationInputs, evaluate_step
 from meshfg_ros.evaluation.metrics import correction_alignment
+from meshfg_ros.io.messages import MeshState
 from meshfg_ros.synthetic.camera import PinholeCamera, capture
 
 UNIT_SQUARE = (
     np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]]),
     np.array([[0, 1, 2], [0, 2, 3]]),
 )
+STAMP = 1  # the one evaluated step of surface_metrics
+
+
+def surface_metrics(triangles, truth, estimate, samples=20000, camera_center=None, cloud=None,
+                    observed_faces=None) -> dict:
+    """The evaluation's surface metrics {region: {metric: value}} of one step whose estimate
+    `estimate` (N, 3) and truth `truth` (N, 3) are bare surfaces on `triangles` (no tetrahedra,
+    no fixed vertex), split by the camera at `camera_center` seeing `cloud` or, without a
+    camera, by `observed_faces`."""
+    def surface(positions):
+        return MeshState(0, "world", 0, positions, np.zeros((0, 4), np.int64), triangles)
+
+    inputs = EvaluationInputs(
+        scenario="surface", stamps=(STAMP,), truth_mesh=surface(truth), truth={STAMP: np.asarray(truth, float)},
+        estimate_mesh=surface(estimate), estimates={"factor_graph": {STAMP: np.asarray(estimate, float)}},
+        predictions={}, clouds={STAMP: np.zeros((0, 3)) if cloud is None else np.asarray(cloud, float)},
+        camera_center=camera_center, observed_faces=observed_faces)
+    return evaluate_step(inputs, STAMP, samples)["surface"]["factor_graph"]
 
 
 def test_vertex_rmse_hand_computed():
@@ -48,58 +69,79 @@ def test_sample_surface_is_uniform_by_area_and_deterministic():
 
 
 def test_shifted_plane_distances_equal_the_shift():
-    """Two independent uniform samples of a unit square, one shifted by d along the normal.
-
-    Every nearest-neighbour distance is sqrt(d^2 + r^2), r the in-plane gap to the nearest
-    sample, so each metric is >= d. For uniform density rho, pi*rho*r^2 ~ Exp(1): the mean
-    of r^2 is 1/(pi*rho) and its 95th percentile ln(20)/(pi*rho). Since sqrt(d^2+r^2) <=
-    d + r^2/(2d), the means and the RMSE exceed d by at most about 1/(2*pi*rho*d); the bound
-    below doubles that for the square's border (samples there have neighbours on one side
-    only). H95 should be sqrt(d^2 + ln(20)/(pi*rho)) up to the border and sampling effects.
-    """
-    count, shift = 20000, 0.05
-    rho = count / 1.0
-    excess = 1 / (2 * np.pi * rho * shift)  # 1.6e-4, 0.3% of the shift
-    reference = metrics.sample_surface(*UNIT_SQUARE, count, seed=1)
-    estimate = metrics.sample_surface(*UNIT_SQUARE, count, seed=2) + [0.0, 0.0, shift]
-    result = metrics.surface_distances(estimate, reference)
-    for value in (
-        result.estimate_to_reference_mean,
-        result.reference_to_estimate_mean,
-        result.chamfer,
-        result.rmse,
-    ):
-        assert shift <= value <= shift + 2 * excess
-    expected_h95 = np.sqrt(shift**2 + np.log(20) / (np.pi * rho))
-    assert shift < result.h95
-    assert abs(result.h95 - expected_h95) < 0.1 * (expected_h95 - shift)
+    """Two unit squares, the estimate shifted by d along their normal. Each sample of either
+    lies exactly d from the other surface (the evaluation measures samples against the other
+    surface, not against its samples), so d_CD, d_RMSE and d_H95 all equal d. Against the other
+    square's 2000 samples they would exceed it by the in-plane gap to the nearest sample, about
+    1/(2 pi rho d) = 1.6 mm (3 % of d) for rho = 2000 samples per unit area."""
+    vertices, triangles = UNIT_SQUARE
+    shift = 0.05
+    result = surface_metrics(triangles, vertices, vertices + [0.0, 0.0, shift], samples=2000)
+    assert set(result) == {"full"}  # no camera and no observed faces: no observable split
+    for name in SURFACE_METRICS:
+        assert result["full"][name] == pytest.approx(shift, rel=1e-12)
 
 
-def test_identical_clouds_have_zero_distances():
-    points = np.random.default_rng(0).normal(size=(500, 3))
-    result = metrics.surface_distances(points, points.copy())
-    assert result == metrics.SurfaceDistances(0.0, 0.0, 0.0, 0.0, 0.0)
+def test_identical_surfaces_have_zero_distances():
+    vertices, triangles = UNIT_SQUARE
+    result = surface_metrics(triangles, vertices, vertices.copy(), samples=500)
+    for name in SURFACE_METRICS:
+        assert result["full"][name] == pytest.approx(0.0, abs=1e-15)
 
 
-def test_subset_against_superset_is_one_sided():
-    reference = np.column_stack((np.arange(10.0), np.zeros(10), np.zeros(10)))
-    estimate = reference[:5]
-    result = metrics.surface_distances(estimate, reference)
-    # estimate -> reference: all 0; reference -> estimate: 0,0,0,0,0,1,2,3,4,5.
-    assert result.estimate_to_reference_mean == 0.0
-    assert result.reference_to_estimate_mean == pytest.approx(1.5, rel=1e-15)
-    assert result.chamfer == pytest.approx(0.75, rel=1e-15)
-    assert result.rmse == 0.0
-    # 95th percentile, linear interpolation at rank 0.95 * 9 = 8.55: 4 + 0.55 * (5 - 4).
-    assert result.h95 == pytest.approx(4.55, rel=1e-12)
-    swapped = metrics.surface_distances(reference, estimate)
-    assert swapped.rmse == pytest.approx(np.sqrt(55 / 10), rel=1e-15)
-    assert swapped.chamfer == result.chamfer
+def test_half_square_against_the_square_is_one_sided():
+    """The estimate covers the half x <= 0.5 of the true unit square. Estimate -> truth every
+    distance is 0: d_RMSE (one-sided) is 0. Truth -> estimate a sample at x is max(x - 0.5, 0)
+    away, x uniform: mean 1/8, 95th percentile 0.45, so d_CD = 1/16 and d_H95 = 0.45. With the
+    two swapped, d_RMSE = sqrt(E[max(x - 0.5, 0)^2]) = sqrt(1/24). Tolerances: five standard
+    errors of 20000 samples."""
+    vertices, triangles = UNIT_SQUARE
+    half = vertices * [0.5, 1.0, 1.0]
+    result = surface_metrics(triangles, vertices, half)["full"]
+    assert result["rmse"] == pytest.approx(0.0, abs=1e-15)
+    assert result["chamfer"] == pytest.approx(1 / 16, abs=3e-3)
+    assert result["h95"] == pytest.approx(0.45, abs=8e-3)
+    swapped = surface_metrics(triangles, half, vertices)["full"]
+    assert swapped["rmse"] == pytest.approx(np.sqrt(1 / 24), rel=0.03)
+    assert swapped["chamfer"] == pytest.approx(1 / 16, abs=3e-3)
+    assert swapped["h95"] == pytest.approx(0.45, abs=8e-3)
 
 
-def test_surface_distances_reject_empty_clouds():
-    with pytest.raises(ValueError, match="non-empty"):
-        metrics.surface_distances(np.zeros((0, 3)), np.zeros((4, 3)))
+def test_surface_metrics_are_split_by_what_the_camera_sees():
+    """A small square in front of a large one, seen from the origin through measured points
+    behind the small one. The estimate moves the hidden large square d away: the observable
+    region (the small square, first hit by the rays) has zero distances, the unobserved one
+    (the large square) exactly d, and the whole surface d on the large square's share of the
+    area, 4 of 4.25 (d_H95 = d: the small square's share, 6 %, is below 5 % of neither side)."""
+    front = UNIT_SQUARE[0] * [0.5, 0.5, 0.0] + [0.0, 0.0, 1.0]  # x, y in [0, 0.5] at z = 1
+    back = UNIT_SQUARE[0] * [2.0, 2.0, 0.0] + [-0.5, -0.5, 2.0]  # x, y in [-0.5, 1.5] at z = 2
+    truth = np.vstack((front, back))
+    triangles = np.vstack((UNIT_SQUARE[1], UNIT_SQUARE[1] + 4))
+    shift = 0.01
+    estimate = truth + np.where(np.arange(8) >= 4, shift, 0.0)[:, None] * [0.0, 0.0, 1.0]
+    cloud = np.array([[0.2, 0.1, 2.0], [0.1, 0.2, 2.0]])  # rays through both front triangles
+    result = surface_metrics(triangles, truth, estimate, camera_center=np.zeros(3), cloud=cloud)
+    assert set(result) == {"full", "observable", "unobserved"}
+    for name in SURFACE_METRICS:
+        assert result["observable"][name] == pytest.approx(0.0, abs=1e-15)
+        assert result["unobserved"][name] == pytest.approx(shift, rel=1e-12)
+    back_share = 4.0 / 4.25
+    assert result["full"]["rmse"] == pytest.approx(shift * np.sqrt(back_share), rel=0.01)
+    assert result["full"]["chamfer"] == pytest.approx(shift * back_share, rel=0.01)
+    assert result["full"]["h95"] == pytest.approx(shift, rel=1e-12)
+
+
+def test_a_region_without_faces_has_no_metrics():
+    """Every face observed: the unobserved region is empty and its metrics are undefined (NaN),
+    while the observable one is the whole surface."""
+    vertices, triangles = UNIT_SQUARE
+    shift = 0.05
+    result = surface_metrics(triangles, vertices, vertices + [0.0, 0.0, shift], samples=2000,
+                             observed_faces=np.ones(len(triangles), bool))
+    for name in SURFACE_METRICS:
+        assert np.isnan(result["unobserved"][name])
+        assert result["observable"][name] == pytest.approx(shift, rel=1e-12)
+        assert result["full"][name] == pytest.approx(shift, rel=1e-12)
 
 
 def test_observable_region_of_sphere_is_visible_cap():
@@ -128,26 +170,6 @@ def test_observable_region_of_sphere_is_visible_cap():
     facing = np.einsum("ij,ij->i", sphere.face_normals, towards_camera)
     assert not observed[facing < 0].any()
     assert observed[facing > 0.3].all()
-
-    points, faces = metrics.sample_surface(vertices, triangles, 40000, seed=3, return_faces=True)
-    mask = metrics.observable_mask(points, camera.position, measured, vertices, triangles, point_faces=faces)
-    np.testing.assert_array_equal(mask, observed[faces])
-    assert abs(mask.mean() - fraction) < 5 * np.sqrt(fraction * (1 - fraction) / len(points))
-
-
-def test_observable_mask_by_dilation_radius():
-    vertices, triangles = UNIT_SQUARE
-    camera_center = np.array([0.5, 0.5, -1.0])
-    hits = np.array([[0.2, 0.2, 0.0], [0.3, 0.25, 0.0]])
-    measured = camera_center + 0.5 * (hits - camera_center)  # noisy depths: short of the surface
-    points = metrics.sample_surface(vertices, triangles, 5000, seed=0)
-    radius = 0.1
-    mask = metrics.observable_mask(points, camera_center, measured, vertices, triangles, dilation_radius=radius)
-    nearest = np.linalg.norm(points[:, None] - hits[None], axis=2).min(axis=1)
-    np.testing.assert_array_equal(mask, nearest <= radius)
-    assert 0 < mask.sum() < len(points)
-    with pytest.raises(ValueError, match="point_faces or a positive"):
-        metrics.observable_mask(points, camera_center, measured, vertices, triangles)
 
 
 def test_observable_triangles_respects_occlusion():

@@ -1,12 +1,14 @@
-"""Evaluation metrics of the paper: vertex RMSE, surface distances, observable split; and the
-calibration of a published per-vertex uncertainty against the truth.
+"""Building blocks of the paper's evaluation (evaluation/evaluate.py computes the surface
+metrics d_CD, d_RMSE and d_H95 from them): vertex RMSE, the alignment of a correction with
+the one the truth needed, the calibration of a published per-vertex uncertainty against the
+truth, area-uniform samples of a surface, the observable split, and the mean and spread of
+per-step values.
 
-Surface metrics compare point clouds sampled from meshes: d_RMSE is one-sided (estimate to
-reference), d_CD the mean of the two one-sided mean nearest-neighbour distances, d_H95 the
-larger of the two one-sided 95th percentiles. The observable split follows the paper's
-ex vivo study: rays from the camera centre through the measured (depth) points are cast onto
-a surface; the triangles they first hit form the region the depth sensor could observe.
-All lengths are in the units of the inputs (metres in this project).
+The observable split follows the paper's ex vivo study: rays from the camera centre through
+the measured (depth) points are cast onto a surface; the triangles they first hit form the
+region the depth sensor could observe, and the surface vertices on none of them are the
+"unobserved external" vertices. All lengths are in the units of the inputs (metres in this
+project).
 """
 
 from __future__ import annotations
@@ -15,7 +17,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import trimesh
-from scipy.spatial import cKDTree
 from scipy.stats import chi2
 
 from meshfg_ros.synthetic.camera import as_point_array, as_triangle_array, first_ray_hits
@@ -214,57 +215,6 @@ def sample_surface(vertices, triangles, count: int, seed=0, return_faces: bool =
     return (points, np.asarray(faces, dtype=np.int64)) if return_faces else points
 
 
-@dataclass(frozen=True)
-class SurfaceDistances:
-    """Nearest-neighbour distances between an estimated and a reference point cloud."""
-
-    estimate_to_reference_mean: float
-    reference_to_estimate_mean: float
-    chamfer: float  # d_CD: mean of the two one-sided means
-    rmse: float  # d_RMSE: one-sided, estimate to reference
-    h95: float  # d_H95: max of the two one-sided 95th percentiles
-
-
-def surface_distances(estimate_points, reference_points) -> SurfaceDistances:
-    """The paper's d_CD, d_RMSE and d_H95 between two point clouds (KD-tree nearest neighbours)."""
-    estimate_points = as_point_array("estimate_points", estimate_points)
-    reference_points = as_point_array("reference_points", reference_points)
-    if len(estimate_points) == 0 or len(reference_points) == 0:
-        raise ValueError(
-            f"surface_distances needs non-empty clouds, got {len(estimate_points)} estimate "
-            f"and {len(reference_points)} reference points"
-        )
-    forward = cKDTree(reference_points).query(estimate_points)[0]
-    backward = cKDTree(estimate_points).query(reference_points)[0]
-    forward_mean, backward_mean = float(forward.mean()), float(backward.mean())
-    return SurfaceDistances(
-        estimate_to_reference_mean=forward_mean,
-        reference_to_estimate_mean=backward_mean,
-        chamfer=0.5 * (forward_mean + backward_mean),
-        rmse=float(np.sqrt(np.mean(forward**2))),
-        h95=float(max(np.percentile(forward, 95), np.percentile(backward, 95))),
-    )
-
-
-def _measurement_rays(camera_center, measured_points, surface_vertices, surface_triangles):
-    """First hits on the surface of rays from the camera centre through each measured point."""
-    camera_center = np.asarray(camera_center, dtype=np.float64)
-    if camera_center.shape != (3,):
-        raise ValueError(f"camera_center must have shape (3,), got {camera_center.shape}")
-    measured_points = as_point_array("measured_points", measured_points)
-    if len(measured_points) == 0:
-        raise ValueError("measured_points is empty; no observable region can be defined")
-    directions = measured_points - camera_center
-    lengths = np.linalg.norm(directions, axis=1)
-    if (lengths == 0).any():
-        raise ValueError("a measured point coincides with the camera centre")
-    hits = first_ray_hits(camera_center, directions, surface_vertices, surface_triangles)
-    unit = directions / lengths[:, None]
-    hit = hits.triangles >= 0
-    locations = camera_center + unit[hit] * hits.distances[hit, None]
-    return hits.triangles[hit], locations
-
-
 def observable_triangles(
     camera_center, measured_points, surface_vertices, surface_triangles
 ) -> np.ndarray:
@@ -272,51 +222,18 @@ def observable_triangles(
 
     Noise along a pixel ray does not change which triangle its ray hits, so noisy depth points
     define the same region as clean ones."""
-    hit_triangles, _ = _measurement_rays(
-        camera_center, measured_points, surface_vertices, surface_triangles
-    )
+    camera_center = np.asarray(camera_center, dtype=np.float64)
+    if camera_center.shape != (3,):
+        raise ValueError(f"camera_center must have shape (3,), got {camera_center.shape}")
+    measured_points = as_point_array("measured_points", measured_points)
+    if len(measured_points) == 0:
+        raise ValueError("measured_points is empty; no observable region can be defined")
+    directions = measured_points - camera_center
+    if (np.linalg.norm(directions, axis=1) == 0).any():
+        raise ValueError("a measured point coincides with the camera centre")
+    hits = first_ray_hits(camera_center, directions, surface_vertices, surface_triangles)
     mask = np.zeros(len(surface_triangles), dtype=bool)
-    mask[hit_triangles] = True
-    return mask
-
-
-def observable_mask(
-    points,
-    camera_center,
-    measured_points,
-    surface_vertices,
-    surface_triangles,
-    point_faces=None,
-    dilation_radius: float = 0.0,
-) -> np.ndarray:
-    """(P,) bool: which surface sample points lie in the region observable by the camera.
-
-    A point is observable if its triangle (`point_faces`, from sample_surface(...,
-    return_faces=True)) was first hit by a measurement ray, or if it lies within
-    `dilation_radius` of a ray hit point. Triangle membership is exact for the discretised
-    surface but overshoots the seen region by up to one triangle at its rim and leaves holes
-    where rays are sparser than triangles; the dilation radius (about the ray spacing on the
-    surface) fills such holes. At least one criterion must be given.
-    """
-    points = as_point_array("points", points)
-    if not (np.isfinite(dilation_radius) and dilation_radius >= 0):
-        raise ValueError(f"dilation_radius must be finite and non-negative, got {dilation_radius}")
-    if point_faces is None and dilation_radius == 0:
-        raise ValueError("observable_mask needs point_faces or a positive dilation_radius")
-    hit_triangles, hit_locations = _measurement_rays(
-        camera_center, measured_points, surface_vertices, surface_triangles
-    )
-    mask = np.zeros(len(points), dtype=bool)
-    if point_faces is not None:
-        point_faces = _as_indices("point_faces", point_faces, len(surface_triangles))
-        if point_faces.shape != (len(points),):
-            raise ValueError(f"point_faces must match points, got shape {point_faces.shape}")
-        seen = np.zeros(len(surface_triangles), dtype=bool)
-        seen[hit_triangles] = True
-        mask |= seen[point_faces]
-    if dilation_radius > 0 and len(hit_locations):
-        gaps = cKDTree(hit_locations).query(points, distance_upper_bound=dilation_radius)[0]
-        mask |= gaps <= dilation_radius
+    mask[hits.triangles[hits.triangles >= 0]] = True
     return mask
 
 

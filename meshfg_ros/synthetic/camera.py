@@ -260,14 +260,6 @@ class PinholeCamera:
             object.__setattr__(self, name, float(getattr(self, name)))
 
     @classmethod
-    def from_pose(cls, pose, width, height, fx, fy, cx, cy) -> PinholeCamera:
-        """Camera from a (7,) pose [x, y, z, qx, qy, qz, qw]."""
-        pose = np.asarray(pose, dtype=np.float64)
-        if pose.shape != (7,):
-            raise ValueError(f"pose must have shape (7,), got {pose.shape}")
-        return cls(pose[:3], pose[3:], width, height, fx, fy, cx, cy)
-
-    @classmethod
     def look_at(cls, position, target, up, width, height, fx, fy=None, cx=None, cy=None):
         """Camera at `position` whose optical axis points at `target`, image y pointing away
         from world `up`. fy defaults to fx, the principal point to the image centre."""

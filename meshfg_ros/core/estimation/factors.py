@@ -2,8 +2,10 @@
 
 A factor touches the states (N, 3) of one or two keys and gives its residual r, its
 Jacobians dr/dX_key (sparse, w.r.t. the flattened vertex positions x0 y0 z0 x1 ...), its cost
-and its contribution to the Gauss-Newton normal equations. Noise models (noise.py) and robust
-kernels (noise.py) are separate objects passed to the factor.
+and its contribution to the Gauss-Newton normal equations. The measurement factor's noise
+model and robust kernel are separate objects passed to it (noise.py); the physics prior's
+information depends on the state it is evaluated at, so the prior evaluates and holds it, and
+the temporal factor's is a constant I / sigma^2.
 
   PhysicsPriorFactor     r = Xhat_t - X_t,  information Lambda = scale * K(X_t) + ridge I
   VolumeBarrierFactor    keeps every tetrahedron of a state away from flat or inverted
@@ -33,7 +35,7 @@ from meshfg_ros.core.geometry.closest_point import (
 )
 from meshfg_ros.core.geometry.kernel_types import read_only
 from meshfg_ros.core.geometry.mesh import ElementVolumes, cross, cross3, dot3
-from meshfg_ros.core.estimation.noise import IdentityNoise, InformationMatrixNoise, PointNoise, RobustKernel
+from meshfg_ros.core.estimation.noise import IdentityNoise, PointNoise, RobustKernel
 
 __all__ = [
     "BARRIER_VOLUME_RATIO",
@@ -261,9 +263,6 @@ class PhysicsPriorFactor(Factor):
     def linearize_batch(cls, factors, states, hessian=True):
         return [linearization for group in worker_threads.run_parts(
             _prior_linearizations, [(group, states, hessian) for group in _prior_groups(factors)]) for linearization in group]
-
-    def noise_model(self, state: np.ndarray) -> InformationMatrixNoise:
-        return InformationMatrixNoise(self.information(state))
 
     def residual(self, states):
         return (self.predicted - states[self.keys[0]]).reshape(-1)

@@ -1,13 +1,12 @@
-"""Noise models of factors: the information (inverse covariance) that weights a residual, and
-the robust kernels that reweight point residuals (as GTSAM's noiseModel holds its m-estimators).
+"""Noise models of the measurement factors: the information (inverse covariance) that weights
+a point residual, and the robust kernels that reweight point residuals (as GTSAM's noiseModel
+holds its m-estimators).
 
 Point-wise models (identity, isotropic sigma, per-point sigma, a depth sensor's noise along
 its rays) give one weight 1/sigma^2 per 3-vector residual block (one measurement point);
-`InformationMatrixNoise` holds a full sparse
-information matrix (the physics prior's scaled stiffness), which may be indefinite (the
-paper's raw Neo-Hookean prior): then it has no real square root, and `sqrt_information`
-raises. Whitening (r -> R r with R^T R = information) is what least-squares baselines
-(scipy, GTSAM) need; the estimator itself works with the information directly.
+PointToSurfaceFactor takes its weights from them. The physics prior's information, its
+scaled stiffness, depends on the state and may be indefinite (the paper's raw Neo-Hookean
+prior), so PhysicsPriorFactor evaluates and holds it itself (factors.py).
 
 Robust kernels: a kernel rho maps a point's squared distance d^2 [m^2] to a robust squared
 distance; the point's cost is 0.5 * w * rho(d^2) with w = 1/sigma^2 its noise weight, and its
@@ -22,17 +21,12 @@ which is the same as a kernel of scale k/sigma on the whitened residual:
 from __future__ import annotations
 
 import numpy as np
-import scipy.linalg
-import scipy.sparse
-
-from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError
 
 __all__ = [
     "ROBUST_KERNELS",
     "CauchyKernel",
     "HuberKernel",
     "IdentityNoise",
-    "InformationMatrixNoise",
     "IsotropicNoise",
     "NoiseModelError",
     "PerPointNoise",
@@ -50,7 +44,8 @@ RAY_NOISE_FLOOR = 0.5
 
 
 class NoiseModelError(ValueError):
-    """A non-positive or non-finite sigma, or an information matrix of the wrong shape."""
+    """A non-positive or non-finite sigma, per-point sigmas of the wrong count, or a ray
+    noise floor outside (0, 1]."""
 
 
 class PointNoise:
@@ -63,11 +58,6 @@ class PointNoise:
         """The model of `points` (K, 3), seen from `viewpoint` (3,), lying on surface patches of
         unit `normals` (K, 3). Models that do not depend on the geometry return themselves."""
         return self
-
-    def whiten(self, residual: np.ndarray) -> np.ndarray:
-        """Whitened residual of K points, (K, 3) -> (K, 3)."""
-        residual = np.asarray(residual, dtype=np.float64)
-        return residual * np.sqrt(self.point_weights(len(residual)))[:, None]
 
 
 class IdentityNoise(PointNoise):
@@ -111,36 +101,6 @@ class PerPointNoise(PointNoise):
 
     def __repr__(self) -> str:
         return f"PerPointNoise({self.sigmas.size} sigmas)"
-
-
-class InformationMatrixNoise:
-    """A full (sparse, symmetric) information matrix Lambda (m, m); cost 0.5 r^T Lambda r."""
-
-    def __init__(self, information):
-        information = scipy.sparse.csr_matrix(information, dtype=np.float64)
-        if information.shape[0] != information.shape[1]:
-            raise NoiseModelError(f"information matrix must be square, got {information.shape}")
-        if not np.all(np.isfinite(information.data)):
-            raise NoiseModelError("information matrix has NaN or infinite entries")
-        self.information = information
-
-    def squared_norm(self, residual: np.ndarray) -> float:
-        """r^T Lambda r (negative when Lambda is indefinite)."""
-        residual = np.asarray(residual, dtype=np.float64).reshape(-1)
-        return float(residual @ (self.information @ residual))
-
-    def sqrt_information(self) -> np.ndarray:
-        """Upper-triangular R (m, m) dense with R^T R = Lambda (dense Cholesky: small problems)."""
-        try:
-            return scipy.linalg.cholesky(self.information.toarray(), lower=False)
-        except np.linalg.LinAlgError:
-            raise NotPositiveDefiniteError("information matrix is not positive definite (no square root)") from None
-
-    def whiten(self, residual: np.ndarray) -> np.ndarray:
-        return self.sqrt_information() @ np.asarray(residual, dtype=np.float64).reshape(-1)
-
-    def __repr__(self) -> str:
-        return f"InformationMatrixNoise({self.information.shape[0]}x{self.information.shape[1]})"
 
 
 class RayNoise(IsotropicNoise):

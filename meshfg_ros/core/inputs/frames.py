@@ -133,11 +133,6 @@ class TransformBuffer:
         """Every frame named by a transform so far (children and parents)."""
         return frozenset(self._edges) | {edge.parent for edge in self._edges.values()}
 
-    def parent_of(self, frame: str) -> str | None:
-        """The frame's parent, or None for a root (or unknown) frame."""
-        edge = self._edges.get(frame)
-        return None if edge is None else edge.parent
-
     def set_transforms(self, transforms: Iterable[StampedTransform], static: bool = False) -> list[str]:
         """set_transform for each of a /tf (or /tf_static, static=True) message's transforms; a
         transform that cannot enter the tree is skipped, the others kept. Returns why each skipped

@@ -474,14 +474,6 @@ class ElasticModel:
         return _deformation_gradients(np.ascontiguousarray(state, dtype=np.float64), self.tetrahedra,
                                       self._gradients_em)
 
-    def deformation_gradients(self, current=None) -> np.ndarray:
-        """F_e = sum_a x_a (grad N_a)^T of every element at `current`, (M, 3, 3)."""
-        return self._deformation_em(self._state(current)).transpose(2, 0, 1)
-
-    def rotations(self, current=None) -> np.ndarray:
-        """Element rotations R_e (det +1) of the polar decomposition of F_e, (M, 3, 3)."""
-        return _polar_rotations_em(self._deformation_em(self._state(current))).transpose(2, 0, 1)
-
     # ------------------------------------------------------------------ element matrices
 
     def _upper_entries_of(self, kind: str, deformation, basis: np.ndarray) -> np.ndarray:

@@ -1052,11 +1052,6 @@ class ElasticSimulator:
         response[(3 * rows[:, None] + _DIAGONAL).reshape(-1)] = 0.0  # zero but for rounding
         return response
 
-    @property
-    def previous_tool_pose(self) -> np.ndarray | None:
-        """Tool pose the next `predict` starts from (None before the first call)."""
-        return None if self._previous_pose is None else self._previous_pose.copy()
-
     def reset(self, tool_pose=None) -> None:
         """Set the tool's previous and first (grasp reference) pose and forget the stuck
         vertices; None forgets both poses."""
