@@ -6,7 +6,9 @@ SimulatorConfig and EstimatorConfig hold the model's settings; the small datacla
 the nodes' own (frames, the initial mesh file, timeouts, markers, playback). Each node declares
 the parameters of the configurations it reads (NODE_CONFIGURATIONS): simulator settings go to
 the simulation node, estimator settings to the estimator node, and a parameter of both (the
-tissue model, the tool) to both. `simulator_config` / `estimator_config` build the core
+tissue model, the tool) to both. sim_bridge_server declares only what its open-loop simulator
+reads: the simulator's settings but the learning switches (OpenLoopSimulatorConfig), the grasp,
+the initial mesh and the tool_pose QoS. `simulator_config` / `estimator_config` build the core
 configurations from parameter values by the same fields.
 
 `load_parameters` checks a mapping (unknown key, wrong type, out of range -> ParameterError
@@ -62,12 +64,16 @@ __all__ = [
     "NODE_CONFIGURATIONS",
     "PARAMETERS",
     "EstimatorNodeConfig",
+    "GraspConfig",
+    "InitialMeshConfig",
+    "OpenLoopSimulatorConfig",
     "Parameter",
     "ParameterError",
     "PlaybackConfig",
     "SharedNodeConfig",
     "SimulationNodeConfig",
     "ToolClearanceConfig",
+    "ToolPoseSubscriptionConfig",
     "check_parameter_names",
     "config_changes",
     "config_from_parameters",
@@ -153,11 +159,28 @@ def _check_quaternion(name: str, pose: tuple[float, ...]) -> None:
 
 # ------------------------------------------------------------------ the nodes' own settings
 @dataclass(frozen=True)
-class SimulationNodeConfig:
-    """Settings of the simulation node beyond the simulator's."""
+class OpenLoopSimulatorConfig(SimulatorConfig):
+    """The simulator settings of sim_bridge_server. Its simulator runs open loop from its own
+    state, as the authors' simulator does: no estimate reaches it, so it learns neither a body
+    load nor the Poisson ratio, and those switches are plain fields here, off, not parameters."""
+
+    estimate_body_load: bool = False
+    estimate_poisson_ratio: bool = False
+
+
+@dataclass(frozen=True)
+class GraspConfig:
+    """The vertices the tool holds in grasp mode: a setting of each node that runs the simulator
+    (the simulation node, sim_bridge_server), checked against tool_mode by load_parameters."""
 
     grasped_vertices: tuple[int, ...] = setting(
         (), "Mesh vertex indices held by the tool (grasp mode only).", type="integer_array", range=(0, None))
+
+
+@dataclass(frozen=True)
+class SimulationNodeConfig:
+    """Settings of the simulation node beyond the simulator's and the grasp."""
+
     estimate_timeout: float = setting(
         SchedulingTimeouts.estimate_timeout, "Seconds (wall time) a prediction request waits for the estimate of the previous request before it "
         "is predicted from the newest state the node has.", range=(0.0, 60.0))
@@ -221,16 +244,14 @@ class EstimatorNodeConfig:
 
 
 @dataclass(frozen=True)
-class SharedNodeConfig:
-    """Settings of both pipeline nodes: the world frame, the initial mesh file, the stamp rule."""
+class InitialMeshConfig:
+    """The world frame and the initial mesh file, scaled, placed and with its fixed vertices: the
+    settings of each node that runs on a mesh (both pipeline nodes, sim_bridge_server)."""
 
     world_frame: str = setting("world", "Frame of meshes, tool poses and estimates.")
     mesh_file: str = setting(
         "", "Initial mesh file (.msh, .vtu, .vtk) used when no initial_mesh message arrives; empty: wait for "
         "initial_mesh. A file that cannot be read stops the node at start-up.")
-    clock_jump_threshold: float = setting(
-        DEFAULT_CLOCK_JUMP_THRESHOLD_S, "A stamp this many seconds older than the newest one (a looped recording) restarts from the "
-        "initial mesh (a /tf transform: its frame's history); smaller steps back are dropped.", range=(0.0, 1e6))
     mesh_scale: float = setting(
         1.0, "Metres per unit of mesh_file: 0.001 for a mesh in millimetres.", range=(1e-9, 1e9))
     mesh_pose: tuple[float, ...] = setting(
@@ -249,17 +270,6 @@ class SharedNodeConfig:
     fixed_groups: str = setting(
         "", "Hold fixed the vertices of mesh_file's named groups (gmsh physical groups, cell or point sets), "
         "comma-separated; empty: none.")
-    transform_timeout: float = setting(
-        DEFAULT_TRANSFORM_WAIT_S, "Seconds (wall time) a cloud or tool pose in another frame than world_frame waits for /tf to place "
-        "it at its stamp; then it is rejected with the reason.", range=(0.0, 60.0))
-    tool_pose_horizon: float = setting(
-        DEFAULT_EXTRAPOLATION_HORIZON_S, "Seconds past the newest tool pose within which the pose at a cloud's stamp is extrapolated "
-        "(tool poses are interpolated at each cloud's stamp); beyond it the step has no tool pose.",
-        range=(0.0, 10.0))
-    tool_pose_reliable: bool = setting(
-        True, "Subscribe to tool_pose with reliable QoS (depth 10), which every pose published reliably reaches "
-        "and a best-effort publisher does not match; false: best effort (depth 100), which matches any publisher, "
-        "for robot drivers that publish poses best effort (a pose the transport loses is interpolated over).")
 
     def __post_init__(self) -> None:
         if len(self.fixed_plane) not in (0, 7):
@@ -267,6 +277,34 @@ class SharedNodeConfig:
         if len(self.fixed_box) not in (0, 6):
             raise ParameterError(f"fixed_box needs 0 or 6 values, got {len(self.fixed_box)}")
         _check_quaternion("mesh_pose", self.mesh_pose)
+
+
+@dataclass(frozen=True)
+class SharedNodeConfig:
+    """Settings of both pipeline nodes: the stamp rule, the wait for /tf and the tool poses'
+    extrapolation to a cloud's stamp."""
+
+    clock_jump_threshold: float = setting(
+        DEFAULT_CLOCK_JUMP_THRESHOLD_S, "A stamp this many seconds older than the newest one (a looped recording) restarts from the "
+        "initial mesh (a /tf transform: its frame's history); smaller steps back are dropped.", range=(0.0, 1e6))
+    transform_timeout: float = setting(
+        DEFAULT_TRANSFORM_WAIT_S, "Seconds (wall time) a cloud or tool pose in another frame than world_frame waits for /tf to place "
+        "it at its stamp; then it is rejected with the reason.", range=(0.0, 60.0))
+    tool_pose_horizon: float = setting(
+        DEFAULT_EXTRAPOLATION_HORIZON_S, "Seconds past the newest tool pose within which the pose at a cloud's stamp is extrapolated "
+        "(tool poses are interpolated at each cloud's stamp); beyond it the step has no tool pose.",
+        range=(0.0, 10.0))
+
+
+@dataclass(frozen=True)
+class ToolPoseSubscriptionConfig:
+    """The QoS of the tool_pose subscription, of each node that takes tool poses (both pipeline
+    nodes, sim_bridge_server)."""
+
+    tool_pose_reliable: bool = setting(
+        True, "Subscribe to tool_pose with reliable QoS (depth 10), which every pose published reliably reaches "
+        "and a best-effort publisher does not match; false: best effort (depth 100), which matches any publisher, "
+        "for robot drivers that publish poses best effort (a pose the transport loses is interpolated over).")
 
 
 @dataclass(frozen=True)
@@ -304,15 +342,17 @@ class ToolClearanceConfig:
 
 # The configurations each node reads: it declares the parameters of their fields.
 NODE_CONFIGURATIONS: dict[str, tuple[type, ...]] = {
-    "simulation_node": (SimulatorConfig, SimulationNodeConfig, SharedNodeConfig),
-    "estimator_node": (EstimatorConfig, EstimatorNodeConfig, SharedNodeConfig),
-    "sim_bridge_server": (SimulatorConfig, SharedNodeConfig),
+    "simulation_node": (SimulatorConfig, GraspConfig, SimulationNodeConfig, InitialMeshConfig, SharedNodeConfig,
+                        ToolPoseSubscriptionConfig),
+    "estimator_node": (EstimatorConfig, EstimatorNodeConfig, InitialMeshConfig, SharedNodeConfig,
+                       ToolPoseSubscriptionConfig),
+    "sim_bridge_server": (OpenLoopSimulatorConfig, GraspConfig, InitialMeshConfig, ToolPoseSubscriptionConfig),
     "bag_player": (PlaybackConfig,),
     "tool_clearance_node": (ToolClearanceConfig,),
 }
 # The pipeline (both nodes, and the offline replay that reproduces them), in the order of config/meshfg.yaml.
-_PIPELINE_CONFIGURATIONS = (SimulatorConfig, SimulationNodeConfig, EstimatorConfig, EstimatorNodeConfig,
-                            SharedNodeConfig)
+_PIPELINE_CONFIGURATIONS = (SimulatorConfig, GraspConfig, SimulationNodeConfig, EstimatorConfig, EstimatorNodeConfig,
+                            InitialMeshConfig, SharedNodeConfig, ToolPoseSubscriptionConfig)
 
 @functools.cache
 def _fields_and_parameters(config_class: type) -> tuple[tuple[str, Setting, Parameter], ...]:

@@ -14,9 +14,11 @@ from meshfg_ros.core.settings import setting
 from meshfg_ros.core.inputs.world_frame import CLOUD, FramedInput
 from meshfg_ros.parameters import (
     PARAMETERS,
+    OpenLoopSimulatorConfig,
     ParameterError,
     check_parameter_names,
     config_changes,
+    config_from_parameters,
     default_parameters,
     estimator_changes,
     estimator_config,
@@ -203,6 +205,26 @@ def test_each_node_declares_the_parameters_of_the_configurations_it_reads():
     assert simulation | estimator == {parameter.name for parameter in PARAMETERS}
     assert [parameter.name for parameter in node_parameters("bag_player")] == [
         "rate", "wait_for_subscribers", "subscribers", "clock_frequency", "delay", "loop"]
+
+
+def test_sim_bridge_server_declares_what_its_open_loop_simulator_reads():
+    """The simulator's settings but the learning switches (no estimate reaches it), the grasp, the
+    initial mesh and the tool_pose QoS; no stamp rule, /tf wait or extrapolation: it takes the
+    tool poses in world_frame as they come."""
+    server = [parameter.name for parameter in node_parameters("sim_bridge_server")]
+    assert server == ["youngs_modulus", "poisson_ratio", "tool_radius", "tool_mode", "density", "tool_contact",
+                      "simulator_substeps", "simulator_iterations", "simulator", "grasped_vertices", "world_frame",
+                      "mesh_file", "mesh_scale", "mesh_pose", "fixed_vertices", "fixed_plane", "fixed_box",
+                      "fixed_groups", "tool_pose_reliable"]
+    with pytest.raises(ParameterError, match="tool_mode 'grasp' needs grasped_vertices"):
+        load_parameters({"tool_mode": "grasp"}, node="sim_bridge_server")
+    params = load_parameters({"tool_mode": "grasp", "grasped_vertices": [3], "youngs_modulus": 5e3},
+                             "sim_bridge_server")
+    simulator = config_from_parameters(OpenLoopSimulatorConfig, params)
+    assert (simulator.tool_mode, simulator.youngs_modulus) == ("grasp", 5e3)
+    assert not simulator.estimate_body_load and not simulator.estimate_poisson_ratio
+    # A /** section of the pipeline's parameters is accepted; the server ignores what it does not declare.
+    check_parameter_names(["estimate_body_load", "clock_jump_threshold", "tool_pose_horizon"], "sim_bridge_server")
 
 
 def test_a_parameter_of_two_configurations_is_declared_once():

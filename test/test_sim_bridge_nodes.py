@@ -3,19 +3,26 @@ in the test process (nodes/sim_bridge_server.SimBridgeService) answers in frame 
 /tf_static places in the world; the node's estimates equal those of the same predictions and
 stiffness given in-process; a service that is missing, slow or answers badly is counted and
 named in /diagnostics, and the steps run degraded, never on a poisoned window; the
-sim_bridge_server executable answers with the project's simulator driven by tool poses."""
+sim_bridge_server executable answers with the project's simulator driven by tool poses (in grasp
+mode too, and from a best-effort publisher with tool_pose_reliable false), reads every parameter
+it declares, and counts and names on /diagnostics each cause of a tool pose it rejects."""
 import time
 from collections import deque
 
 import numpy as np
 import pytest
 import scipy.sparse
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import PoseStamped
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from scipy.spatial.transform import Rotation
 from sim_bridge.srv import FactorGraphState
 from std_msgs.msg import UInt32MultiArray
 from test_nodes import (  # noqa: F401 - probe and processes are fixtures
     FACTORY,
     KEEP,
+    LATCHED,
     S,
     SIDE,
     EstimatorProbe,
@@ -43,9 +50,11 @@ from meshfg_ros.core.inputs.world_frame import CLOUD, FramedInput
 from meshfg_ros.io.messages import PoseRecord, pose_to_msg
 from meshfg_ros.io.tf_messages import TF_STATIC_TOPIC, transforms_to_tf_message
 from meshfg_ros.nodes.frame_inputs import TF_STATIC_QOS
+from meshfg_ros.nodes import sim_bridge_server
 from meshfg_ros.nodes.sim_bridge_client import answer_from_msg
-from meshfg_ros.nodes.sim_bridge_server import SimBridgeService, factor_graph_state_response
-from meshfg_ros.parameters import estimator_config, load_parameters, world_frame_inputs
+from meshfg_ros.nodes.sim_bridge_server import SERVICE, SimBridgeService, factor_graph_state_response
+from meshfg_ros.parameters import estimator_config, load_parameters, node_parameters, world_frame_inputs
+from meshfg_msgs.msg import TetraMesh
 
 pytestmark = pytest.mark.slow  # node processes over DDS
 
@@ -356,3 +365,161 @@ def test_a_cut_in_the_simulator_is_followed_by_the_published_estimates(probe, pr
                             corners[:, 3] - corners[:, 0])
         assert volumes.min() > 0.0
     assert_clean_exit(node, node.interrupt())
+
+
+class ParameterReads(dict):
+    """A node's parameter values that note each name read."""
+
+    def __init__(self, values):
+        super().__init__(values)
+        self.read = set()
+
+    def __getitem__(self, name):
+        self.read.add(name)
+        return super().__getitem__(name)
+
+
+def test_the_server_reads_every_parameter_it_declares(probe, tmp_path, monkeypatch):
+    declared, declare = [], sim_bridge_server.declare_parameters
+
+    def noting_reads(node, node_name):
+        declared.append(ParameterReads(declare(node, node_name)))
+        return declared[-1]
+
+    monkeypatch.setattr(sim_bridge_server, "declare_parameters", noting_reads)
+    save_mesh(pushed_cube(), tmp_path / "cube.vtu")
+    node = sim_bridge_server.SimBridgeServer(
+        namespace="/sb_reads", parameter_overrides=[Parameter("mesh_file", value=str(tmp_path / "cube.vtu"))])
+    try:
+        (params,) = declared
+        assert set(params) == {parameter.name for parameter in node_parameters("sim_bridge_server")}
+        assert params.read == set(params), set(params) - params.read
+    finally:
+        node.destroy_node()
+
+
+def start_server(probe, processes, tmp_path, namespace, *parameters):
+    """sim_bridge_server in `namespace`, its service there too; the process and its /diagnostics
+    reports (level, message, counters), appended as they arrive."""
+    reports = []
+
+    def on_diagnostics(msg):
+        reports.extend((status.level, status.message, {kv.key: kv.value for kv in status.values})
+                       for status in msg.status if status.name == f"{namespace}/sim_bridge_server: sim_bridge")
+
+    probe.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, KEEP)
+    server = Process(tmp_path, "sim_bridge_server", *ros_args(namespace, *parameters),
+                     "-r", f"{SERVICE}:={namespace}{SERVICE}")
+    processes.append(server)
+    assert spin_until(probe, lambda: reports), server.output()
+    return server, reports
+
+
+def first_report(probe, reports, **expected):
+    """The first report whose counters have the `expected` values (spinning until it comes)."""
+    def found():
+        return next((report for report in reports
+                     if all(report[2].get(key) == str(value) for key, value in expected.items())), None)
+
+    assert spin_until(probe, lambda: found() is not None), f"expected {expected}, got {reports[-1:]}"
+    return found()
+
+
+def test_the_server_counts_and_names_each_tool_pose_it_rejects(probe, processes, tmp_path):
+    mesh = pushed_cube()
+    namespace = "/sb_rejects"
+    server, reports = start_server(probe, processes, tmp_path, namespace)
+    tool = probe.create_publisher(PoseStamped, f"{namespace}/tool_pose", KEEP)
+    meshes = probe.create_publisher(TetraMesh, f"{namespace}/initial_mesh", LATCHED)
+    assert spin_until(probe, lambda: tool.get_subscription_count() == 1 and meshes.get_subscription_count() == 1)
+    assert reports[-1][:2] == (DiagnosticStatus.WARN, "waiting for initial_mesh")
+    above = [SIDE / 2, SIDE / 2, SIDE + 0.01]  # clear of the cube: the tool touches nothing
+
+    tool.publish(tool_pose_msg(above, 1 * S))
+    level, message, _ = first_report(probe, reports, tool_poses_rejected_before_mesh=1)
+    assert (level, message) == (DiagnosticStatus.WARN, "waiting for initial_mesh; 1 tool poses ignored before it")
+    meshes.publish(mesh_msg(mesh))
+    assert spin_until(probe, lambda: reports[-1][:2] == (DiagnosticStatus.OK, "simulating")), reports[-1]
+
+    zero_quaternion = tool_pose_msg(above, 2 * S)
+    zero_quaternion.pose.orientation.w = 0.0
+    tool.publish(zero_quaternion)
+    level, message, _ = first_report(probe, reports, tool_poses_rejected_malformed=1)
+    assert (level, message) == (DiagnosticStatus.WARN, "1 tool poses rejected since the last report; the last: "
+                                "tool_pose rejected: pose quaternion is zero")
+    in_camera = tool_pose_msg(above, 3 * S)
+    in_camera.header.frame_id = "camera"
+    tool.publish(in_camera)
+    level, message, _ = first_report(probe, reports, tool_poses_rejected_frame=1)
+    frame_warning = ("tool_pose in frame 'camera' rejected: this server takes tool poses in its world_frame 'world' "
+                     "only; publish them there, or set world_frame")
+    assert (level, message) == (DiagnosticStatus.WARN, f"1 tool poses rejected since the last report; the last: "
+                                f"{frame_warning}")
+    tool.publish(tool_pose_msg(above, 4 * S))
+    _, _, counters = first_report(probe, reports, tool_poses_received=4)
+    assert spin_until(probe, lambda: reports[-1][:2] == (DiagnosticStatus.OK, "simulating")), reports[-1]
+    tool.publish(tool_pose_msg(above, 4 * S))  # a repeated stamp: not a problem
+    tool.publish(tool_pose_msg(above, 4 * S - S // 2))  # back by half a second: taken, and said
+    level, message, counters = first_report(probe, reports, tool_poses_stamped_back=1)
+    back_warning = "tool_pose stamped 0.500 s before the previous one: the tool is put there without a simulation step"
+    assert (level, message) == (DiagnosticStatus.WARN, f"1 tool poses stamped back since the last report; the last: "
+                                f"{back_warning}")
+    assert {key: counters[key] for key in ("tool_poses_received", "tool_poses_rejected_before_mesh",
+                                           "tool_poses_rejected_malformed", "tool_poses_rejected_frame",
+                                           "tool_poses_rejected", "tool_poses_stamped_back", "steps_failed",
+                                           "cuts_rejected")} == {
+        "tool_poses_received": "6", "tool_poses_rejected_before_mesh": "1", "tool_poses_rejected_malformed": "1",
+        "tool_poses_rejected_frame": "1", "tool_poses_rejected": "3", "tool_poses_stamped_back": "1",
+        "steps_failed": "0", "cuts_rejected": "0"}
+    assert spin_until(probe, lambda: reports[-1][:2] == (DiagnosticStatus.OK, "simulating")), reports[-1]
+    for warning in ("tool_pose before the mesh ignored: set mesh_file or publish initial_mesh",
+                    "tool_pose rejected: pose quaternion is zero", frame_warning, back_warning):
+        assert warning in server.output(), warning
+
+    # A best-effort publisher cannot reach the reliable subscription (tool_pose_reliable's default):
+    # an ERROR, with the fix.
+    best_effort = probe.create_publisher(PoseStamped, f"{namespace}/tool_pose",
+                                         QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
+    assert spin_until(probe, lambda: reports[-1][0] == DiagnosticStatus.ERROR), reports[-1]
+    assert reports[-1][1].startswith(f"{namespace}/tool_pose from /test_probe never arrives: it publishes best effort")
+    assert reports[-1][1].endswith("publish it reliable, or set tool_pose_reliable:=false")
+    probe.destroy_publisher(best_effort)
+    assert_clean_exit(server, server.interrupt())
+
+
+def test_the_server_grasps_with_the_poses_of_a_best_effort_publisher(probe, processes, tmp_path):
+    mesh = pushed_cube()
+    save_mesh(mesh, tmp_path / "cube.vtu")
+    grasped = int(np.argmin(np.linalg.norm(mesh.vertices - [SIDE / 3, SIDE / 3, SIDE], axis=1)))
+    namespace = "/sb_grasp"
+    server, reports = start_server(probe, processes, tmp_path, namespace, f"mesh_file:={tmp_path / 'cube.vtu'}",
+                                   "tool_mode:=grasp", f"grasped_vertices:=[{grasped}]", "tool_pose_reliable:=false")
+    tool = probe.create_publisher(PoseStamped, f"{namespace}/tool_pose",
+                                  QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
+    client = probe.create_client(FactorGraphState, f"{namespace}{SERVICE}")
+    assert spin_until(probe, lambda: tool.get_subscription_count() == 1), server.output()
+    start = mesh.vertices[grasped] + [0.0, 0.0, 0.002]  # the tool just above the vertex it holds
+
+    def received():
+        return int(reports[-1][2]["tool_poses_received"])
+
+    # The grasp's reference pose, again until it arrives (best effort: the server's reader may match the
+    # probe's writer after the writer matched it); the same stamp only sets the reference again.
+    for _ in range(10):
+        tool.publish(tool_pose_msg(start, 0))
+        if spin_until(probe, lambda: received() >= 1, timeout_s=2.0):
+            break
+    spin_until(probe, lambda: False, timeout_s=1.5)  # a copy still on its way is counted too
+    lifted = received()
+    for step in range(1, 4):
+        tool.publish(tool_pose_msg(start + [0.0, 0.0, 0.001 * step], step * S // 20))
+        spin_until(probe, lambda: False, timeout_s=0.2)
+    first_report(probe, reports, tool_poses_received=lifted + 3, tool_poses_rejected=0, steps_failed=0)
+    positions = np.asarray(call_service(probe, client, FactorGraphState.Request()).fg_state.sim_mesh.vertices.data)
+    positions = positions.reshape(-1, 3)
+    # The grasped vertex follows the tool rigidly (3 mm up); the tissue around it follows; the boundary stays.
+    np.testing.assert_allclose(positions[grasped], mesh.vertices[grasped] + [0.0, 0.0, 0.003], rtol=0, atol=1e-12)
+    free = np.setdiff1d(np.arange(mesh.vertex_count), [grasped, *mesh.fixed_vertices])
+    assert np.abs(positions[free] - mesh.vertices[free]).max() > 1e-4
+    np.testing.assert_array_equal(positions[mesh.fixed_vertices], mesh.vertices[mesh.fixed_vertices])
+    assert_clean_exit(server, server.interrupt())

@@ -8,7 +8,8 @@ of each stage), so that a robot's diagnostic aggregator shows why estimates are 
 robot" lists them): it is OK only while recent steps are estimated from most of their points,
 with a prediction, converged, and in time. `SimulatorHealth` does the same for the simulation
 node: OK only while it has its mesh and tool poses, uses what it receives, and its newest
-prediction succeeded.
+prediction succeeded; `BridgeServerHealth` for sim_bridge_server: OK only while it has its mesh
+and takes the tool poses and cuts it receives, and its steps succeed.
 """
 
 from __future__ import annotations
@@ -164,6 +165,31 @@ class SimulatorCounters(Counters):
         """Tool poses that were not predicted, whatever the reason."""
         return (self.tool_poses_rejected_malformed + self.tool_poses_rejected_frame + self.tool_poses_rejected_stamp
                 + self.tool_poses_rejected_far)
+
+    def values(self) -> dict[str, str]:
+        """Counter name -> text value (the rejected total included)."""
+        values = super().values()
+        values["tool_poses_rejected"] = str(self.tool_poses_rejected)
+        return values
+
+
+@dataclass
+class BridgeServerCounters(Counters):
+    """What sim_bridge_server has seen since it started (the values of its diagnostics)."""
+
+    tool_poses_received: int = 0
+    tool_poses_rejected_malformed: int = 0
+    tool_poses_rejected_frame: int = 0        # not in world_frame: the server places nothing through /tf
+    tool_poses_rejected_before_mesh: int = 0  # before mesh_file or initial_mesh gave the simulator its mesh
+    tool_poses_stamped_back: int = 0          # before the previous pose: the tool put there without a step
+    steps_failed: int = 0                     # simulation steps that raised: the state before them kept
+    cuts_rejected: int = 0                    # remove_elements before the mesh or that the simulator could not take
+
+    @property
+    def tool_poses_rejected(self) -> int:
+        """Tool poses that did not move the simulator, whatever the reason."""
+        return (self.tool_poses_rejected_malformed + self.tool_poses_rejected_frame
+                + self.tool_poses_rejected_before_mesh)
 
     def values(self) -> dict[str, str]:
         """Counter name -> text value (the rejected total included)."""
@@ -345,3 +371,29 @@ class SimulatorHealth:
         if self.last_failure is not None:
             return WARN, f"the last prediction failed: {self.last_failure}"
         return OK, "predicting"
+
+
+class BridgeServerHealth:
+    """sim_bridge_server's level and reason from its counters and its newest problem (module docstring)."""
+
+    # What went wrong, by the counter (or total) that counts it, as the report names it.
+    PROBLEMS = {"tool_poses_rejected": "tool poses rejected", "tool_poses_stamped_back": "tool poses stamped back",
+                "steps_failed": "simulation steps failed", "cuts_rejected": "cuts rejected"}
+
+    def __init__(self) -> None:
+        self._seen = dict.fromkeys(self.PROBLEMS, 0)
+        self.last_problem = ""  # the newest rejection or failure (its log line)
+
+    def assess(self, counters: BridgeServerCounters, waiting_for_mesh: bool) -> tuple[bytes, str]:
+        """(level, reason): waiting for the mesh, then the tool poses rejected or stamped back, steps
+        failed and cuts rejected since the last report with the newest reason, else whether tool
+        poses come."""
+        new = {problem: getattr(counters, problem) - seen for problem, seen in self._seen.items()}
+        self._seen = {problem: getattr(counters, problem) for problem in self.PROBLEMS}
+        if waiting_for_mesh:
+            ignored = counters.tool_poses_rejected_before_mesh
+            return WARN, "waiting for initial_mesh" + (f"; {ignored} tool poses ignored before it" if ignored else "")
+        news = [f"{new[problem]} {what}" for problem, what in self.PROBLEMS.items() if new[problem]]
+        if news:
+            return WARN, f"{', '.join(news)} since the last report; the last: {self.last_problem}"
+        return OK, "simulating" if counters.tool_poses_received else "waiting for tool_pose"

@@ -112,7 +112,7 @@ def run_nodes(program: str, node_factories: Sequence[Callable[[], Node]], args=N
         for warning in unmatched_parameter_files(argv, [node.get_fully_qualified_name() for node in nodes]):
             for node in nodes:
                 node.get_logger().warning(warning)
-                if hasattr(node, "setup_warnings"):  # the pipeline's nodes: their diagnostics say it too
+                if hasattr(node, "setup_warnings"):  # the nodes with diagnostics: they say it there too
                     node.setup_warnings.append(warning)
         executor = SingleThreadedExecutor()
         for node in nodes:

@@ -2,9 +2,10 @@
 service, to try and test the estimator's prediction_source sim_bridge without the C++ simulator.
 
 Like the authors' simulator it runs on its own, driven by the tool: each `tool_pose`
-(geometry_msgs/PoseStamped in its world_frame; others are ignored and counted) moves its state
-(core.physics.simulator.ElasticSimulator, the simulation node's model and parameters, from the initial
-mesh of mesh_file or `initial_mesh`), and the service `/sim/factor_graph_state`
+(geometry_msgs/PoseStamped in its world_frame, QoS per tool_pose_reliable) moves its state
+(core.physics.simulator.ElasticSimulator, the simulation node's model and parameters but the
+learning switches, open loop, from the initial mesh of mesh_file or `initial_mesh`; in grasp
+mode grasped_vertices follow the tool), and the service `/sim/factor_graph_state`
 (sim_bridge/srv/FactorGraphState; remap it with -r) answers with its current state in
 world_frame (run it with -p world_frame:=sim/world for the authors' frame) and, when asked,
 the corotational FEM stiffness at that state as a full symmetric COO matrix in float32 with the
@@ -12,7 +13,11 @@ fixed vertices' dofs at HELD_DOF_STIFFNESS on the diagonal, as the authors' brid
 It cuts on `remove_elements` (std_msgs/UInt32MultiArray: element slots, as the simulation node
 takes them; core/geometry/topology.py): the answers then keep every slot, list the removed elements and
 the vertices left without one in `invalid_indices`, and the stiffness is the remaining
-elements'.
+elements'. Its counters and health go to `/diagnostics` every second (nodes/diagnostics.py,
+BridgeServerCounters): tool poses rejected as malformed, in another frame than world_frame (it
+places nothing through /tf) or before the mesh, each with its own counter and warning; failed
+steps; cuts it could not take; and first, as the pipeline's nodes do, input publishers whose
+QoS cannot match.
 
 `factor_graph_state_response` builds an answer from arrays; `SimBridgeService` serves answers
 from any function of the request (the tests serve scripted states with it).
@@ -25,8 +30,10 @@ from collections.abc import Callable
 
 import numpy as np
 import scipy.sparse
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from std_msgs.msg import UInt32MultiArray
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from sim_bridge.srv import FactorGraphState
 
@@ -36,15 +43,31 @@ from meshfg_ros.core.geometry.mesh import InvalidMeshError, TetMesh
 from meshfg_ros.core.physics.simulator import ElasticSimulator
 from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError
 from meshfg_ros.io.messages import MessageValidationError, header_msg, pose_from_msg
-from meshfg_ros.nodes.ros_conversions import RCLPY_FACTORY, REQUEST_QOS, STREAM_QOS, InitialMeshSource
+from meshfg_ros.nodes.diagnostics import (
+    BridgeServerCounters,
+    BridgeServerHealth,
+    diagnostic_array,
+    with_setup_problems,
+)
+from meshfg_ros.nodes.publisher_qos import TOPIC_TABLE_FIX, IncompatiblePublishers
+from meshfg_ros.nodes.ros_conversions import (
+    LATCHED_QOS,
+    RCLPY_FACTORY,
+    REQUEST_QOS,
+    STREAM_QOS,
+    TOOL_POSE_QOS_FIX,
+    InitialMeshSource,
+    tool_pose_qos,
+)
 from meshfg_ros.nodes.ros_parameters import declare_parameters
 from meshfg_ros.nodes.runtime import run_nodes
-from meshfg_ros.parameters import simulator_config
+from meshfg_ros.parameters import OpenLoopSimulatorConfig, config_from_parameters
 
 __all__ = ["SERVICE", "SimBridgeServer", "SimBridgeService", "factor_graph_state_response"]
 
 SERVICE = "/sim/factor_graph_state"
 _MAX_STEP_S = 0.1  # a pause in the tool poses is not simulated as one long step
+_REPORT_PERIOD_S = 1.0
 
 
 def factor_graph_state_response(positions: np.ndarray, mesh: TetMesh, frame_id: str, stamp_ns: int,
@@ -92,6 +115,34 @@ class SimBridgeService:
         return self._answer(request)
 
 
+class ServerReports:
+    """sim_bridge_server's counters and health (nodes/diagnostics.py) on /diagnostics every second,
+    with its wiring first: input publishers whose QoS cannot match (`unmatched_publishers`) and
+    what run_nodes found wrong in the set-up (`setup_warnings`)."""
+
+    def __init__(self, node: Node, waiting_for_mesh: Callable[[], bool],
+                 unmatched_publishers: Callable[[], list[str]]) -> None:
+        self._node, self._waiting_for_mesh, self._unmatched_publishers = node, waiting_for_mesh, unmatched_publishers
+        self.counters = BridgeServerCounters()
+        self.health = BridgeServerHealth()
+        self.setup_warnings: list[str] = []
+        self._diagnostics = node.create_publisher(DiagnosticArray, "/diagnostics", STREAM_QOS)
+        node.create_timer(_REPORT_PERIOD_S, self.report, clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def count(self, counter: str, reason: str) -> None:
+        """One more of `counter`; `reason` is the newest problem. The caller logs it: rclpy throttles
+        a warning per call site, so each cause's warnings are throttled apart."""
+        self.counters.count(counter)
+        self.health.last_problem = reason
+
+    def report(self) -> None:
+        """Publish the counters with the level and reason."""
+        health = self.health.assess(self.counters, self._waiting_for_mesh())
+        level, message = with_setup_problems(*health, self._unmatched_publishers(), self.setup_warnings)
+        self._diagnostics.publish(diagnostic_array(f"{self._node.get_fully_qualified_name()}: sim_bridge", level,
+                                                   message, self.counters, self._node.get_clock().now().nanoseconds))
+
+
 class SimBridgeServer(Node):
     """The project's simulator behind the sim_bridge service (module docstring)."""
 
@@ -99,34 +150,45 @@ class SimBridgeServer(Node):
         super().__init__("sim_bridge_server", **kwargs)
         self.params = declare_parameters(self, "sim_bridge_server")
         self._frame = self.params["world_frame"]
+        self._config = config_from_parameters(OpenLoopSimulatorConfig, self.params)
+        self._grasped_vertices = self.params["grasped_vertices"] or None
         self._simulator: ElasticSimulator | None = None
         self._model: ElasticModel | None = None
         self._mesh: TetMesh | None = None
         self._state: np.ndarray | None = None
         self._last_stamp_ns: int | None = None
-        self.tool_poses_ignored = 0
         self._mesh_source = InitialMeshSource(self, self._frame, self._set_mesh)
-        self.create_subscription(PoseStamped, "tool_pose", self._on_tool_pose, STREAM_QOS)
+        tool_pose = tool_pose_qos(self.params)
+        self.create_subscription(PoseStamped, "tool_pose", self._on_tool_pose, tool_pose)
         self.create_subscription(UInt32MultiArray, "remove_elements", self._on_remove_elements, REQUEST_QOS)
+        input_qos = IncompatiblePublishers(self)
+        input_qos.watch("tool_pose", tool_pose, TOOL_POSE_QOS_FIX)
+        for topic, qos in (("remove_elements", REQUEST_QOS), ("initial_mesh", LATCHED_QOS)):
+            input_qos.watch(topic, qos, TOPIC_TABLE_FIX)
+        self.reports = ServerReports(self, lambda: self._simulator is None, input_qos.find)
+        self.setup_warnings = self.reports.setup_warnings  # what run_nodes found wrong in the set-up
         self.service = SimBridgeService(self, self._respond)
         self._mesh_source.load_file(self.params)
 
     def _set_mesh(self, mesh: TetMesh, state) -> None:
-        self._simulator = ElasticSimulator(mesh, simulator_config(self.params))
+        self._simulator = ElasticSimulator(mesh, self._config, self._grasped_vertices)
         self._model = self._elastic_model(mesh)
         self._mesh, self._state, self._last_stamp_ns = mesh, mesh.vertices.copy(), None
 
     def _elastic_model(self, mesh: TetMesh) -> ElasticModel:
-        config = simulator_config(self.params)
-        return ElasticModel(mesh.vertices, mesh.tetrahedra, config.youngs_modulus, config.poisson_ratio)
+        return ElasticModel(mesh.vertices, mesh.tetrahedra, self._config.youngs_modulus, self._config.poisson_ratio)
 
     def _on_remove_elements(self, msg: UInt32MultiArray) -> None:
         if self._simulator is None:
-            return self.get_logger().warning("remove_elements before the mesh: ignored")
+            reason = "remove_elements before the mesh: ignored"
+            self.get_logger().warning(reason)
+            return self.reports.count("cuts_rejected", reason)
         try:
             changed = self._simulator.remove_elements(np.asarray(msg.data, dtype=np.int64))
         except (InvalidMeshError, NotPositiveDefiniteError) as error:  # a cut it cannot make leaves it as it was
-            return self.get_logger().warning(f"cut refused: {error}")
+            reason = f"cut refused: {error}"
+            self.get_logger().warning(reason)
+            return self.reports.count("cuts_rejected", reason)
         if changed:
             self._mesh = self._simulator.rest_mesh
             self._model = self._elastic_model(self._mesh)
@@ -134,16 +196,33 @@ class SimBridgeServer(Node):
                                    f"{self._mesh.invalid_vertices.size} vertices invalid")
 
     def _on_tool_pose(self, msg: PoseStamped) -> None:
+        """One simulation step to the pose, over the time since the previous pose's stamp (at most
+        _MAX_STEP_S); the first pose, and one stamped at or before the previous, puts the tool
+        there without a step (a repeated stamp sets a grasp's reference again; one that goes back,
+        as a restarted recording's, is counted and warned of). Each cause of a pose the server
+        cannot take has its own counter and warning (each throttled on its own)."""
+        self.reports.counters.tool_poses_received += 1
         try:
             record = pose_from_msg(msg)
-        except (MessageValidationError, ValueError):
-            record = None
-        if record is None or record.frame_id.strip("/") != self._frame.strip("/") or self._simulator is None:
-            self.tool_poses_ignored += 1
-            self.get_logger().warning(f"tool pose ignored: malformed, not in {self._frame}, or no mesh yet",
-                                      throttle_duration_sec=1.0)
-            return
+        except MessageValidationError as error:
+            reason = f"tool_pose rejected: {error}"
+            self.get_logger().warning(reason, throttle_duration_sec=1.0)
+            return self.reports.count("tool_poses_rejected_malformed", reason)
+        if record.frame_id.strip("/") != self._frame.strip("/"):
+            reason = (f"tool_pose in frame {record.frame_id!r} rejected: this server takes tool poses in its "
+                      f"world_frame {self._frame!r} only; publish them there, or set world_frame")
+            self.get_logger().warning(reason, throttle_duration_sec=1.0)
+            return self.reports.count("tool_poses_rejected_frame", reason)
+        if self._simulator is None:
+            reason = "tool_pose before the mesh ignored: set mesh_file or publish initial_mesh"
+            self.get_logger().warning(reason, throttle_duration_sec=1.0)
+            return self.reports.count("tool_poses_rejected_before_mesh", reason)
         if self._last_stamp_ns is None or record.stamp_ns <= self._last_stamp_ns:
+            if self._last_stamp_ns is not None and record.stamp_ns < self._last_stamp_ns:
+                reason = (f"tool_pose stamped {(self._last_stamp_ns - record.stamp_ns) / 1e9:.3f} s before the "
+                          "previous one: the tool is put there without a simulation step")
+                self.get_logger().warning(reason, throttle_duration_sec=1.0)
+                self.reports.count("tool_poses_stamped_back", reason)
             self._simulator.reset(record.pose)
             self._last_stamp_ns = record.stamp_ns
             return
@@ -151,7 +230,9 @@ class SimBridgeServer(Node):
         try:
             self._state = self._simulator.predict(self._state, record.pose, dt)
         except Exception as error:  # noqa: BLE001 - a failed step keeps the last state, as a simulator would
-            self.get_logger().warning(f"simulation step failed, state kept: {error}", throttle_duration_sec=1.0)
+            reason = f"simulation step failed, state kept: {error}"
+            self.get_logger().warning(reason, throttle_duration_sec=1.0)
+            self.reports.count("steps_failed", reason)
         self._last_stamp_ns = record.stamp_ns
 
     def _respond(self, request) -> FactorGraphState.Response:
