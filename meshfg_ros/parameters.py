@@ -304,7 +304,8 @@ class ToolPoseSubscriptionConfig:
     tool_pose_reliable: bool = setting(
         True, "Subscribe to tool_pose with reliable QoS (depth 10), which every pose published reliably reaches "
         "and a best-effort publisher does not match; false: best effort (depth 100), which matches any publisher, "
-        "for robot drivers that publish poses best effort (a pose the transport loses is interpolated over).")
+        "for robot drivers that publish poses best effort (a pose the transport loses is missed: the pipeline "
+        "nodes interpolate over it, sim_bridge_server's next step spans it).")
 
 
 @dataclass(frozen=True)

@@ -398,21 +398,82 @@ def test_the_server_reads_every_parameter_it_declares(probe, tmp_path, monkeypat
         node.destroy_node()
 
 
-def start_server(probe, processes, tmp_path, namespace, *parameters):
-    """sim_bridge_server in `namespace`, its service there too; the process and its /diagnostics
-    reports (level, message, counters), appended as they arrive."""
-    reports = []
+def grasping_server(tmp_path, namespace):
+    """sim_bridge_server in this process on the pushed cube, grasping the top vertex nearest
+    (SIDE/3, SIDE/3, SIDE): (node, mesh, the grasped vertex)."""
+    mesh = pushed_cube()
+    save_mesh(mesh, tmp_path / "cube.vtu")
+    grasped = int(np.argmin(np.linalg.norm(mesh.vertices - [SIDE / 3, SIDE / 3, SIDE], axis=1)))
+    node = sim_bridge_server.SimBridgeServer(namespace=namespace, parameter_overrides=[
+        Parameter("mesh_file", value=str(tmp_path / "cube.vtu")), Parameter("tool_mode", value="grasp"),
+        Parameter("grasped_vertices", value=[grasped])])
+    return node, mesh, grasped
 
-    def on_diagnostics(msg):
-        reports.extend((status.level, status.message, {kv.key: kv.value for kv in status.values})
-                       for status in msg.status if status.name == f"{namespace}/sim_bridge_server: sim_bridge")
 
-    probe.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, KEEP)
-    server = Process(tmp_path, "sim_bridge_server", *ros_args(namespace, *parameters),
-                     "-r", f"{SERVICE}:={namespace}{SERVICE}")
-    processes.append(server)
-    assert spin_until(probe, lambda: reports), server.output()
-    return server, reports
+def test_a_repeated_or_earlier_stamp_keeps_what_the_tool_grasps(probe, tmp_path):
+    """A pose stamped at or before the previous moves the tool without a step and keeps the
+    grasp's reference: the grasped vertex goes on following the tool (a repeat is not counted,
+    a step back is)."""
+    node, mesh, grasped = grasping_server(tmp_path, "/sb_repeat")
+    try:
+        start = mesh.vertices[grasped] + [0.0, 0.0, 0.002]
+        for step in range(4):
+            node._on_tool_pose(tool_pose_msg(start + [0.0, 0.0, 0.001 * step], step * S // 20))
+        node._on_tool_pose(tool_pose_msg(start + [0.0, 0.0, 0.003], 3 * S // 20))  # the same pose and stamp again
+        node._on_tool_pose(tool_pose_msg(start + [0.0, 0.0, 0.004], 4 * S // 20))
+        assert node._state[grasped] - mesh.vertices[grasped] == pytest.approx([0.0, 0.0, 0.004], abs=1e-9)
+        node._on_tool_pose(tool_pose_msg(start + [0.0, 0.0, 0.004], 2 * S // 20))  # a step back: said, not simulated
+        node._on_tool_pose(tool_pose_msg(start + [0.0, 0.0, 0.005], 5 * S // 20))
+        assert node._state[grasped] - mesh.vertices[grasped] == pytest.approx([0.0, 0.0, 0.005], abs=1e-9)
+        counters = node.reports.counters
+        assert (counters.tool_poses_received, counters.tool_poses_stamped_back, counters.steps_failed) == (8, 1, 0)
+    finally:
+        node.destroy_node()
+
+
+def test_the_server_refuses_a_cut_of_every_grasped_vertex_and_a_degenerate_quaternion(probe, tmp_path):
+    """Two inputs the simulator cannot take, each counted with its reason, the server unchanged."""
+    node, mesh, grasped = grasping_server(tmp_path, "/sb_refuses")
+    try:
+        node._on_remove_elements(UInt32MultiArray(data=np.flatnonzero((mesh.tetrahedra == grasped).any(axis=1)).tolist()))
+        assert node.reports.counters.cuts_rejected == 1
+        assert node.reports.health.last_problem == ('cut refused: tool_mode="grasp" needs a non-empty grasped_vertices '
+                                                    'set')
+        assert node._mesh.tetrahedron_count == mesh.tetrahedron_count
+        tiny = tool_pose_msg(mesh.vertices[grasped], 0)
+        tiny.pose.orientation.w = 1e-12
+        node._on_tool_pose(tiny)
+        assert node.reports.counters.tool_poses_rejected_malformed == 1
+        assert node.reports.health.last_problem == "tool_pose rejected: pose quaternion has zero norm"
+        assert node._last_stamp_ns is None  # the tool was not placed
+    finally:
+        node.destroy_node()
+
+
+@pytest.fixture
+def start_server(probe, processes, tmp_path):
+    """start_server(namespace, *parameters): sim_bridge_server in `namespace`, its service there
+    too; the process and its /diagnostics reports (level, message, counters), appended as they
+    arrive. The probe's subscriptions for them end with the test."""
+    subscriptions = []
+
+    def start(namespace, *parameters):
+        reports = []
+
+        def on_diagnostics(msg):
+            reports.extend((status.level, status.message, {kv.key: kv.value for kv in status.values})
+                           for status in msg.status if status.name == f"{namespace}/sim_bridge_server: sim_bridge")
+
+        subscriptions.append(probe.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, KEEP))
+        server = Process(tmp_path, "sim_bridge_server", *ros_args(namespace, *parameters),
+                         "-r", f"{SERVICE}:={namespace}{SERVICE}")
+        processes.append(server)
+        assert spin_until(probe, lambda: reports), server.output()
+        return server, reports
+
+    yield start
+    for subscription in subscriptions:
+        probe.destroy_subscription(subscription)
 
 
 def first_report(probe, reports, **expected):
@@ -425,10 +486,10 @@ def first_report(probe, reports, **expected):
     return found()
 
 
-def test_the_server_counts_and_names_each_tool_pose_it_rejects(probe, processes, tmp_path):
+def test_the_server_counts_and_names_each_tool_pose_it_rejects(probe, start_server):
     mesh = pushed_cube()
     namespace = "/sb_rejects"
-    server, reports = start_server(probe, processes, tmp_path, namespace)
+    server, reports = start_server(namespace)
     tool = probe.create_publisher(PoseStamped, f"{namespace}/tool_pose", KEEP)
     meshes = probe.create_publisher(TetraMesh, f"{namespace}/initial_mesh", LATCHED)
     assert spin_until(probe, lambda: tool.get_subscription_count() == 1 and meshes.get_subscription_count() == 1)
@@ -438,6 +499,13 @@ def test_the_server_counts_and_names_each_tool_pose_it_rejects(probe, processes,
     tool.publish(tool_pose_msg(above, 1 * S))
     level, message, _ = first_report(probe, reports, tool_poses_rejected_before_mesh=1)
     assert (level, message) == (DiagnosticStatus.WARN, "waiting for initial_mesh; 1 tool poses ignored before it")
+    in_map = mesh_msg(mesh)
+    in_map.header.frame_id = "map"
+    meshes.publish(in_map)
+    level, message, _ = first_report(probe, reports, initial_meshes_rejected=1)
+    assert (level, message) == (DiagnosticStatus.WARN, "waiting for initial_mesh; 1 tool poses ignored before it; "
+                                "1 initial_mesh rejected, the last: initial_mesh in frame 'map', expected 'world': "
+                                "rejected")
     meshes.publish(mesh_msg(mesh))
     assert spin_until(probe, lambda: reports[-1][:2] == (DiagnosticStatus.OK, "simulating")), reports[-1]
 
@@ -487,36 +555,47 @@ def test_the_server_counts_and_names_each_tool_pose_it_rejects(probe, processes,
     assert_clean_exit(server, server.interrupt())
 
 
-def test_the_server_grasps_with_the_poses_of_a_best_effort_publisher(probe, processes, tmp_path):
+def test_the_server_grasps_with_the_poses_of_a_best_effort_publisher(probe, start_server, tmp_path):
     mesh = pushed_cube()
     save_mesh(mesh, tmp_path / "cube.vtu")
     grasped = int(np.argmin(np.linalg.norm(mesh.vertices - [SIDE / 3, SIDE / 3, SIDE], axis=1)))
     namespace = "/sb_grasp"
-    server, reports = start_server(probe, processes, tmp_path, namespace, f"mesh_file:={tmp_path / 'cube.vtu'}",
-                                   "tool_mode:=grasp", f"grasped_vertices:=[{grasped}]", "tool_pose_reliable:=false")
+    server, reports = start_server(namespace, f"mesh_file:={tmp_path / 'cube.vtu'}", "tool_mode:=grasp",
+                                   f"grasped_vertices:=[{grasped}]", "tool_pose_reliable:=false")
     tool = probe.create_publisher(PoseStamped, f"{namespace}/tool_pose",
                                   QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
     client = probe.create_client(FactorGraphState, f"{namespace}{SERVICE}")
     assert spin_until(probe, lambda: tool.get_subscription_count() == 1), server.output()
     start = mesh.vertices[grasped] + [0.0, 0.0, 0.002]  # the tool just above the vertex it holds
 
-    def received():
-        return int(reports[-1][2]["tool_poses_received"])
+    def lifted_by(height):
+        """Whether the server's state has the grasped vertex `height` above its rest position."""
+        answer = call_service(probe, client, FactorGraphState.Request()).fg_state.sim_mesh.vertices.data
+        return abs(np.asarray(answer).reshape(-1, 3)[grasped, 2] - mesh.vertices[grasped, 2] - height) < 1e-9
 
-    # The grasp's reference pose, again until it arrives (best effort: the server's reader may match the
-    # probe's writer after the writer matched it); the same stamp only sets the reference again.
-    for _ in range(10):
+    def received():
+        return int(reports[-1][2]["tool_poses_received"]) if reports else 0
+
+    # Best effort may lose a pose, or the server's reader may match the probe's writer late: each
+    # pose is published again until the server shows it (the grasp's reference until a report
+    # counts it, each lift until the state has it). A copy that arrives late is stamped at or
+    # before the newest pose: it places the tool without a step and keeps the grasp's reference.
+    for _ in range(20):
         tool.publish(tool_pose_msg(start, 0))
-        if spin_until(probe, lambda: received() >= 1, timeout_s=2.0):
+        if spin_until(probe, lambda: received() >= 1, timeout_s=1.5):
             break
-    spin_until(probe, lambda: False, timeout_s=1.5)  # a copy still on its way is counted too
-    lifted = received()
+    assert received() >= 1, server.output()
     for step in range(1, 4):
-        tool.publish(tool_pose_msg(start + [0.0, 0.0, 0.001 * step], step * S // 20))
-        spin_until(probe, lambda: False, timeout_s=0.2)
-    first_report(probe, reports, tool_poses_received=lifted + 3, tool_poses_rejected=0, steps_failed=0)
+        for _ in range(20):
+            tool.publish(tool_pose_msg(start + [0.0, 0.0, 0.001 * step], step * S // 20))
+            if spin_until(probe, lambda: lifted_by(0.001 * step), timeout_s=0.5):
+                break
+        assert lifted_by(0.001 * step), (step, server.output())
     positions = np.asarray(call_service(probe, client, FactorGraphState.Request()).fg_state.sim_mesh.vertices.data)
     positions = positions.reshape(-1, 3)
+    assert spin_until(probe, lambda: received() >= 4), reports[-1]
+    assert {key: reports[-1][2][key] for key in ("tool_poses_rejected", "steps_failed")} == {
+        "tool_poses_rejected": "0", "steps_failed": "0"}
     # The grasped vertex follows the tool rigidly (3 mm up); the tissue around it follows; the boundary stays.
     np.testing.assert_allclose(positions[grasped], mesh.vertices[grasped] + [0.0, 0.0, 0.003], rtol=0, atol=1e-12)
     free = np.setdiff1d(np.arange(mesh.vertex_count), [grasped, *mesh.fixed_vertices])

@@ -15,9 +15,9 @@ takes them; core/geometry/topology.py): the answers then keep every slot, list t
 the vertices left without one in `invalid_indices`, and the stiffness is the remaining
 elements'. Its counters and health go to `/diagnostics` every second (nodes/diagnostics.py,
 BridgeServerCounters): tool poses rejected as malformed, in another frame than world_frame (it
-places nothing through /tf) or before the mesh, each with its own counter and warning; failed
-steps; cuts it could not take; and first, as the pipeline's nodes do, input publishers whose
-QoS cannot match.
+places nothing through /tf) or before the mesh, and tool poses stamped back, each with its own
+counter and warning; failed steps; cuts it could not take; and first, as the pipeline's nodes
+do, input publishers whose QoS cannot match.
 
 `factor_graph_state_response` builds an answer from arrays; `SimBridgeService` serves answers
 from any function of the request (the tests serve scripted states with it).
@@ -40,7 +40,8 @@ from sim_bridge.srv import FactorGraphState
 from meshfg_ros.core.physics.external_prior import held_dof_stiffness
 from meshfg_ros.core.physics.fem import ElasticModel
 from meshfg_ros.core.geometry.mesh import InvalidMeshError, TetMesh
-from meshfg_ros.core.physics.simulator import ElasticSimulator
+from meshfg_ros.core.inputs.pose_history import InvalidPoseError, as_pose
+from meshfg_ros.core.physics.simulator import ElasticSimulator, SimulatorInputError
 from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError
 from meshfg_ros.io.messages import MessageValidationError, header_msg, pose_from_msg
 from meshfg_ros.nodes.diagnostics import (
@@ -157,7 +158,7 @@ class SimBridgeServer(Node):
         self._mesh: TetMesh | None = None
         self._state: np.ndarray | None = None
         self._last_stamp_ns: int | None = None
-        self._mesh_source = InitialMeshSource(self, self._frame, self._set_mesh)
+        self._mesh_source = InitialMeshSource(self, self._frame, self._set_mesh, on_rejected=self._mesh_rejected)
         tool_pose = tool_pose_qos(self.params)
         self.create_subscription(PoseStamped, "tool_pose", self._on_tool_pose, tool_pose)
         self.create_subscription(UInt32MultiArray, "remove_elements", self._on_remove_elements, REQUEST_QOS)
@@ -169,6 +170,10 @@ class SimBridgeServer(Node):
         self.setup_warnings = self.reports.setup_warnings  # what run_nodes found wrong in the set-up
         self.service = SimBridgeService(self, self._respond)
         self._mesh_source.load_file(self.params)
+
+    def _mesh_rejected(self, reason: str) -> None:
+        self.reports.counters.count("initial_meshes_rejected")
+        self.reports.health.last_mesh_rejection = reason
 
     def _set_mesh(self, mesh: TetMesh, state) -> None:
         self._simulator = ElasticSimulator(mesh, self._config, self._grasped_vertices)
@@ -185,7 +190,8 @@ class SimBridgeServer(Node):
             return self.reports.count("cuts_rejected", reason)
         try:
             changed = self._simulator.remove_elements(np.asarray(msg.data, dtype=np.int64))
-        except (InvalidMeshError, NotPositiveDefiniteError) as error:  # a cut it cannot make leaves it as it was
+        except (InvalidMeshError, NotPositiveDefiniteError, SimulatorInputError) as error:  # a cut it cannot make
+            # (one that removes every grasped vertex, say) leaves it as it was
             reason = f"cut refused: {error}"
             self.get_logger().warning(reason)
             return self.reports.count("cuts_rejected", reason)
@@ -197,14 +203,16 @@ class SimBridgeServer(Node):
 
     def _on_tool_pose(self, msg: PoseStamped) -> None:
         """One simulation step to the pose, over the time since the previous pose's stamp (at most
-        _MAX_STEP_S); the first pose, and one stamped at or before the previous, puts the tool
-        there without a step (a repeated stamp sets a grasp's reference again; one that goes back,
-        as a restarted recording's, is counted and warned of). Each cause of a pose the server
-        cannot take has its own counter and warning (each throttled on its own)."""
+        _MAX_STEP_S). The first pose after a mesh sets the tool (and a grasp's reference) there
+        without a step; one stamped at or before the previous puts the tool there without a step
+        and keeps the grasp's reference (one that goes back, as a restarted recording's, is
+        counted and warned of). Each cause of a pose the server cannot take has its own counter
+        and warning (each throttled on its own)."""
         self.reports.counters.tool_poses_received += 1
         try:
             record = pose_from_msg(msg)
-        except MessageValidationError as error:
+            pose = as_pose(record.pose)  # a quaternion too short to normalise is malformed too
+        except (MessageValidationError, InvalidPoseError) as error:
             reason = f"tool_pose rejected: {error}"
             self.get_logger().warning(reason, throttle_duration_sec=1.0)
             return self.reports.count("tool_poses_rejected_malformed", reason)
@@ -223,12 +231,15 @@ class SimBridgeServer(Node):
                           "previous one: the tool is put there without a simulation step")
                 self.get_logger().warning(reason, throttle_duration_sec=1.0)
                 self.reports.count("tool_poses_stamped_back", reason)
-            self._simulator.reset(record.pose)
+            if self._last_stamp_ns is None:
+                self._simulator.reset(pose)
+            else:
+                self._simulator.place_tool(pose)
             self._last_stamp_ns = record.stamp_ns
             return
         dt = min((record.stamp_ns - self._last_stamp_ns) * 1e-9, _MAX_STEP_S)
         try:
-            self._state = self._simulator.predict(self._state, record.pose, dt)
+            self._state = self._simulator.predict(self._state, pose, dt)
         except Exception as error:  # noqa: BLE001 - a failed step keeps the last state, as a simulator would
             reason = f"simulation step failed, state kept: {error}"
             self.get_logger().warning(reason, throttle_duration_sec=1.0)

@@ -41,6 +41,7 @@ from meshfg_msgs.msg import TetraMesh
 from meshfg_ros.core.scheduler import MAX_QUEUED_CLOUDS, PredictionScheduler, Rejection, SchedulingTimeouts
 from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError
 from meshfg_ros.core.geometry.mesh import InvalidMeshError
+from meshfg_ros.core.physics.simulator import SimulatorInputError
 from meshfg_ros.core.inputs.tool_poses import DEFAULT_MAX_SAMPLES
 from meshfg_ros.core.geometry.topology import cut_elements
 from meshfg_ros.core.inputs.world_frame import POSE, FramedInput, Unplaceable
@@ -76,7 +77,7 @@ class SimulationNode(Node):
         self.outputs = SimulationOutputs(self, self._frame)
         self._held = HeldUntilMesh({"tool pose": DEFAULT_MAX_SAMPLES, "estimated_mesh": MAX_QUEUED_CLOUDS,
                                     "prediction request": MAX_QUEUED_CLOUDS, "remove_elements": MAX_QUEUED_CLOUDS})
-        self._mesh = InitialMeshSource(self, self._frame, self._set_mesh, self._held.release)
+        self._mesh = InitialMeshSource(self, self._frame, self._set_mesh, self._held.release, self.outputs.mesh_rejected)
         self._inputs = FrameInputs(self, world_frame_inputs(self.params), self._on_placed, self._on_unplaceable)
         self.create_subscription(TetraMesh, "estimated_mesh", self._on_estimate, LATCHED_QOS)
         self.create_subscription(TetraMesh, "catch_up_estimate", self._on_catch_up_estimate, REQUEST_QOS)
@@ -189,12 +190,12 @@ class SimulationNode(Node):
 
     def _remove_elements(self, slots: np.ndarray, source: str) -> None:
         """Cut the element slots away from the next prediction on; the predictions carry the cut
-        mesh's topology. A cut the simulator cannot take (a slot out of range, every element, a
-        piece left with rigid modes) is counted and changes nothing."""
+        mesh's topology. A cut the simulator cannot take (a slot out of range, every element,
+        every grasped vertex, a piece left with rigid modes) is counted and changes nothing."""
         removed_before = self._scheduler.mesh.removed_elements.size
         try:
             changed = self._scheduler.remove_elements(slots)
-        except (InvalidMeshError, NotPositiveDefiniteError) as error:
+        except (InvalidMeshError, NotPositiveDefiniteError, SimulatorInputError) as error:
             return self.outputs.count("cuts_rejected", f"cut from {source} rejected: {error}")
         if changed:
             mesh = self._scheduler.mesh

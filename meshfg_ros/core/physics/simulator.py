@@ -1063,6 +1063,16 @@ class ElasticSimulator:
         self._first_pose = pose
         self._previous_pose = pose.copy()
 
+    def place_tool(self, tool_pose) -> None:
+        """Put the tool at `tool_pose` without a step (a pose stamped at or before the previous one,
+        as a restarted stream's): the next `predict` moves it from there. The grasp reference (the
+        first pose) is kept, so grasped vertices stay where the tool holds them; the stuck
+        vertices are forgotten, as the jump breaks their contact. SimulatorInputError for an
+        invalid pose."""
+        pose = _as_pose(tool_pose)
+        self._stuck = np.zeros(0, dtype=np.int64)
+        self._previous_pose = pose
+
     def predict(self, previous_state, tool_pose, dt: float) -> np.ndarray:
         """State (N, 3) after the tool moves from its previous pose to `tool_pose` over dt seconds.
 
