@@ -40,3 +40,7 @@ def test_the_waiting_message_counts_what_is_held_and_dropped():
         "waiting for initial_mesh; 4 inputs held until it comes")
     assert waiting_for_mesh_message(SimulatorCounters(inputs_held_before_mesh=7, inputs_dropped_before_mesh=2)) == (
         "waiting for initial_mesh; 7 inputs held until it comes, 2 dropped")
+    assert waiting_for_mesh_message(EstimatorCounters(inputs_held_before_mesh=1, initial_meshes_rejected=2),
+                                    "initial_mesh in frame 'map', expected 'world': rejected") == (
+        "waiting for initial_mesh; 1 inputs held until it comes; 2 initial_mesh rejected, the last: initial_mesh in "
+        "frame 'map', expected 'world': rejected")

@@ -514,6 +514,12 @@ def test_estimator_node_survives_bad_input_and_recovers_from_a_missing_simulator
                       and io.status_subscription.get_publisher_count() == 1)
     io.wait_for(clouds_received=0)
     assert io.diagnostics[-1][0] == "waiting for initial_mesh"
+    one_vertex_short = mesh_msg(mesh)
+    one_vertex_short.positions = one_vertex_short.positions[:-3]  # malformed: the elements name a vertex it lacks
+    io.mesh.publish(one_vertex_short)  # refused, counted and named while the node waits
+    io.wait_for(initial_meshes_rejected=1)
+    assert io.diagnostics[-1][0].startswith("waiting for initial_mesh; 1 initial_mesh rejected, the last: "
+                                            "initial_mesh rejected: "), io.diagnostics[-1][0]
     io.mesh.publish(mesh_msg(mesh))
     points = top_points()
 

@@ -80,6 +80,12 @@ def test_simulation_node_counts_rejected_tool_poses_in_its_diagnostics(probe, pr
     poses = probe.create_publisher(PoseStamped, "/simhostile/tool_pose", KEEP)
     assert spin_until(probe, lambda: poses.get_subscription_count() == 1 and reports)
     assert reports[-1][0] == "waiting for initial_mesh"
+    in_map = mesh_msg(mesh)
+    in_map.header.frame_id = "map"
+    mesh_publisher.publish(in_map)  # refused, counted and named while the node waits
+    assert spin_until(probe, lambda: reports[-1][1].get("initial_meshes_rejected") == "1"), reports[-1:]
+    assert reports[-1][0] == ("waiting for initial_mesh; 1 initial_mesh rejected, the last: initial_mesh in frame "
+                              "'map', expected 'world': rejected")
     mesh_publisher.publish(mesh_msg(mesh))
     centre = [SIDE / 2, SIDE / 2, SIDE + 0.011]
     poses.publish(tool_pose_msg(centre, 1 * S))  # the first pose resets the simulator

@@ -66,6 +66,7 @@ class EstimatorCounters(Counters):
     tool_poses_ignored_far: int = 0
     inputs_held_before_mesh: int = 0    # clouds and tool poses kept until the mesh came
     inputs_dropped_before_mesh: int = 0  # the oldest of those, beyond what is kept (nodes/held_inputs.py)
+    initial_meshes_rejected: int = 0     # initial_mesh messages refused (malformed, another frame, unusable)
     # prediction_source sim_bridge (nodes/sim_bridge_client.py, core/physics/external_prior.py): calls made,
     # answers missing or refused (the step runs without a prediction), stiffness repaired or refused.
     sim_bridge_calls: int = 0
@@ -148,6 +149,7 @@ class SimulatorCounters(Counters):
     cuts_rejected: int = 0              # remove_elements requests or blade cuts the simulator could not take
     inputs_held_before_mesh: int = 0    # tool poses, requests and estimates kept until the mesh came
     inputs_dropped_before_mesh: int = 0  # the oldest of those, beyond what is kept (nodes/held_inputs.py)
+    initial_meshes_rejected: int = 0     # initial_mesh messages refused (malformed, another frame, unusable)
     last_prediction_ms: float = float("nan")
     # the unmodelled uniform body load the predictions apply, m/s^2 (core/physics/body_load.py; 0 when off)
     body_acceleration_x: float = 0.0
@@ -181,6 +183,7 @@ class BridgeServerCounters(Counters):
     tool_poses_rejected_malformed: int = 0
     tool_poses_rejected_frame: int = 0        # not in world_frame: the server places nothing through /tf
     tool_poses_rejected_before_mesh: int = 0  # before mesh_file or initial_mesh gave the simulator its mesh
+    initial_meshes_rejected: int = 0          # initial_mesh messages refused (malformed, another frame, unusable)
     tool_poses_stamped_back: int = 0          # before the previous pose: the tool put there without a step
     steps_failed: int = 0                     # simulation steps that raised: the state before them kept
     cuts_rejected: int = 0                    # remove_elements before the mesh or that the simulator could not take
@@ -198,12 +201,21 @@ class BridgeServerCounters(Counters):
         return values
 
 
-def waiting_for_mesh_message(counters: EstimatorCounters | SimulatorCounters) -> str:
-    """What a node without its mesh says, with the inputs it holds until the mesh comes."""
+def waiting_for_mesh_message(counters: EstimatorCounters | SimulatorCounters, last_mesh_rejection: str = "") -> str:
+    """What a node without its mesh says, with the inputs it holds until the mesh comes and the
+    initial_mesh messages it refused (the newest one's reason: `last_mesh_rejection`)."""
     held, dropped = counters.inputs_held_before_mesh, counters.inputs_dropped_before_mesh
-    if not held:
-        return "waiting for initial_mesh"
-    return f"waiting for initial_mesh; {held} inputs held until it comes" + (f", {dropped} dropped" if dropped else "")
+    message = "waiting for initial_mesh"
+    if held:
+        message += f"; {held} inputs held until it comes" + (f", {dropped} dropped" if dropped else "")
+    return message + mesh_rejections_text(counters.initial_meshes_rejected, last_mesh_rejection)
+
+
+def mesh_rejections_text(rejected: int, last_mesh_rejection: str) -> str:
+    """The part of a waiting message that names the refused initial_mesh messages ("" for none)."""
+    if not rejected:
+        return ""
+    return f"; {rejected} initial_mesh rejected" + (f", the last: {last_mesh_rejection}" if last_mesh_rejection else "")
 
 
 def _text(value) -> str:
@@ -264,6 +276,7 @@ class EstimatorHealth:
         # What went wrong with the newest prediction the sim_bridge service did not give (the fix
         # the degraded-steps warning names); "" with the simulation node.
         self.prediction_problem = ""
+        self.last_mesh_rejection = ""  # why the newest initial_mesh was refused
 
     def record(self, degraded: bool, converged: bool, points_used: int, points_set_aside: int,
                noise_off_nominal: bool = False, view_implausible: bool = False) -> None:
@@ -284,7 +297,7 @@ class EstimatorHealth:
             if unanswered_s > self.stalled_after_s:
                 return ERROR, (f"clouds arrive for {unanswered_s:.0f} s but there is no mesh: set mesh_file "
                                "or publish initial_mesh")
-            return WARN, waiting_for_mesh_message(counters)
+            return WARN, waiting_for_mesh_message(counters, self.last_mesh_rejection)
         if unanswered_s > self.stalled_after_s:
             if new_rejections or counters.steps == 0 and counters.clouds_rejected:
                 why = f"every cloud is rejected; the last: {last_rejection}" if last_rejection else (
@@ -343,6 +356,7 @@ class SimulatorHealth:
         self._ignored_seen = 0
         self._std_ignored_seen = 0
         self.last_failure: str | None = None  # why the newest answer gave no prediction; None: it gave one
+        self.last_mesh_rejection = ""  # why the newest initial_mesh was refused
 
     def record(self, failure: str | None) -> None:
         """The newest answer: the reason it gave no prediction, or None for a prediction."""
@@ -356,7 +370,7 @@ class SimulatorHealth:
         new_std_ignored = counters.estimate_std_ignored - self._std_ignored_seen
         self._std_ignored_seen = counters.estimate_std_ignored
         if waiting_for_mesh:
-            return WARN, waiting_for_mesh_message(counters)
+            return WARN, waiting_for_mesh_message(counters, self.last_mesh_rejection)
         if counters.requests and not counters.tool_poses_received:
             return WARN, (f"{counters.requests} prediction requests but no tool pose received: every step runs "
                           "without a prediction; publish tool_pose (geometry_msgs/PoseStamped) in this node's "
@@ -383,6 +397,7 @@ class BridgeServerHealth:
     def __init__(self) -> None:
         self._seen = dict.fromkeys(self.PROBLEMS, 0)
         self.last_problem = ""  # the newest rejection or failure (its log line)
+        self.last_mesh_rejection = ""  # why the newest initial_mesh was refused
 
     def assess(self, counters: BridgeServerCounters, waiting_for_mesh: bool) -> tuple[bytes, str]:
         """(level, reason): waiting for the mesh, then the tool poses rejected or stamped back, steps
@@ -391,8 +406,10 @@ class BridgeServerHealth:
         new = {problem: getattr(counters, problem) - seen for problem, seen in self._seen.items()}
         self._seen = {problem: getattr(counters, problem) for problem in self.PROBLEMS}
         if waiting_for_mesh:
-            ignored = counters.tool_poses_rejected_before_mesh
-            return WARN, "waiting for initial_mesh" + (f"; {ignored} tool poses ignored before it" if ignored else "")
+            ignored, cuts = counters.tool_poses_rejected_before_mesh, counters.cuts_rejected
+            return WARN, ("waiting for initial_mesh" + (f"; {ignored} tool poses ignored before it" if ignored else "")
+                          + (f"; {cuts} cuts ignored before it" if cuts else "")
+                          + mesh_rejections_text(counters.initial_meshes_rejected, self.last_mesh_rejection))
         news = [f"{new[problem]} {what}" for problem, what in self.PROBLEMS.items() if new[problem]]
         if news:
             return WARN, f"{', '.join(news)} since the last report; the last: {self.last_problem}"

@@ -75,7 +75,7 @@ class EstimatorNode(Node):
                                         self._queued)
         self._requests = self.create_publisher(Header, "prediction_request", REQUEST_QOS)
         self._held = HeldUntilMesh({POSE: DEFAULT_MAX_SAMPLES, CLOUD: MAX_QUEUED_CLOUDS})
-        self._mesh = InitialMeshSource(self, self._frame, self._set_mesh, self._held.release)
+        self._mesh = InitialMeshSource(self, self._frame, self._set_mesh, self._held.release, self.outputs.mesh_rejected)
         self._inputs = FrameInputs(self, world_frame_inputs(self.params), self._on_placed, self._on_unplaceable)
         self._bridge = None if self.params["prediction_source"] != "sim_bridge" else SimBridgeClient(
             self, self.params["sim_bridge_service"], self.params["sim_bridge_stiffness"], self._frame,

@@ -89,6 +89,13 @@ class EstimatorOutputs:
         with self._lock:
             self.counters.count(counter)
 
+    def mesh_rejected(self, reason: str) -> None:
+        """An initial_mesh message refused (InitialMeshSource logged it): counted, and named while
+        the node waits for a mesh."""
+        with self._lock:
+            self.counters.count("initial_meshes_rejected")
+            self.health.last_mesh_rejection = reason
+
     def note(self, rejections: list[Rejection]) -> None:
         """Count and log what was set aside, and report it."""
         for rejection in rejections:

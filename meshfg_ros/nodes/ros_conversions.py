@@ -161,10 +161,13 @@ class InitialMeshSource:
     is a ParameterError, which stops the program) or from the latched `initial_mesh` topic.
     Calls on_mesh(TetMesh, MeshState) for each new mesh (a repeated message is ignored; a
     ValueError from it refuses the mesh), then on_installed() once the mesh is in place (the
-    nodes hand on what they held until then, nodes/held_inputs.py)."""
+    nodes hand on what they held until then, nodes/held_inputs.py). A refused initial_mesh
+    message is logged as an error and handed to on_rejected(reason) (the nodes count it and name
+    it in their diagnostics)."""
 
-    def __init__(self, node: Node, frame: str, on_mesh, on_installed=None) -> None:
+    def __init__(self, node: Node, frame: str, on_mesh, on_installed=None, on_rejected=None) -> None:
         self._node, self._frame, self._on_mesh, self._on_installed = node, frame, on_mesh, on_installed
+        self._on_rejected = on_rejected
         self._state: MeshState | None = None
         self.from_file = False  # whether the mesh being installed or in place is mesh_file's
         node.create_subscription(RCLPY_FACTORY.message_class(TETRA_MESH), "initial_mesh", self._on_message,
@@ -184,15 +187,12 @@ class InitialMeshSource:
         self._installed()
 
     def _on_message(self, msg: Any) -> None:
-        logger = self._node.get_logger()
         try:
             state = mesh_state_from_msg(msg)
         except MessageValidationError as error:
-            logger.error(f"initial_mesh rejected: {error}")
-            return
+            return self._rejected(f"initial_mesh rejected: {error}")
         if state.frame_id != self._frame:
-            logger.error(f"initial_mesh in frame {state.frame_id!r}, expected {self._frame!r}: rejected")
-            return
+            return self._rejected(f"initial_mesh in frame {state.frame_id!r}, expected {self._frame!r}: rejected")
         if self._state is not None and same_mesh(self._state, state):
             return  # the latched message again (e.g. a reconnection)
         from_file, self.from_file = self.from_file, False
@@ -200,9 +200,13 @@ class InitialMeshSource:
             self._install(state, state.tet_mesh())
         except ValueError as error:
             self.from_file = from_file
-            logger.error(f"initial_mesh rejected: {error}")
-            return
+            return self._rejected(f"initial_mesh rejected: {error}")
         self._installed()
+
+    def _rejected(self, reason: str) -> None:
+        self._node.get_logger().error(reason)
+        if self._on_rejected is not None:
+            self._on_rejected(reason)
 
     def _installed(self) -> None:
         if self._on_installed is not None:

@@ -57,6 +57,12 @@ class SimulationOutputs:
         """The topology of the predictions to come (after a cut)."""
         self._messages = MeshMessages(state)
 
+    def mesh_rejected(self, reason: str) -> None:
+        """An initial_mesh message refused (InitialMeshSource logged it): counted, and named while
+        the node waits for a mesh."""
+        self.counters.count("initial_meshes_rejected")
+        self.health.last_mesh_rejection = reason
+
     def count(self, counter: str, reason: str) -> None:
         """One more of `counter`, with its reason logged."""
         self.counters.count(counter)
