@@ -284,5 +284,13 @@ def test_tool_clearance_node_keeps_the_tip_k_std_from_the_tissue(probe, processe
     assert (far.pose.position.x, far.pose.position.y, far.pose.position.z) == (0.02, 0.02, 0.1)
     assert spin_until(probe, lambda: reports and reports[-1][0] == DiagnosticStatus.OK
                       and int(reports[-1][2]["poses_moved_out"]) >= 1, timeout_s=10.0), reports[-1:]
+    # A best-effort publisher never reaches the reliable subscription: an ERROR, with the fix.
+    best_effort = probe.create_publisher(PoseStamped, f"{namespace}/desired_tip_pose",
+                                         QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
+    assert spin_until(probe, lambda: reports[-1][0] == DiagnosticStatus.ERROR, timeout_s=15.0), reports[-1:]
+    assert reports[-1][1].startswith(f"{namespace}/desired_tip_pose from /test_probe never arrives: it publishes "
+                                     "best effort"), reports[-1][1]
+    assert reports[-1][1].endswith("publish it with the QoS of the README's topic table"), reports[-1][1]
+    probe.destroy_publisher(best_effort)
     assert_clean_exit(planner, planner.interrupt())
     assert_clean_exit(estimator, estimator.interrupt())

@@ -10,7 +10,9 @@ moved out along the surface normal to that distance (meshfg_ros.planner_client.c
 A desired pose that cannot be checked (no estimate yet, the service down, a frame /tf cannot
 place) is held back, not passed on unchecked: nothing is published for it, the reason is logged,
 counted and shown on /diagnostics. A desired pose that comes while the previous one's query is
-still out replaces it (the older answer would be stale).
+still out replaces it (the older answer would be stale). As the pipeline's nodes do, its
+diagnostics put its wiring first: a desired_tip_pose publisher whose QoS cannot match (ERROR,
+with the fix), then a parameters file that sets nothing (WARN).
 """
 
 from __future__ import annotations
@@ -25,8 +27,9 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 from meshfg_ros.io.messages import stamp_ns_from_msg
-from meshfg_ros.nodes.diagnostics import Counters, diagnostic_array
+from meshfg_ros.nodes.diagnostics import Counters, diagnostic_array, with_setup_problems
 from meshfg_ros.nodes.planner_service import SURFACE_QUERY_SERVICE
+from meshfg_ros.nodes.publisher_qos import TOPIC_TABLE_FIX, IncompatiblePublishers
 from meshfg_ros.nodes.ros_conversions import STREAM_QOS
 from meshfg_ros.nodes.ros_parameters import declare_parameters
 from meshfg_ros.nodes.runtime import run_nodes
@@ -62,6 +65,8 @@ class ToolClearanceNode(Node):
         self._safe = self.create_publisher(PoseStamped, "safe_tip_pose", STREAM_QOS)
         self._diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", STREAM_QOS)
         self.create_subscription(PoseStamped, "desired_tip_pose", self._on_desired, STREAM_QOS)
+        self._input_qos = IncompatiblePublishers(self)
+        self._input_qos.watch("desired_tip_pose", STREAM_QOS, TOPIC_TABLE_FIX)
         self.create_timer(_REPORT_PERIOD_S, self._report, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def _on_desired(self, msg: PoseStamped) -> None:
@@ -109,12 +114,11 @@ class ToolClearanceNode(Node):
         if held_back:
             level, message = DiagnosticStatus.WARN, (f"{held_back} desired tip poses held back since the last report "
                                                      f"(not checked, not published); the last: {self._last_hold_back}")
-        elif self.setup_warnings:
-            level, message = DiagnosticStatus.WARN, self.setup_warnings[0]
         elif not self.counters.desired_poses_received:
             level, message = DiagnosticStatus.OK, "waiting for desired_tip_pose"
         else:
             level, message = DiagnosticStatus.OK, "keeping the tool tip clear of the tissue"
+        level, message = with_setup_problems(level, message, self._input_qos.find(), self.setup_warnings)
         self._diagnostics.publish(diagnostic_array(f"{self.get_fully_qualified_name()}: tool clearance", level,
                                                    message, self.counters, self.get_clock().now().nanoseconds))
 
