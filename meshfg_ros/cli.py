@@ -644,12 +644,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     args.command_line = "meshfg " + shlex.join(argv)  # what --results says made a section
     try:
-        from meshfg_ros import blas, huge_pages
-        import meshfg_ros.core.worker_threads as worker_threads
+        from meshfg_ros import process_settings
 
-        blas.configure()  # before any command loads cvxopt: CHOLMOD binds to the BLAS chosen for this CPU
-        huge_pages.configure()
-        worker_threads.count()  # a bad MESHFG_WORKER_THREADS stops the command here, not in its first update
+        process_settings.configure()  # before any command loads cvxopt (BLAS, huge pages, worker threads)
         return args.run(args)
     except KeyboardInterrupt:
         print(f"meshfg {args.command}: interrupted", file=sys.stderr)

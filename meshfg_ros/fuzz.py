@@ -733,10 +733,9 @@ CAMPAIGNS: dict[str, type] = {"decoder": DecoderCampaign, "update": UpdateCampai
 # ------------------------------------------------------------------------------------- runner
 def _worker(connection, factory, seed: int, options: dict, start: int, stop: int) -> None:
     """Worker process: set the campaign up, then run cases start..stop-1, reporting each."""
-    from meshfg_ros import blas, huge_pages
+    from meshfg_ros import process_settings
 
-    blas.configure()
-    huge_pages.configure()
+    process_settings.configure()
     warnings.simplefilter("ignore")  # overflow warnings are the input's, not news
     campaign = factory(seed, options)
     for index in range(start, stop):

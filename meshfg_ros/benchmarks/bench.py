@@ -378,16 +378,15 @@ def _huge_pages_text(advised: bool | None) -> str:
 
 
 def machine() -> dict:
-    """The CPU, the sparse Cholesky BLAS and numpy's huge-page advice the figures of this process
-    are measured with (blas.configure, huge_pages.configure, as the `meshfg` command and the
-    nodes call them)."""
-    from meshfg_ros import blas, huge_pages
+    """The CPU, the sparse Cholesky BLAS, the worker threads and numpy's huge-page advice the
+    figures of this process are measured with (process_settings.configure, as the `meshfg`
+    command and the nodes call it)."""
+    from meshfg_ros import process_settings
 
-    import meshfg_ros.core.worker_threads as worker_threads
-
-    backend = blas.configure()
+    settings = process_settings.configure()
+    backend = settings.blas
     return {"cpu": backend.cpu, "blas": backend.name, "blas_threads": backend.threads, "blas_detail": backend.detail,
-            "worker_threads": worker_threads.count(), "numpy_huge_pages": huge_pages.configure()}
+            "worker_threads": settings.worker_threads, "numpy_huge_pages": settings.numpy_huge_pages}
 
 
 def run_bench(sections=("core", "estimator", "baselines", "live"), bag: Path | None = None,

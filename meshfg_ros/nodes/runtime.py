@@ -21,7 +21,7 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
-from meshfg_ros import blas, huge_pages
+from meshfg_ros import blas, process_settings
 import meshfg_ros.core.worker_threads as worker_threads
 from meshfg_ros.parameters import ParameterError, parameters_help
 
@@ -94,9 +94,7 @@ def run_nodes(program: str, node_factories: Sequence[Callable[[], Node]], args=N
         if help_requested(argv):
             _print_help(program, node_names or (program,))
             return 0
-        blas.configure()  # before a node loads cvxopt: CHOLMOD binds to the BLAS chosen for this CPU
-        huge_pages.configure()  # before the node sets up on its mesh
-        worker_threads.count()  # a bad MESHFG_WORKER_THREADS stops the node here, not in its first update
+        process_settings.configure()  # before a node loads cvxopt or sets up on its mesh
         init_without_signal_handlers(argv)
     except (blas.BlasSettingError, worker_threads.WorkerThreadsSettingError, ArgumentError) as error:
         print(f"{program}: {error}", file=sys.stderr)
