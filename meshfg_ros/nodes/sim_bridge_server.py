@@ -225,26 +225,23 @@ class SimBridgeServer(Node):
             reason = "tool_pose before the mesh ignored: set mesh_file or publish initial_mesh"
             self.get_logger().warning(reason, throttle_duration_sec=1.0)
             return self.reports.count("tool_poses_rejected_before_mesh", reason)
-        if self._last_stamp_ns is None or record.stamp_ns <= self._last_stamp_ns:
-            if self._last_stamp_ns is not None and record.stamp_ns < self._last_stamp_ns:
-                reason = (f"tool_pose stamped {(self._last_stamp_ns - record.stamp_ns) / 1e9:.3f} s before the "
-                          "previous one: the tool is put there without a simulation step")
-                self.get_logger().warning(reason, throttle_duration_sec=1.0)
-                self.reports.count("tool_poses_stamped_back", reason)
-            if self._last_stamp_ns is None:
-                self._simulator.reset(pose)
-            else:
-                self._simulator.place_tool(pose)
-            self._last_stamp_ns = record.stamp_ns
-            return
-        dt = min((record.stamp_ns - self._last_stamp_ns) * 1e-9, _MAX_STEP_S)
+        previous_ns, self._last_stamp_ns = self._last_stamp_ns, record.stamp_ns
+        if previous_ns is None:
+            return self._simulator.reset(pose)
+        if record.stamp_ns < previous_ns:
+            reason = (f"tool_pose stamped {(previous_ns - record.stamp_ns) / 1e9:.3f} s before the previous one: "
+                      "the tool is put there without a simulation step")
+            self.get_logger().warning(reason, throttle_duration_sec=1.0)
+            self.reports.count("tool_poses_stamped_back", reason)
+        if record.stamp_ns <= previous_ns:
+            return self._simulator.place_tool(pose)
+        dt = min((record.stamp_ns - previous_ns) * 1e-9, _MAX_STEP_S)
         try:
             self._state = self._simulator.predict(self._state, pose, dt)
         except Exception as error:  # noqa: BLE001 - a failed step keeps the last state, as a simulator would
             reason = f"simulation step failed, state kept: {error}"
             self.get_logger().warning(reason, throttle_duration_sec=1.0)
             self.reports.count("steps_failed", reason)
-        self._last_stamp_ns = record.stamp_ns
 
     def _respond(self, request) -> FactorGraphState.Response:
         if self._mesh is None:

@@ -583,9 +583,7 @@ def _whole_residual(system: WindowSystem, b: np.ndarray, x: np.ndarray, kept: np
     parts of x alone, so no product with the blocks is needed."""
     parts = system.split(x)
     coupled = np.zeros_like(parts)
-    if len(system.couplings):
-        coupled[:-1] += system.couplings[:, None] * parts[1:]
-        coupled[1:] += system.couplings[:, None] * parts[:-1]
+    system.add_couplings(parts, coupled)
     residual = system.split(b) - coupled
     residual[kept] = kept_residual.reshape(len(kept), -1)
     return residual.reshape(-1)

@@ -134,10 +134,14 @@ class WindowSystem:
             (group, parts, out) for group in worker_threads.split(active, len(active) * self.pattern.nnz // PARALLEL_MIN_ENTRIES)])
         if self.diagonal_shift is not None:
             out += self.diagonal_shift * parts
+        self.add_couplings(parts, out)
+        return out.reshape(-1)
+
+    def add_couplings(self, parts: np.ndarray, out: np.ndarray) -> None:
+        """out += the temporal couplings' share of A x, for x as `parts` (W, block_size)."""
         if len(self.couplings):
             out[:-1] += self.couplings[:, None] * parts[1:]
             out[1:] += self.couplings[:, None] * parts[:-1]
-        return out.reshape(-1)
 
     def _block_products(self, blocks, parts: np.ndarray, out: np.ndarray) -> None:
         for t in blocks:
