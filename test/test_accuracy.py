@@ -195,16 +195,18 @@ def test_the_summary_judges_ratios_just_above_one_visibly():
     assert "median FG/sim ratio: all 0.752" in line
 
 
-def calibration_row(scene, coverage=0.95, nees=3.0, std_ratio=1.5, seed=0):
+def calibration_row(scene, coverage=0.95, nees=3.0, std_ratio=1.5, seed=0, error_ratio=2.0):
     """A scene's row: fixed accuracy figures and the given calibration (pooled and final alike,
-    both vertex sets)."""
+    both vertex sets); the observed external vertices' median std 0.1 mm, median error 0.2 mm."""
     row = {"scene": scene, "seed": seed, "steps": 10, "converged_share": 1.0, "iterations_mean": 2.0,
            "solve_ms_p50": 5.0, "solve_ms_p95": 9.0, "ratio_all_final": 0.5, "ratio_unobserved_external_final": 0.5,
            "ratio_all_mean": 0.5, "ratio_unobserved_external_mean": 0.5,
            **{f"{method}_{metric}_final_m": 1e-3 for method in ("factor_graph", "simulation")
               for metric in ("all", "unobserved_external", "chamfer")},
            "std_ratio_unobserved_observed_pooled": std_ratio, "median_std_observed_external_pooled_m": 1e-4,
-           "median_std_unobserved_external_pooled_m": None if std_ratio is None else std_ratio * 1e-4}
+           "median_std_unobserved_external_pooled_m": None if std_ratio is None else std_ratio * 1e-4,
+           "error_ratio_unobserved_observed_pooled": error_ratio, "median_error_observed_external_pooled_m": 2e-4,
+           "median_error_unobserved_external_pooled_m": None if error_ratio is None else error_ratio * 2e-4}
     for name in ("all", "unobserved_external"):
         for when in ("final", "pooled"):
             row[f"coverage_95_{name}_{when}"] = coverage
@@ -215,8 +217,9 @@ def calibration_row(scene, coverage=0.95, nees=3.0, std_ratio=1.5, seed=0):
 
 def test_calibration_targets_are_judged_on_every_scene():
     """Coverage in [0.85, 0.995] and mean NEES in [1, 6] on every scene, all and unobserved
-    external; the unobserved std above the observed one on every scene. One scene out of a
-    range, or without a value, fails it; the summary names the extremes and says NOT met."""
+    external; the unobserved std above the observed one on every scene whose unobserved error is
+    above the observed one. One scene out of a range, or without a value, fails it; the summary
+    names the extremes and says NOT met."""
     calibrated = [calibration_row("a"), calibration_row("b", coverage=0.9, nees=4.0, std_ratio=1.1)]
     result = accuracy.summary(calibrated)
     assert all(result["met"][target] for target in accuracy.ALL_TARGETS)
@@ -233,17 +236,29 @@ def test_calibration_targets_are_judged_on_every_scene():
         "coverage_all"]
     less_certain_where_seen = accuracy.summary([calibration_row("a"), calibration_row("e", std_ratio=0.9)])
     assert not less_certain_where_seen["met"]["std_ratio_unobserved_observed"]
+    assert less_certain_where_seen["std_ratio_unobserved_observed"] == 0.9
+    # Where the hidden side is the better known, a smaller std there is right: that scene is not judged.
+    hidden_better_known = accuracy.summary([calibration_row("a"), calibration_row("g", std_ratio=0.9, error_ratio=0.8)])
+    assert hidden_better_known["met"]["std_ratio_unobserved_observed"]
+    assert hidden_better_known["std_ratio_scenes_judged"] == 1
+    assert hidden_better_known["std_ratio_unobserved_observed"] == 1.5
+    assert not accuracy.summary([calibration_row("a"), calibration_row("h", std_ratio=0.9, error_ratio=1.01)])[
+        "met"]["std_ratio_unobserved_observed"]
+    assert not accuracy.summary([calibration_row("a"), calibration_row("i", error_ratio=None)])[
+        "met"]["std_ratio_unobserved_observed"]
     without = accuracy.summary([calibration_row("a"), calibration_row("f", coverage=None, std_ratio=None)])
     assert not without["met"]["coverage_all"] and without["coverage_all"]["scenes_without"] == 1
     assert not without["met"]["std_ratio_unobserved_observed"]
 
     table = accuracy.format_table({"scenes": [calibration_row("c", coverage=0.4, nees=40.0)], "summary": overconfident})
-    assert "| c | 40.00 / 40.00 | 40.00 / 40.00 | 0.400 / 0.400 | 0.400 / 0.400 | 0.100 / 0.150 | 0 / 0 |" in table
+    assert ("| c | 40.00 / 40.00 | 40.00 / 40.00 | 0.400 / 0.400 | 0.400 / 0.400 | 0.100 / 0.150 | 0.200 / 0.400 "
+            "| 0 / 0 |") in table
     line = table.splitlines()[-1]
     assert line.startswith("median FG/sim ratio")
     assert "95 % coverage all 0.400 (c) to 0.950 (a) (target 0.85-0.995, NOT met)" in line
     assert "mean NEES all 3.00 (a) to 40.00 (c) (target 1.0-6.0, NOT met)" in line
-    assert "lowest 1.50 (a) (target > 1 on every scene, met)" in line
+    assert ("median std unobserved / observed external on the 2 scenes whose unobserved median error is the "
+            "larger, lowest 1.50 (a) (target > 1 on each of them, met)") in line
 
 
 def test_a_scenes_row_carries_the_calibration_of_its_replay(tmp_path):
@@ -267,6 +282,8 @@ def test_a_scenes_row_carries_the_calibration_of_its_replay(tmp_path):
     assert row["nees_vertices_all_pooled"] == len(scenario.initial_mesh.free_vertices)  # step 3 alone
     assert row["median_std_unobserved_external_pooled_m"] == pytest.approx(std, rel=1e-12)
     assert row["std_ratio_unobserved_observed_pooled"] == 1.0
+    assert row["median_error_unobserved_external_pooled_m"] == pytest.approx(1e-3, rel=1e-6)
+    assert row["error_ratio_unobserved_observed_pooled"] == pytest.approx(1.0, rel=1e-12)
     result = {"seed": 0, "scenes": [row], "summary": accuracy.summary([row])}
     assert not result["summary"]["met"]["coverage_all"]
     accuracy.write_calibration_plot(result, tmp_path / "calibration.png")

@@ -242,7 +242,9 @@ def test_calibration_of_the_shifted_estimate(camera_scene, evaluation):
             assert summary["mean_nees"] == pytest.approx((OFFSET / PUBLISHED_STD) ** 2, rel=1e-9)
             assert summary["coverage_95"] == 0.0 and summary["reliability"]["empirical"][-1] == 0.0
             assert summary["median_std_m"] == pytest.approx(PUBLISHED_STD, rel=1e-12)
+            assert summary["median_error_m"] == pytest.approx(OFFSET, rel=1e-9)
     assert section["std_ratio_unobserved_observed"] == {"final": 1.0, "pooled": 1.0}
+    assert section["error_ratio_unobserved_observed"]["pooled"] == pytest.approx(1.0, rel=1e-12)
     text = format_tables(evaluation)
     assert "Calibration of the factor graph's position_std" in text and "(steps 3-3 pooled)" in text
     row = next(line for line in text.splitlines() if line.startswith("unobserved external "))

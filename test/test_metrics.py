@@ -283,6 +283,7 @@ def test_calibration_hand_computed_with_vertices_left_out():
     assert (result.vertices, result.left_out, result.zero_std_vertices) == (2, 4, 1)
     assert result.mean_nees == pytest.approx(2.5, rel=1e-15)
     assert result.median_std == pytest.approx(3.0, rel=1e-15)
+    assert result.median_error == pytest.approx(3.5, rel=1e-15)  # errors 5 and 2
     assert result.coverage_95 == 1.0
     np.testing.assert_array_equal(result.coverage([0.5, 0.95]), [0.5, 1.0])  # chi2(3) median 2.37
     only_second = metrics.calibration(estimate, truth, std, vertices=[1, 3])
@@ -291,6 +292,7 @@ def test_calibration_hand_computed_with_vertices_left_out():
     summary = result.summary()
     assert summary["vertices"] == 2 and summary["zero_std_vertices"] == 1 and summary["left_out"] == 4
     assert summary["mean_nees"] == pytest.approx(2.5) and summary["median_std_m"] == pytest.approx(3.0)
+    assert summary["median_error_m"] == pytest.approx(3.5)
     assert summary["reliability"]["nominal"] == list(metrics.CALIBRATION_LEVELS)
     assert len(summary["reliability"]["empirical"]) == len(metrics.CALIBRATION_LEVELS)
 

@@ -387,12 +387,13 @@ def _calibration_summary(per_step: list[Calibration | None]) -> dict:
     }
 
 
-def _std_ratio(sets: dict, when: str) -> float | None:
-    """Median std of the unobserved external vertices over that of the observed ones."""
+def _unobserved_over_observed(sets: dict, when: str, figure: str) -> float | None:
+    """A Calibration.summary() figure (median std or median error) of the unobserved external
+    vertices over that of the observed ones."""
     unobserved, observed = (sets[name][when] for name in ("unobserved_external", "observed_external"))
-    if unobserved is None or observed is None or unobserved["median_std_m"] is None or not observed["median_std_m"]:
+    if unobserved is None or observed is None or unobserved[figure] is None or not observed[figure]:
         return None
-    return unobserved["median_std_m"] / observed["median_std_m"]
+    return unobserved[figure] / observed[figure]
 
 
 def _summary(values: list[float]) -> dict:
@@ -438,8 +439,10 @@ def evaluate(inputs: EvaluationInputs, samples: int = DEFAULT_SAMPLES, seed: int
         result["calibration"] = {"method": "factor_graph", "pooled_from_step": CALIBRATION_POOLED_FROM_STEP,
                                  "sets": sets}
         if "unobserved_external" in sets:
-            result["calibration"]["std_ratio_unobserved_observed"] = {
-                when: _std_ratio(sets, when) for when in ("final", "pooled")}
+            for ratio, figure in (("std_ratio_unobserved_observed", "median_std_m"),
+                                  ("error_ratio_unobserved_observed", "median_error_m")):
+                result["calibration"][ratio] = {
+                    when: _unobserved_over_observed(sets, when, figure) for when in ("final", "pooled")}
     corrected = [s["correction"] for s in steps if "correction" in s]
     if corrected:
         result["correction"] = {
@@ -522,12 +525,14 @@ def format_tables(evaluation: dict) -> str:
 
 def format_calibration(calibration_: dict, steps: int) -> str:
     """The calibration block of format_tables: per vertex set, final step (pooled over the steps
-    from the section's pooled_from_step to `steps`), and the unobserved / observed std ratio."""
+    from the section's pooled_from_step to `steps`), and the unobserved / observed ratios of the
+    median std and of the median error."""
     first = calibration_["pooled_from_step"]
     pooled = f"steps {first}-{steps}" if steps >= first else f"needs {first} steps"
     columns = (("vertices", lambda c: f"{c['vertices']}"), ("mean NEES", lambda c: _number(c["mean_nees"], 2)),
                ("95 % coverage", lambda c: _number(c["coverage_95"], 3)),
                ("median std (mm)", lambda c: _number(c["median_std_m"], 4, 1e3)),
+               ("median error (mm)", lambda c: _number(c["median_error_m"], 4, 1e3)),
                ("zero std", lambda c: f"{c['zero_std_vertices']}"), ("left out", lambda c: f"{c['left_out']}"))
     rows = [(name.replace("_", " "), [f"{_figure(sets['final'], cell)} ({_figure(sets['pooled'], cell)})"
                                       for _, cell in columns])
@@ -540,8 +545,10 @@ def format_calibration(calibration_: dict, steps: int) -> str:
     lines += [label.ljust(label_width) + "  " + "  ".join(c.rjust(width) for c in cells) for label, cells in rows]
     if "std_ratio_unobserved_observed" in calibration_:
         ratio = calibration_["std_ratio_unobserved_observed"]
+        errors = calibration_["error_ratio_unobserved_observed"]
         lines.append(f"median std, unobserved external over observed external: {_number(ratio['final'], 2)} "
-                     f"({_number(ratio['pooled'], 2)}) (above 1: less certain where unobserved)")
+                     f"({_number(ratio['pooled'], 2)}) (above 1: less certain where unobserved); median error: "
+                     f"{_number(errors['final'], 2)} ({_number(errors['pooled'], 2)})")
     return "\n".join(lines)
 
 

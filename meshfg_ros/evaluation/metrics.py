@@ -142,6 +142,12 @@ class Calibration:
         """Median published std of the judged vertices (metres); NaN without any."""
         return float(np.median(self.std)) if self.vertices else float("nan")
 
+    @property
+    def median_error(self) -> float:
+        """Median position error |estimate - truth| of the judged vertices (metres, from their
+        NEES and std); NaN without any."""
+        return float(np.median(np.sqrt(self.nees) * self.std)) if self.vertices else float("nan")
+
     @classmethod
     def pooled(cls, calibrations) -> Calibration:
         """One calibration over every vertex of `calibrations` (for instance of several steps)."""
@@ -155,7 +161,8 @@ class Calibration:
 
     def summary(self, levels=CALIBRATION_LEVELS) -> dict:
         """JSON-ready figures (None for an undefined value): counts, mean NEES, 95 % coverage, the
-        median std (metres) and the reliability curve (empirical coverage at the nominal levels)."""
+        median std and median error (metres) and the reliability curve (empirical coverage at the
+        nominal levels)."""
         def number(value):
             return float(value) if np.isfinite(value) else None
 
@@ -166,6 +173,7 @@ class Calibration:
             "mean_nees": number(self.mean_nees),
             "coverage_95": number(self.coverage_95),
             "median_std_m": number(self.median_std),
+            "median_error_m": number(self.median_error),
             "reliability": {"nominal": [float(level) for level in levels],
                             "empirical": [number(value) for value in self.coverage(levels)]},
         }
