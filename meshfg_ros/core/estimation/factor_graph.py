@@ -50,6 +50,11 @@ class _StateLinearization:
     model_at: tuple | None = None  # (state, cost, gradient) of the last model evaluation
 
 
+def _linearize_class(factor_class: type, factors: list, states: dict) -> list:
+    """`linearize_batch` of one factor class (a part of FactorGraph._relinearize)."""
+    return factor_class.linearize_batch(factors, states)
+
+
 class FactorGraph:
     """States of a window (time order), their factors and fixed vertices; the LM problem.
 
@@ -266,12 +271,17 @@ class FactorGraph:
     def _relinearize(self, keys, states: dict) -> dict:
         """Fresh linearisations of the single-state factors of states `keys` at `states`:
         key -> _StateLinearization. Each class's factors on those states are linearised
-        together; a state's terms are added in its factors' order whatever the batching."""
+        together, the classes side by side on the worker threads (the physics prior's stiffness
+        and the points' closest-point search, the two largest, both release the GIL); a state's
+        terms are then added in its factors' order whatever the batching."""
         nnz = self._pattern_keys.size
         out = {key: _StateLinearization(states[key].copy(), np.zeros(nnz + 1), np.zeros(self.dof_count), 0.0)
                for key in keys}
-        for factor_class, factors in self._grouped_state_factors(keys):
-            for factor, terms in zip(factors, factor_class.linearize_batch(factors, states)):
+        groups = self._grouped_state_factors(keys)
+        batches = worker_threads.run_parts(_linearize_class, [(factor_class, factors, states)
+                                                              for factor_class, factors in groups])
+        for (_, factors), linearizations in zip(groups, batches):
+            for factor, terms in zip(factors, linearizations):
                 linearization = out[factor.keys[0]]
                 linearization.cost += terms.cost
                 self._accumulate(terms, factor, linearization.data, linearization.gradient)

@@ -174,7 +174,7 @@ def _cofactor_and_determinant(x, cofactor):
     return x[0, 0] * cofactor[0, 0] + x[0, 1] * cofactor[0, 1] + x[0, 2] * cofactor[0, 2]
 
 
-@numba.njit((read_only(float64, 3), float64, float64, int64), cache=True, boundscheck=True)
+@numba.njit((read_only(float64, 3), float64, float64, int64), cache=True, boundscheck=True, nogil=True)
 def _newton_polar_rotations(f, min_det, tolerance, max_iterations):
     """Higham's determinant-scaled Newton iteration X <- (gamma X + (gamma X)^-T) / 2, gamma =
     det(X)^(-1/3), (gamma X)^-T = cof(X) / (gamma det X), element by element from X = F_e, for
@@ -267,7 +267,7 @@ def _upper_entries(pairs, gram, rank_one=(), swapped=None, skew=None) -> np.ndar
 
 @numba.njit((read_only(float64, 3), read_only(float64, 1), read_only(float64, 3), float64, float64,
              read_only(int64, 1), read_only(int64, 1), read_only(int64, 1), read_only(int64, 1), read_only(int64, 1),
-             int64), cache=True, boundscheck=True)
+             int64), cache=True, boundscheck=True, nogil=True)
 def _corotational_upper_sums(rotated, volumes, gram, mu, lam, a_index, i_index, b_index, k_index, slot, count):
     """Global upper-triangle sums (count,) of the corotational element matrices
     K_{ai,bk} = V (mu gram_ab delta_ik + lam g_ai g_bk + mu g_ak g_bi), g_a = R G_a the rotated
@@ -291,7 +291,8 @@ def _corotational_upper_sums(rotated, volumes, gram, mu, lam, a_index, i_index, 
     return sums
 
 
-@numba.njit((read_only(float64, 2), read_only(int64, 2), read_only(float64, 3)), cache=True, boundscheck=True)
+@numba.njit((read_only(float64, 2), read_only(int64, 2), read_only(float64, 3)), cache=True, boundscheck=True,
+            nogil=True)
 def _deformation_gradients(state, tetrahedra, gradients):
     """F_e = sum_{a>0} (x_a - x_0) (grad N_a)^T of every element, element-major (3, 3, M), from
     the state (N, 3), the tetrahedra (M, 4) and the shape-function gradients (4, 3, M). Edge
