@@ -10,7 +10,7 @@ import pytest
 from offline_helpers import box_stiffness
 
 import meshfg_ros.core.worker_threads as worker_threads
-from meshfg_ros.core.estimation import factors
+from meshfg_ros.core.estimation import factor_graph, factors
 from meshfg_ros.core.estimation.estimator import EstimatorConfig, SlidingWindowEstimator
 from meshfg_ros.core.geometry import closest_point, mesh as mesh_module
 from meshfg_ros.core.geometry.closest_point import ClosestPointIndex
@@ -225,3 +225,37 @@ def test_a_simulator_step_split_over_two_threads_equals_one_threads(two_threads,
     single = predict()
     np.testing.assert_array_equal(split, single)
     assert np.abs(split - mesh.vertices).max() > 1e-3  # the tool pushed the tissue
+
+
+def test_a_linearisation_computes_its_factor_classes_side_by_side_as_one_thread_does(two_threads, monkeypatch):
+    """The classes of a state's factors (physics prior; volume barrier and points) in one group
+    per thread, and on one thread all on the calling thread: the same block values, gradient
+    and cost to the bit (each class's terms are added in the same order)."""
+    box = box_mesh(343, (0.06, 0.06, 0.03))
+    mesh = box.with_fixed(np.flatnonzero(box.vertices[:, 2] < 1e-9))
+    points = mesh.vertices[mesh.vertices[:, 2] > 0.029] + np.array([0.0, 0.0, -2e-4])
+    estimator = SlidingWindowEstimator(mesh, EstimatorConfig(window_size=2))
+    estimator.update(0, points, mesh.vertices + np.array([0.0, 0.0, -1e-4]))
+    graph = estimator.graph
+    key = graph.keys[-1]
+    states = {key: graph.states[key] + 1e-5}
+    threads = []
+    original = factor_graph._linearize_classes
+
+    def recording(groups, states_):
+        threads.append((threading.current_thread().name, [factor_class.__name__ for factor_class, _ in groups]))
+        return original(groups, states_)
+
+    monkeypatch.setattr(factor_graph, "_linearize_classes", recording)
+    split = graph._relinearize([key], states)[key]
+    assert sorted(classes for _, classes in threads) == [
+        ["PhysicsPriorFactor"], ["VolumeBarrierFactor", "PointToSurfaceFactor"]]
+    assert len({name for name, _ in threads}) == 2
+    threads.clear()
+    monkeypatch.setenv("MESHFG_WORKER_THREADS", "1")
+    single = graph._relinearize([key], states)[key]
+    assert threads == [(threading.current_thread().name,
+                        ["PhysicsPriorFactor", "VolumeBarrierFactor", "PointToSurfaceFactor"])]
+    np.testing.assert_array_equal(split.data, single.data)
+    np.testing.assert_array_equal(split.gradient, single.gradient)
+    assert split.cost == single.cost and split.cost > 0.0

@@ -187,9 +187,9 @@ def _calibration_columns(section: dict | None) -> dict:
 
 def _calibration_summary(rows: list[dict]) -> dict:
     """Per CALIBRATION_TARGETS the lowest and highest scene value (with where), the scenes
-    without one, and whether every scene lies in the range; the lowest std ratio over the scenes
-    whose unobserved error is the larger (STD_RATIO_TARGET) likewise. A scene without a value
-    fails the target: it is judged on every scene."""
+    without one, and whether every scene lies in the range (a scene without a value fails the
+    target: it is judged on every scene); and the lowest std ratio over the scenes whose
+    unobserved error is the larger (STD_RATIO_TARGET), where a scene without either ratio fails."""
     def at(row):
         return {"scene": row["scene"], "seed": row.get("seed")}
 
@@ -400,7 +400,8 @@ def _summary_line(s: dict, with_seed: bool = False) -> str:
 
 def _calibration_line(s: dict, with_seed: bool) -> str:
     """The calibration targets' part of the summary line: each range's lowest and highest scene
-    value (where), and the lowest unobserved/observed std ratio, with met / NOT met; a figure
+    value (where), and the lowest unobserved/observed std ratio over the scenes it judges, with
+    met / NOT met; a figure
     the summary lacks reads '-' (and its target NOT met)."""
     def where(place):
         if not place:

@@ -50,9 +50,10 @@ class _StateLinearization:
     model_at: tuple | None = None  # (state, cost, gradient) of the last model evaluation
 
 
-def _linearize_class(factor_class: type, factors: list, states: dict) -> list:
-    """`linearize_batch` of one factor class (a part of FactorGraph._relinearize)."""
-    return factor_class.linearize_batch(factors, states)
+def _linearize_classes(groups: list, states: dict) -> list:
+    """`linearize_batch` of each (factor class, factors) of `groups` in turn: one worker
+    thread's part of FactorGraph._relinearize."""
+    return [factor_class.linearize_batch(factors, states) for factor_class, factors in groups]
 
 
 class FactorGraph:
@@ -271,15 +272,17 @@ class FactorGraph:
     def _relinearize(self, keys, states: dict) -> dict:
         """Fresh linearisations of the single-state factors of states `keys` at `states`:
         key -> _StateLinearization. Each class's factors on those states are linearised
-        together, the classes side by side on the worker threads (the physics prior's stiffness
-        and the points' closest-point search, the two largest, both release the GIL); a state's
-        terms are then added in its factors' order whatever the batching."""
+        together, the classes in contiguous groups side by side on the worker threads (one group
+        per thread: the physics prior, then the volume barrier and the points; the prior's
+        corotational stiffness and the points' closest-point search, the two largest, release the
+        GIL); a state's terms are then added in its factors' order whatever the batching."""
         nnz = self._pattern_keys.size
         out = {key: _StateLinearization(states[key].copy(), np.zeros(nnz + 1), np.zeros(self.dof_count), 0.0)
                for key in keys}
         groups = self._grouped_state_factors(keys)
-        batches = worker_threads.run_parts(_linearize_class, [(factor_class, factors, states)
-                                                              for factor_class, factors in groups])
+        parts = worker_threads.run_parts(_linearize_classes, [(part, states)
+                                                              for part in worker_threads.split(groups, len(groups))])
+        batches = [batch for part in parts for batch in part]
         for (_, factors), linearizations in zip(groups, batches):
             for factor, terms in zip(factors, linearizations):
                 linearization = out[factor.keys[0]]
