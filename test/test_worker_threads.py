@@ -30,6 +30,7 @@ def two_threads(monkeypatch):
     monkeypatch.setattr(closest_point, "PARALLEL_MIN_POINTS", 1)
     monkeypatch.setattr(mesh_module, "PARALLEL_MIN_ELEMENTS", 1)
     monkeypatch.setattr(factors, "PARALLEL_MIN_PRIOR_DOFS", 1)
+    monkeypatch.setattr(factor_graph, "PARALLEL_MIN_LINEARIZATION_DOFS", 1)
 
 
 @pytest.fixture(scope="module")

@@ -50,6 +50,13 @@ class _StateLinearization:
     model_at: tuple | None = None  # (state, cost, gradient) of the last model evaluation
 
 
+# A linearisation's factor classes go to the worker threads side by side (FactorGraph._relinearize)
+# from this many renewed unknowns: at organ scale (32k per state) the prior's stiffness takes
+# about 45 ms beside the points' 20 ms; at paper scale (1.5k) the classes take about a millisecond
+# each, and the hand-offs and the GIL that their Python parts contend for cost more than they save.
+PARALLEL_MIN_LINEARIZATION_DOFS = 20_000
+
+
 def _linearize_classes(groups: list, states: dict) -> list:
     """`linearize_batch` of each (factor class, factors) of `groups` in turn: one worker
     thread's part of FactorGraph._relinearize."""
@@ -272,16 +279,17 @@ class FactorGraph:
     def _relinearize(self, keys, states: dict) -> dict:
         """Fresh linearisations of the single-state factors of states `keys` at `states`:
         key -> _StateLinearization. Each class's factors on those states are linearised
-        together, the classes in contiguous groups side by side on the worker threads (one group
-        per thread: the physics prior, then the volume barrier and the points; the prior's
-        corotational stiffness and the points' closest-point search, the two largest, release the
-        GIL); a state's terms are then added in its factors' order whatever the batching."""
+        together; from PARALLEL_MIN_LINEARIZATION_DOFS renewed unknowns the classes run in
+        contiguous groups side by side on the worker threads (one group per thread: the physics
+        prior, then the volume barrier and the points; the prior's corotational stiffness and the
+        points' closest-point search, the two largest, release the GIL). A state's terms are then
+        added in its factors' order whatever the batching."""
         nnz = self._pattern_keys.size
         out = {key: _StateLinearization(states[key].copy(), np.zeros(nnz + 1), np.zeros(self.dof_count), 0.0)
                for key in keys}
         groups = self._grouped_state_factors(keys)
-        parts = worker_threads.run_parts(_linearize_classes, [(part, states)
-                                                              for part in worker_threads.split(groups, len(groups))])
+        most = len(groups) if self.dof_count * len(keys) >= PARALLEL_MIN_LINEARIZATION_DOFS else 1
+        parts = worker_threads.run_parts(_linearize_classes, [(part, states) for part in worker_threads.split(groups, most)])
         batches = [batch for part in parts for batch in part]
         for (_, factors), linearizations in zip(groups, batches):
             for factor, terms in zip(factors, linearizations):
