@@ -289,7 +289,8 @@ class FactorGraph:
                for key in keys}
         groups = self._grouped_state_factors(keys)
         most = len(groups) if self.dof_count * len(keys) >= PARALLEL_MIN_LINEARIZATION_DOFS else 1
-        parts = worker_threads.run_parts(_linearize_classes, [(part, states) for part in worker_threads.split(groups, most)])
+        parts = worker_threads.run_parts(_linearize_classes,
+                                         [(part, states) for part in worker_threads.split(groups, most)])
         batches = [batch for part in parts for batch in part]
         for (_, factors), linearizations in zip(groups, batches):
             for factor, terms in zip(factors, linearizations):
