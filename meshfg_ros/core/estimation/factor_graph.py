@@ -54,7 +54,10 @@ class _StateLinearization:
 # from this many renewed unknowns: at organ scale (32k per state) the prior's stiffness takes
 # about 45 ms beside the points' 20 ms; at paper scale (1.5k) the classes take about a millisecond
 # each, and the hand-offs and the GIL that their Python parts contend for cost more than they save.
-PARALLEL_MIN_LINEARIZATION_DOFS = 20_000
+# Between, on boxes of the bench's kind (W=5, 20,000 points), three interleaved pairs of runs:
+# 17.5k unknowns, update p95 356-390 ms side by side against 401-435 ms in turn; 10.1k, alike
+# (p95 113-140 against 111-140 ms).
+PARALLEL_MIN_LINEARIZATION_DOFS = 10_000
 
 
 def _linearize_classes(groups: list, states: dict) -> list:
