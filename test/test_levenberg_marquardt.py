@@ -13,6 +13,7 @@ from meshfg_ros.core.estimation.factors import PhysicsPriorFactor, prior_scale
 from meshfg_ros.core.physics.fem import ElasticModel
 from meshfg_ros.core.solvers.levenberg_marquardt import LevenbergMarquardtConfig, levenberg_marquardt
 from meshfg_ros.core.solvers.linear_solvers import (
+    BESIDE_ITERATIONS,
     BORROWED_ITERATIONS,
     CholeskySolver,
     FallbackSolver,
@@ -404,6 +405,48 @@ def test_a_state_that_joins_the_window_borrows_the_newest_factor(cube, model):  
     later = system.restricted([2])
     pcg.solve(later, system.split(rhs)[2])  # states 0 and 1 left the window
     assert all(spare is not newest.factor for spare in pcg._spare) and len(pcg._spare) == 1
+
+
+def test_a_drifted_borrowed_factor_is_replaced_by_one_made_beside_the_caller(cube, model, monkeypatch):  # noqa: F811
+    """A joining state borrows a factor its block has drifted from (2 % more on the diagonal:
+    BESIDE_ITERATIONS or more PCG iterations, within BORROWED_ITERATIONS). `refactor_newest_beside`
+    then makes a factor of the newest block of the last solve beside the caller; the next solve
+    puts it in place of the borrowed one without a factorisation of its own, needs fewer
+    iterations with it, and lends it to the next state that joins. A solve that needed fewer
+    iterations starts none, nor does one without a spare factor. One worker thread or two,
+    the same solutions."""
+    system, rhs = window_system(cube, model)
+    blocks = list(system.blocks)
+    blocks[2] = blocks[1] + scipy.sparse.diags(0.02 * blocks[1].diagonal())
+    system = WindowSystem(blocks, 3e-3 * system.couplings, system.keys, system.diagonal_index)
+    reference = np.linalg.solve(system.to_csr().toarray(), rhs)
+    solutions = []
+    for threads in ("1", "2"):
+        monkeypatch.setenv("MESHFG_WORKER_THREADS", threads)
+        pcg = PCGSolver(tolerance=1e-8, preconditioner="block")
+        pcg.reserve(system.pattern, len(system.keys) + 1)
+        pcg.solve(system.restricted([0, 1]), system.split(rhs)[:2].reshape(-1))
+        _, borrowed = pcg.solve(system, rhs)
+        assert BESIDE_ITERATIONS <= borrowed.iterations <= BORROWED_ITERATIONS and borrowed.factorizations == 0
+        lent = pcg.state_factor(system.keys[1])
+        assert pcg.state_factor(system.keys[2]) is lent
+        fresh = pcg.refactor_newest_beside()
+        assert fresh is not None and fresh is not lent and pcg.factorizations == 3
+        x, stats = pcg.solve(system, rhs)
+        assert stats.factorizations == 0 and stats.iterations < borrowed.iterations
+        assert pcg.state_factor(system.keys[2]) is fresh and pcg.state_factor(system.keys[1]) is lent
+        np.testing.assert_allclose(x, reference, rtol=1e-6, atol=1e-7 * np.abs(reference).max())
+        solutions.append(x)
+        assert pcg.refactor_newest_beside() is None  # its solve needed fewer iterations
+        joined = WindowSystem(blocks[1:] + [blocks[2]], 3e-3 * system.couplings, [*system.keys[1:], system.keys[2] + 1],
+                              system.diagonal_index)
+        pcg.solve(joined, np.concatenate([system.split(rhs)[1:], system.split(rhs)[2:]]).reshape(-1))
+        assert pcg.state_factor(joined.keys[-1]) is fresh
+    np.testing.assert_allclose(solutions[0], solutions[1], rtol=1e-12, atol=1e-14 * np.abs(reference).max())
+    pcg = PCGSolver(tolerance=1e-8, preconditioner="block")  # no spare factor: nothing started
+    pcg.solve(system.restricted([0, 1]), system.split(rhs)[:2].reshape(-1))
+    pcg.solve(system, rhs)
+    assert pcg.refactor_newest_beside() is None
 
 
 def test_a_borrowed_factor_that_does_not_fit_is_replaced_by_the_states_own(cube, model):  # noqa: F811

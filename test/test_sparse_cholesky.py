@@ -74,6 +74,30 @@ def test_refactor_uses_the_new_values(stiffness):
     assert np.linalg.norm(stiffness @ solution - rhs) > 0.5 * np.linalg.norm(rhs)  # not the old factor
 
 
+@pytest.mark.parametrize("threads", ["1", "2"])
+def test_a_refactor_beside_the_caller_counts_at_once_and_gives_the_new_values(stiffness, monkeypatch, threads):
+    """refactor_beside raises the revision before it returns (work queued behind it is judged
+    against its values), factors on the background thread (or at once on one worker thread),
+    and the factor then solves with the new values; non-finite values are refused at once and
+    leave the last good factor."""
+    monkeypatch.setenv("MESHFG_WORKER_THREADS", threads)
+    rng = np.random.default_rng(7)
+    factor = SparseCholesky(stiffness)
+    revision = factor.revision
+    tripled = 3.0 * stiffness.data
+    done = factor.refactor_beside(tripled)
+    assert factor.revision == revision + 1
+    assert done.result() is None
+    rhs = rng.normal(size=stiffness.shape[0])
+    np.testing.assert_allclose(3.0 * (stiffness @ factor.solve(rhs)), rhs, rtol=1e-9, atol=1e-9)
+    data = stiffness.data.copy()
+    data[3] = np.inf
+    with pytest.raises(NotPositiveDefiniteError, match="non-finite"):
+        factor.refactor_beside(data)
+    assert factor.revision == revision + 1
+    np.testing.assert_allclose(3.0 * (stiffness @ factor.solve(rhs)), rhs, rtol=1e-9, atol=1e-9)
+
+
 def test_sibling_factors_its_own_values_and_leaves_the_original(stiffness):
     rng = np.random.default_rng(2)
     factor = SparseCholesky(stiffness)

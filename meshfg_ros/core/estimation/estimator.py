@@ -885,9 +885,10 @@ class SlidingWindowEstimator:
         try:
             factor = self.solver.state_factor(key)
             posterior = self.marginals.blocks(graph.newest_information(), seed=key, factor=factor)
-            # The next state borrows this factor unless its block drifts: its draws start now,
-            # to run while the next cloud and prediction are awaited.
-            self.marginals.prepare(factor, seed=key + 1)
+            # The next state borrows this factor, or the one the solver now makes of this
+            # state's block (unless its block drifts): its draws start now, behind that factor
+            # when there is one, to run while the next cloud and prediction are awaited.
+            self.marginals.prepare(self.solver.refactor_newest_beside() or factor, seed=key + 1)
         except NotPositiveDefiniteError:
             posterior, clamped = clipped_inverse(graph.newest_vertex_information())
             messages.append("posterior information not positive definite: vertex-conditional covariance"

@@ -24,10 +24,12 @@ import numpy as np
 import scipy.sparse
 import scipy.sparse.linalg
 
+import meshfg_ros.core.worker_threads as worker_threads
 from meshfg_ros.core.solvers.linear_system import WindowSystem, diagonal_positions
 from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError, SparseCholesky
 
 __all__ = [
+    "BESIDE_ITERATIONS",
     "BORROWED_ITERATIONS",
     "LINEAR_SOLVERS",
     "CholeskySolver",
@@ -53,6 +55,10 @@ KEPT_SHARE = 0.8
 # A state that joins a window borrows the newest factor (see PCGSolver); PCG gets this many
 # iterations with a borrowed factor before the state gets its own.
 BORROWED_ITERATIONS = 8
+# A newest state that borrows gets a factor made beside the caller after an update where one of
+# its solves took this many PCG iterations (PCGSolver.refactor_newest_beside): 2-3 while the
+# factor fits (the bench's organ-scale box over 16 updates), 4-9 as it drifts.
+BESIDE_ITERATIONS = 4
 
 
 class LinearSolveError(RuntimeError):
@@ -90,6 +96,12 @@ class LinearSolver:
     def state_factor(self, key) -> SparseCholesky | None:
         """The Cholesky factor this solver's last solves used for state `key`'s block (of that
         block, or of one close to it), or None: this solver keeps none."""
+        return None
+
+    def refactor_newest_beside(self) -> SparseCholesky | None:
+        """Start, beside the caller, what the next update's solves will want (PCGSolver: a
+        fresh factor for the state that joins next to borrow); the factor it makes, or None:
+        nothing to start for this solver."""
         return None
 
 
@@ -224,7 +236,10 @@ class PCGSolver(LinearSolver):
     (lent to the next state when it is the newest), the others keep borrowing until a further
     miss: a borrowed factor serves while it is good enough, however old, and a miss costs one
     factorisation (in a replay of the organ-scale live recording, the 10th update's solves took
-    204 ms with one, against 421 ms with one for each of its three borrowing states). Only one
+    204 ms with one, against 421 ms with one for each of its three borrowing states). Where a
+    borrowed factor has drifted (a solve took BESIDE_ITERATIONS), the caller has the newest
+    block factored beside it after the update (`refactor_newest_beside`), for the next joining
+    state to borrow instead of the old one. Only one
     joining state borrows: a solver facing a window of states without factors factors each (a borrowed factor for a
     whole window would serve none well). Other ways to save factorisations cost more than
     they save: Cholesky for the two newest states and vertex blocks for the rest (some
@@ -269,6 +284,8 @@ class PCGSolver(LinearSolver):
         self._preconditioned = None      # (system, revision, b, M^-1 b) of the last `decrement`
         self._prepared = None            # (system, revision) the preconditioner was last made to fit
         self._kept = None                # (system, kept block indices, their restricted system)
+        self._beside = None              # the factor `refactor_newest_beside` makes: see there
+        self._most_iterations = 0        # PCG's most iterations in one solve since that was last asked
 
     def _mode(self, block_size: int) -> str:
         if self.preconditioner != "auto":
@@ -293,6 +310,64 @@ class PCGSolver(LinearSolver):
         borrows from an earlier state; None without one."""
         cached = self._block_factors.get(key)
         return None if cached is None else cached.factor
+
+    def refactor_newest_beside(self) -> SparseCholesky | None:
+        """A factor of the newest block of the last system solved, made on the background
+        thread (SparseCholesky.refactor_beside) while the caller waits for its next cloud, when
+        the newest state borrows and a solve since the last call took BESIDE_ITERATIONS PCG
+        iterations or more (the borrowed factor drifted): at the next solve or decrement it
+        replaces that state's borrowed factor (`_install_beside`), and the state that joins then
+        borrows it. Without it a joining state borrows a factor made however many updates ago,
+        and PCG's iterations grow with the drift until a miss factors in the update (in a replay
+        of the organ-scale live recording, 2-3 iterations per solve at the second update, 6-9 at
+        the ninth and tenth, and a factorisation of 0.2 s in the tenth). The factor is made from
+        the block's values at the end of this update, whoever runs it and however long it
+        takes, so the estimates do not depend on timing; it goes into a spare factor (reserved,
+        or left by a state), and nothing is started without one. Returns the factor, or None."""
+        prepared, drifted = self._prepared, self._most_iterations >= BESIDE_ITERATIONS
+        self._most_iterations = 0
+        if prepared is None or self._beside is not None or not drifted:
+            return None
+        system = prepared[0]
+        t = len(system.keys) - 1
+        key = system.keys[t]
+        cached = self._block_factors.get(key)
+        if self._mode(system.block_size) != "block" or cached is None or not cached.borrowed:
+            return None
+        factor = next((spare for spare in self._spare if spare.same_pattern(system.pattern)), None)
+        if factor is None:
+            return None
+        data = system.block_data(t).copy()
+        try:
+            done = factor.refactor_beside(data)
+        except NotPositiveDefiniteError:
+            return None
+        self._spare.remove(factor)
+        self.factorizations += 1
+        self._beside = (key, _BlockFactor(factor, data, system.diagonal_index, system.revisions[t]), done)
+        return factor
+
+    def _install_beside(self) -> None:
+        """Put the factor `refactor_newest_beside` made (waiting for it) in place of its state's
+        borrowed one, as the factor to lend; a spare again where it failed, or its state left
+        the window or got a factor of its own meanwhile."""
+        beside, self._beside = self._beside, None
+        if beside is None:
+            return
+        key, fresh, done = beside
+        try:
+            done.result()
+        except NotPositiveDefiniteError:
+            self._spare.append(fresh.factor)
+            return
+        cached = self._block_factors.get(key)
+        if cached is None or not cached.borrowed:
+            self._spare.append(fresh.factor)
+            return
+        self._release(key)
+        # Judged, like the borrowed factor it replaces, by PCG's iterations (_solve_to).
+        self._block_factors[key] = self._latest = fresh.lent()
+        self._revision += 1
 
     @staticmethod
     def _change(data: np.ndarray, reference: np.ndarray) -> float:
@@ -454,8 +529,17 @@ class PCGSolver(LinearSolver):
                 factor = self._block_factors[key].factor
                 sharing.setdefault(id(factor), (factor, []))[1].append(t)
             out = np.zeros_like(parts)
-            for factor, blocks in sharing.values():
+            groups = list(sharing.values())
+            if len(groups) == 1:
+                factor, blocks = groups[0]
                 out[blocks] = factor.solve(parts[blocks].T).T
+            else:
+                # Several factors (states with factors of their own): each one's solve is one
+                # CHOLMOD call, the calls side by side on the worker threads.
+                chunks = worker_threads.split(groups, len(groups))
+                solved = worker_threads.run_parts(_solve_groups, [(chunk, parts) for chunk in chunks])
+                for (_, blocks), values in zip(groups, [values for chunk in solved for values in chunk]):
+                    out[blocks] = values
             # A factor of R serves the block c R (_BlockFactor.scale): (c R)^-1 = R^-1 / c.
             out /= np.array([self._block_factors[key].multiple for key in system.keys])[:, None]
             return out.reshape(-1)
@@ -466,6 +550,7 @@ class PCGSolver(LinearSolver):
 
     def solve(self, system, rhs):
         start = time.perf_counter()
+        self._install_beside()
         before = self.factorizations
         mode = self._mode(system.block_size)
         self._evict(system)
@@ -481,6 +566,7 @@ class PCGSolver(LinearSolver):
                 total += more
         else:
             x, _, total = self._solve_to(system, mode, b, target)
+        self._most_iterations = max(self._most_iterations, total)
         stats = SolveStats(f"{self.name}/{mode}", 1e3 * (time.perf_counter() - start), total,
                            self.factorizations - before)
         return x, stats
@@ -527,6 +613,7 @@ class PCGSolver(LinearSolver):
         and PCG's first iteration applies M to that very -g: M^-1 (-g) = -(M^-1 g) exactly in
         floating point (every operation of the triangular solves is odd in its input), so it is
         kept for `solve` (`_known_preconditioned`) while the system and M stay the same."""
+        self._install_beside()
         mode = self._mode(system.block_size)
         self._evict(system)
         system, gradient, _ = self._solved_part(system, np.asarray(gradient, dtype=np.float64))
@@ -573,6 +660,12 @@ class PCGSolver(LinearSolver):
             direction = z + (rz_new / rz) * direction
             rz = rz_new
         return x, residual, limit, False
+
+
+def _solve_groups(groups: list, parts: np.ndarray) -> list[np.ndarray]:
+    """Each (factor, block indices) group's blocks of `parts` (W, n) solved, in one CHOLMOD call
+    per factor (PCGSolver._precondition)."""
+    return [factor.solve(parts[blocks].T, split=False).T for factor, blocks in groups]
 
 
 def _whole_residual(system: WindowSystem, b: np.ndarray, x: np.ndarray, kept: np.ndarray,
@@ -629,6 +722,10 @@ class FallbackSolver(LinearSolver):
     def state_factor(self, key):
         """The first solver's factor of state `key` (the others serve only when it fails)."""
         return self.solvers[0].state_factor(key)
+
+    def refactor_newest_beside(self):
+        """The first solver's (the others serve only when it fails)."""
+        return self.solvers[0].refactor_newest_beside()
 
 
 def make_linear_solver(name: str, fallback: bool = True, **pcg_options) -> LinearSolver:

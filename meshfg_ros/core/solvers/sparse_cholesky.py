@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import copy
 import threading
+from concurrent.futures import Future
 
 import numpy as np
 import scipy.sparse
@@ -142,6 +143,23 @@ class SparseCholesky:
             self.revision += 1
             self._refactor(data)
 
+    def refactor_beside(self, data: np.ndarray) -> Future:
+        """`refactor` on the process's background thread (worker_threads.start_background):
+        the factor is counted as refactored at once (`revision`), so that work queued behind it
+        there (covariance draws through it) is judged against the values it factors; solves on
+        this thread must wait for the returned future first. Its `result()` raises
+        NotPositiveDefiniteError as `refactor` would."""
+        data = np.asarray(data, dtype=np.float64)
+        if not np.all(np.isfinite(data)):
+            raise NotPositiveDefiniteError("Cholesky of a matrix with non-finite entries")
+        self.revision += 1
+        self._numeric = False
+        return worker_threads.start_background(self._refactor_reading, data)
+
+    def _refactor_reading(self, data: np.ndarray) -> None:
+        with self._readers:
+            self._refactor(data)
+
     def _refactor(self, data: np.ndarray) -> None:
         self._numeric = False
         if cholmod_without_gil.available():
@@ -162,9 +180,9 @@ class SparseCholesky:
         with self._readers:
             yield self
 
-    def solve(self, rhs: np.ndarray) -> np.ndarray:
-        """A^-1 rhs for rhs (n,) or (n, k) (CHOLMOD's sys code 0)."""
-        return self._substitutions(rhs, (0,))
+    def solve(self, rhs: np.ndarray, split: bool = True) -> np.ndarray:
+        """A^-1 rhs for rhs (n,) or (n, k) (CHOLMOD's sys code 0); `split` as in `back_solve`."""
+        return self._substitutions(rhs, (0,), split)
 
     def forward_solve(self, rhs: np.ndarray) -> np.ndarray:
         """L^-1 P rhs for rhs (n,) or (n, k), the first half of `solve` (sys codes 7, x = P b, and
