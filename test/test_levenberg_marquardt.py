@@ -449,6 +449,33 @@ def test_a_drifted_borrowed_factor_is_replaced_by_one_made_beside_the_caller(cub
     assert pcg.refactor_newest_beside() is None
 
 
+def test_the_solves_of_states_with_factors_of_their_own_run_side_by_side(cube, model, monkeypatch):  # noqa: F811
+    """Blocks with factors of their own are preconditioned by one CHOLMOD call per factor, the
+    calls split over the worker threads (from PARALLEL_MIN_SIZE rows, here lowered to the cube's
+    blocks): two threads take part, and PCG gives the solution the calls in turn give."""
+    import threading
+
+    import meshfg_ros.core.solvers.linear_solvers as linear_solvers
+
+    system, rhs = window_system(cube, model)
+    reference = np.linalg.solve(system.to_csr().toarray(), rhs)
+    threads = []
+    original = sparse_cholesky.SparseCholesky.solve
+    monkeypatch.setattr(sparse_cholesky.SparseCholesky, "solve",
+                        lambda factor, b, split=True: threads.append(threading.get_ident()) or original(factor, b, split))
+    monkeypatch.setenv("MESHFG_WORKER_THREADS", "2")
+    solutions = []
+    for smallest in (system.block_size + 1, 0):
+        monkeypatch.setattr(linear_solvers, "PARALLEL_MIN_SIZE", smallest)
+        threads.clear()
+        x, stats = PCGSolver(tolerance=1e-12, preconditioner="block").solve(system, rhs)
+        assert stats.factorizations == len(system.keys) and stats.iterations > 1
+        solutions.append(x)
+        assert len(set(threads)) == (1 if smallest else 2)
+    np.testing.assert_allclose(solutions[1], reference, rtol=1e-8, atol=1e-10 * np.abs(reference).max())
+    np.testing.assert_allclose(solutions[1], solutions[0], rtol=1e-12, atol=1e-14 * np.abs(reference).max())
+
+
 def test_a_borrowed_factor_that_does_not_fit_is_replaced_by_the_states_own(cube, model):  # noqa: F811
     """A joining state whose block is far from the lender's (here 50 times its damping) makes PCG
     miss the tolerance within BORROWED_ITERATIONS; that state alone gets its own factor and PCG

@@ -26,7 +26,7 @@ import scipy.sparse.linalg
 
 import meshfg_ros.core.worker_threads as worker_threads
 from meshfg_ros.core.solvers.linear_system import WindowSystem, diagonal_positions
-from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError, SparseCholesky
+from meshfg_ros.core.solvers.sparse_cholesky import PARALLEL_MIN_SIZE, NotPositiveDefiniteError, SparseCholesky
 
 __all__ = [
     "BESIDE_ITERATIONS",
@@ -530,12 +530,13 @@ class PCGSolver(LinearSolver):
                 sharing.setdefault(id(factor), (factor, []))[1].append(t)
             out = np.zeros_like(parts)
             groups = list(sharing.values())
-            if len(groups) == 1:
-                factor, blocks = groups[0]
-                out[blocks] = factor.solve(parts[blocks].T).T
+            if len(groups) == 1 or system.block_size < PARALLEL_MIN_SIZE:
+                for factor, blocks in groups:
+                    out[blocks] = factor.solve(parts[blocks].T).T
             else:
                 # Several factors (states with factors of their own): each one's solve is one
-                # CHOLMOD call, the calls side by side on the worker threads.
+                # CHOLMOD call, the calls side by side on the worker threads (from the size at
+                # which a solve's columns are split, below which a hand-off costs more).
                 chunks = worker_threads.split(groups, len(groups))
                 solved = worker_threads.run_parts(_solve_groups, [(chunk, parts) for chunk in chunks])
                 for (_, blocks), values in zip(groups, [values for chunk in solved for values in chunk]):

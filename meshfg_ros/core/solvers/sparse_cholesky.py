@@ -30,7 +30,7 @@ import pymetis
 import meshfg_ros.core.worker_threads as worker_threads
 from meshfg_ros.core.solvers import cholmod_without_gil
 
-__all__ = ["NotPositiveDefiniteError", "SparseCholesky", "nested_dissection"]
+__all__ = ["PARALLEL_MIN_SIZE", "NotPositiveDefiniteError", "SparseCholesky", "nested_dissection"]
 
 # Below this many nodes AMD (CHOLMOD's own choice) is nearly as good and METIS's call costs
 # more than it saves: on the 512-vertex paper-scale block METIS takes 2.3 ms and saves 0.4 ms
