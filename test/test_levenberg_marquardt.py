@@ -442,11 +442,77 @@ def test_a_drifted_borrowed_factor_is_replaced_by_one_made_beside_the_caller(cub
                               system.diagonal_index)
         pcg.solve(joined, np.concatenate([system.split(rhs)[1:], system.split(rhs)[2:]]).reshape(-1))
         assert pcg.state_factor(joined.keys[-1]) is fresh
-    np.testing.assert_allclose(solutions[0], solutions[1], rtol=1e-12, atol=1e-14 * np.abs(reference).max())
+    np.testing.assert_array_equal(solutions[0], solutions[1])
     pcg = PCGSolver(tolerance=1e-8, preconditioner="block")  # no spare factor: nothing started
     pcg.solve(system.restricted([0, 1]), system.split(rhs)[:2].reshape(-1))
-    pcg.solve(system, rhs)
+    assert pcg.solve(system, rhs)[1].iterations >= BESIDE_ITERATIONS
     assert pcg.refactor_newest_beside() is None
+
+
+def _drifted_borrower(cube, model):  # noqa: F811
+    """A PCGSolver with spare factors whose newest state borrows a factor its block drifted
+    from (the test above), after the solve that found it; the system and its right-hand side."""
+    system, rhs = window_system(cube, model)
+    blocks = list(system.blocks)
+    blocks[2] = blocks[1] + scipy.sparse.diags(0.02 * blocks[1].diagonal())
+    system = WindowSystem(blocks, 3e-3 * system.couplings, system.keys, system.diagonal_index)
+    pcg = PCGSolver(tolerance=1e-8, preconditioner="block")
+    pcg.reserve(system.pattern, len(system.keys) + 1)
+    pcg.solve(system.restricted([0, 1]), system.split(rhs)[:2].reshape(-1))
+    assert pcg.solve(system, rhs)[1].iterations >= BESIDE_ITERATIONS
+    return pcg, system, rhs
+
+
+def test_a_factor_that_fails_beside_the_caller_goes_back_to_the_spares(cube, model, monkeypatch):  # noqa: F811
+    """A factorisation beside the caller that runs out of memory (or meets a non-positive pivot)
+    leaves the newest state with the factor it borrowed and its spare reusable; the solve goes on."""
+    from concurrent.futures import Future
+
+    pcg, system, rhs = _drifted_borrower(cube, model)
+    lent = pcg.state_factor(system.keys[2])
+    spares = len(pcg._spare)
+
+    def fails(factor, data):
+        failed = Future()
+        failed.set_exception(MemoryError("CHOLMOD's factorisation failed"))
+        return failed
+
+    monkeypatch.setattr(sparse_cholesky.SparseCholesky, "refactor_beside", fails)
+    fresh = pcg.refactor_newest_beside()
+    assert fresh is not None and len(pcg._spare) == spares - 1
+    x, stats = pcg.solve(system, rhs)
+    assert pcg.state_factor(system.keys[2]) is lent and len(pcg._spare) == spares and fresh in pcg._spare
+    reference = np.linalg.solve(system.to_csr().toarray(), rhs)
+    np.testing.assert_allclose(x, reference, rtol=1e-6, atol=1e-7 * np.abs(reference).max())
+
+
+def test_the_next_covariance_draws_queue_behind_the_factor_made_beside_the_caller(cube, model, monkeypatch):  # noqa: F811
+    """The draws prepared through the factor `refactor_newest_beside` returns (as the estimator
+    prepares the next update's) are made once, on the background thread after its factorisation,
+    and the marginals of the next state's block through that factor use them: the numbers of
+    draws made on the caller's thread through the same factor."""
+    import threading
+
+    from meshfg_ros.core.estimation import covariance
+    from meshfg_ros.core.estimation.covariance import MarginalCovariance
+
+    monkeypatch.setenv("MESHFG_WORKER_THREADS", "2")
+    monkeypatch.setattr(covariance, "DENSE_MAX_DOFS", 0)  # draws for the cube's small blocks too
+    pcg, system, rhs = _drifted_borrower(cube, model)
+    drawn = []
+    original = MarginalCovariance._draw_through
+    monkeypatch.setattr(MarginalCovariance, "_draw_through",
+                        lambda marginals, factor, seed: drawn.append(threading.get_ident()) or original(marginals, factor, seed))
+    marginals = MarginalCovariance(samples=4)
+    fresh = pcg.refactor_newest_beside()
+    marginals.prepare(fresh, seed=3)
+    pcg.solve(system, rhs)
+    block = system.blocks[2]
+    prepared = marginals.blocks(block, seed=3, factor=pcg.state_factor(system.keys[2]))
+    assert len(drawn) == 1 and drawn[0] != threading.get_ident()
+    np.testing.assert_allclose(prepared, MarginalCovariance(samples=4).blocks(block, seed=3, factor=fresh),
+                               rtol=1e-12, atol=1e-14 * np.abs(prepared).max())
+    assert len(drawn) == 2 and drawn[1] == threading.get_ident()
 
 
 def test_the_solves_of_states_with_factors_of_their_own_run_side_by_side(cube, model, monkeypatch):  # noqa: F811

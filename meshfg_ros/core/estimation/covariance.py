@@ -37,8 +37,11 @@ E[x^T H x] = n / c, so the draws are rescaled by sqrt(n / mean x^T H x), one pro
 Rescaled draws through a borrowed factor give the NEES of a fresh factor's within a few per
 cent (docs/design-notes.md), and a fresh factor would cost about 0.1 s of an update at 5,000
 vertices and 0.3 s at 10,000.
-The next state borrows the same factor while its block stays close, so the draws of the next
-update are made beside the caller as soon as this one's are taken (`MarginalCovariance.prepare`),
+The next state borrows the same factor while its block stays close, or the one the solver
+makes of this state's block beside the caller when the borrowed one drifted
+(PCGSolver.refactor_newest_beside), so the draws of the next update are made through it beside
+the caller as soon as this one's are taken (`MarginalCovariance.prepare`, queued behind that
+factorisation),
 while the estimator waits for its next cloud: at organ scale the covariance then takes about
 17 ms of an update instead of 40-45 (the draws' solves). Prepared or drawn in the update, the
 draws are one CHOLMOD call, so that both give the same numbers; drawn in the update, they do
@@ -129,8 +132,8 @@ class MarginalCovariance:
         """Start the draws that `blocks` will take through `factor` for `seed`, on a thread of
         their own (core/worker_threads.py, with more than one worker thread), so that they run
         while the caller waits for its next input: the estimator prepares the next update's
-        draws through the factor its solver lent the newest state, which the next state
-        borrows in turn. `blocks` uses them only if they were made for its factor, unchanged
+        draws through the factor the next state will borrow (the newest state's, or the one its
+        solver makes beside the caller, whose factorisation these draws queue behind). `blocks` uses them only if they were made for its factor, unchanged
         since (SparseCholesky.revision), and its seed; a refactor waits for them to end."""
         self._prepared = None
         if factor is None or factor.size <= DENSE_MAX_DOFS or worker_threads.count() < 2:  # nothing to gain

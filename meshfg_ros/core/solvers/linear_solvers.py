@@ -239,9 +239,9 @@ class PCGSolver(LinearSolver):
     204 ms with one, against 421 ms with one for each of its three borrowing states). Where a
     borrowed factor has drifted (a solve took BESIDE_ITERATIONS), the caller has the newest
     block factored beside it after the update (`refactor_newest_beside`), for the next joining
-    state to borrow instead of the old one. Only one
-    joining state borrows: a solver facing a window of states without factors factors each (a borrowed factor for a
-    whole window would serve none well). Other ways to save factorisations cost more than
+    state to borrow instead of the old one. Only one joining state borrows: a solver facing a
+    window of states without factors factors each (a borrowed factor for a whole window would
+    serve none well). Other ways to save factorisations cost more than
     they save: Cholesky for the two newest states and vertex blocks for the rest (some
     updates take 40 or more iterations), x/y/z-separated scalar blocks (a 9 times smaller
     factor, 25-29 iterations); MKL PARDISO's OpenMP threads slow numpy down.
@@ -285,6 +285,7 @@ class PCGSolver(LinearSolver):
         self._prepared = None            # (system, revision) the preconditioner was last made to fit
         self._kept = None                # (system, kept block indices, their restricted system)
         self._beside = None              # the factor `refactor_newest_beside` makes: see there
+        self._window = None              # the whole window of the last solve or decrement
         self._most_iterations = 0        # PCG's most iterations in one solve since that was last asked
 
     def _mode(self, block_size: int) -> str:
@@ -312,8 +313,9 @@ class PCGSolver(LinearSolver):
         return None if cached is None else cached.factor
 
     def refactor_newest_beside(self) -> SparseCholesky | None:
-        """A factor of the newest block of the last system solved, made on the background
-        thread (SparseCholesky.refactor_beside) while the caller waits for its next cloud, when
+        """A factor of the newest block of the last window solved (the whole window LM handed
+        over, whatever blocks its solve kept), made on the background thread
+        (SparseCholesky.refactor_beside) while the caller waits for its next cloud, when
         the newest state borrows and a solve since the last call took BESIDE_ITERATIONS PCG
         iterations or more (the borrowed factor drifted): at the next solve or decrement it
         replaces that state's borrowed factor (`_install_beside`), and the state that joins then
@@ -322,13 +324,15 @@ class PCGSolver(LinearSolver):
         of the organ-scale live recording, 2-3 iterations per solve at the second update, 6-9 at
         the ninth and tenth, and a factorisation of 0.2 s in the tenth). The factor is made from
         the block's values at the end of this update, whoever runs it and however long it
-        takes, so the estimates do not depend on timing; it goes into a spare factor (reserved,
-        or left by a state), and nothing is started without one. Returns the factor, or None."""
-        prepared, drifted = self._prepared, self._most_iterations >= BESIDE_ITERATIONS
-        self._most_iterations = 0
-        if prepared is None or self._beside is not None or not drifted:
+        takes, so the estimates do not depend on timing (the next solve waits for it: with an
+        update time budget, that wait counts in it); it goes into a spare factor (reserved, or
+        left by a state), and nothing is started without one. Returns the factor, or None."""
+        system = self._window
+        if system is None or self._beside is not None:
             return None
-        system = prepared[0]
+        drifted, self._most_iterations = self._most_iterations >= BESIDE_ITERATIONS, 0
+        if not drifted:
+            return None
         t = len(system.keys) - 1
         key = system.keys[t]
         cached = self._block_factors.get(key)
@@ -337,7 +341,7 @@ class PCGSolver(LinearSolver):
         factor = next((spare for spare in self._spare if spare.same_pattern(system.pattern)), None)
         if factor is None:
             return None
-        data = system.block_data(t).copy()
+        data = system.block_data(t)
         try:
             done = factor.refactor_beside(data)
         except NotPositiveDefiniteError:
@@ -349,7 +353,8 @@ class PCGSolver(LinearSolver):
 
     def _install_beside(self) -> None:
         """Put the factor `refactor_newest_beside` made (waiting for it) in place of its state's
-        borrowed one, as the factor to lend; a spare again where it failed, or its state left
+        borrowed one, as the factor to lend; a spare again where it failed (not positive
+        definite, or out of memory: the solves go on with the borrowed one), or its state left
         the window or got a factor of its own meanwhile."""
         beside, self._beside = self._beside, None
         if beside is None:
@@ -357,7 +362,7 @@ class PCGSolver(LinearSolver):
         key, fresh, done = beside
         try:
             done.result()
-        except NotPositiveDefiniteError:
+        except (NotPositiveDefiniteError, MemoryError):
             self._spare.append(fresh.factor)
             return
         cached = self._block_factors.get(key)
@@ -551,10 +556,11 @@ class PCGSolver(LinearSolver):
 
     def solve(self, system, rhs):
         start = time.perf_counter()
-        self._install_beside()
         before = self.factorizations
         mode = self._mode(system.block_size)
         self._evict(system)
+        self._install_beside()
+        self._window = system
         b = np.asarray(rhs, dtype=np.float64)
         target = self.tolerance * float(np.linalg.norm(b))
         kept_system, kept_b, kept = self._solved_part(system, b)
@@ -614,9 +620,10 @@ class PCGSolver(LinearSolver):
         and PCG's first iteration applies M to that very -g: M^-1 (-g) = -(M^-1 g) exactly in
         floating point (every operation of the triangular solves is odd in its input), so it is
         kept for `solve` (`_known_preconditioned`) while the system and M stay the same."""
-        self._install_beside()
         mode = self._mode(system.block_size)
         self._evict(system)
+        self._install_beside()
+        self._window = system
         system, gradient, _ = self._solved_part(system, np.asarray(gradient, dtype=np.float64))
         self._prepare(system, mode, force=False)
         preconditioned = self._precondition(system, mode, gradient)

@@ -148,7 +148,7 @@ class SparseCholesky:
         the factor is counted as refactored at once (`revision`), so that work queued behind it
         there (covariance draws through it) is judged against the values it factors; solves on
         this thread must wait for the returned future first. Its `result()` raises
-        NotPositiveDefiniteError as `refactor` would."""
+        NotPositiveDefiniteError or MemoryError as `refactor` would."""
         data = np.asarray(data, dtype=np.float64)
         if not np.all(np.isfinite(data)):
             raise NotPositiveDefiniteError("Cholesky of a matrix with non-finite entries")
