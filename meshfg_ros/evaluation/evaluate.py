@@ -545,10 +545,10 @@ def format_calibration(calibration_: dict, steps: int) -> str:
     lines += [label.ljust(label_width) + "  " + "  ".join(c.rjust(width) for c in cells) for label, cells in rows]
     if "std_ratio_unobserved_observed" in calibration_:
         ratio = calibration_["std_ratio_unobserved_observed"]
-        errors = calibration_.get("error_ratio_unobserved_observed", {})
+        errors = calibration_["error_ratio_unobserved_observed"]
         lines.append(f"median std, unobserved external over observed external: {_number(ratio['final'], 2)} "
                      f"({_number(ratio['pooled'], 2)}) (above 1: less certain where unobserved); median error: "
-                     f"{_number(errors.get('final'), 2)} ({_number(errors.get('pooled'), 2)})")
+                     f"{_number(errors['final'], 2)} ({_number(errors['pooled'], 2)})")
     return "\n".join(lines)
 
 

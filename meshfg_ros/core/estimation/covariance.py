@@ -133,8 +133,9 @@ class MarginalCovariance:
         their own (core/worker_threads.py, with more than one worker thread), so that they run
         while the caller waits for its next input: the estimator prepares the next update's
         draws through the factor the next state will borrow (the newest state's, or the one its
-        solver makes beside the caller, whose factorisation these draws queue behind). `blocks` uses them only if they were made for its factor, unchanged
-        since (SparseCholesky.revision), and its seed; a refactor waits for them to end."""
+        solver makes beside the caller, whose factorisation these draws queue behind). `blocks`
+        uses them only if they were made for its factor, unchanged since
+        (SparseCholesky.revision), and its seed; a refactor waits for them to end."""
         self._prepared = None
         if factor is None or factor.size <= DENSE_MAX_DOFS or worker_threads.count() < 2:  # nothing to gain
             return
