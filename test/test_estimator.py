@@ -381,6 +381,42 @@ def test_the_updates_factor_into_the_window_factors_reserved_when_the_estimator_
     assert all(result.converged and result.accepted_steps >= 1 for result in results)
 
 
+def test_the_priors_marginal_is_drawn_beside_the_set_up_and_gives_the_same_covariance(monkeypatch):
+    """Building the estimator starts the draws of the prior's marginal on the background thread
+    and returns; the first update waits for them only at its covariance. With one worker thread
+    they are drawn in line: the same blocks either way (one CHOLMOD call), the same first
+    estimate and covariance, and a snapshot taken before they are needed holds them too."""
+    import threading
+
+    from meshfg_ros.core.estimation.covariance import MarginalCovariance
+
+    mesh, sequence = synthetic_sequence(target_vertices=400, points_per_step=800, steps=1, size=0.1,
+                                        noise_sigma=5e-4, prediction_error=2e-3, seed=4)
+    original = MarginalCovariance.blocks
+    runs = {}
+    for threads in ("1", "2"):
+        monkeypatch.setenv("MESHFG_WORKER_THREADS", threads)
+        drawn_on = []
+        monkeypatch.setattr(MarginalCovariance, "blocks", lambda marginal, *args, **kwargs: drawn_on.append(
+            threading.current_thread().name) or original(marginal, *args, **kwargs))
+        estimator = SlidingWindowEstimator(mesh, EstimatorConfig(window_size=2))
+        prior_blocks = drawn_on[:]
+        copy = estimator.snapshot()
+        monkeypatch.setattr(MarginalCovariance, "blocks", original)
+        step = sequence[0]
+        result = estimator.update(step.stamp_ns, step.points, step.predicted)
+        runs[threads] = (estimator.unit_prior_covariance, copy.unit_prior_covariance, result)
+        assert len(prior_blocks) == 1
+        assert prior_blocks[0].startswith("meshfg-background") == (threads == "2")
+    (inline, inline_copy, first), (beside, beside_copy, second) = runs["1"], runs["2"]
+    assert estimator.graph.block_size > DENSE_MAX_DOFS and np.all(np.einsum("vii->v", beside[mesh.free_vertices]) > 0)
+    np.testing.assert_array_equal(inline, beside)
+    np.testing.assert_array_equal(inline_copy, beside_copy)
+    # the update's own work may be split over the worker threads: equal to rounding
+    np.testing.assert_allclose(first.positions, second.positions, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(first.position_covariance, second.position_covariance, rtol=1e-9, atol=1e-20)
+
+
 def test_the_covariance_draws_go_through_the_factor_the_linear_solver_holds_for_the_newest_state():
     mesh, sequence = synthetic_sequence(target_vertices=400, points_per_step=800, steps=2, size=0.1,
                                         noise_sigma=5e-4, prediction_error=2e-3, seed=4)

@@ -91,11 +91,13 @@ from __future__ import annotations
 import copy
 import threading
 import time
+from concurrent.futures import Future
 from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 import scipy.sparse
 
+import meshfg_ros.core.worker_threads as worker_threads
 from meshfg_ros.core.estimation.covariance import (
     PRIOR_ERROR_MEMORY,
     ForgettingMean,
@@ -323,6 +325,15 @@ class StepResult:
 STAGES = ("association", "linearisation", "linear_solves", "covariance")
 
 
+def _unit_prior_covariance(unit_information: scipy.sparse.csr_matrix, vertex_count: int,
+                           free_vertices: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) the marginal covariance blocks of `unit_information` (over the free vertices'
+    coordinates), zero on the fixed vertices."""
+    covariance = np.zeros((vertex_count, 3, 3))
+    covariance[free_vertices] = MarginalCovariance(PRIOR_MARGINAL_SAMPLES).blocks(unit_information)
+    return covariance
+
+
 @dataclass
 class PendingStep:
     """A state added by `prepare` and not yet optimised (key = step number)."""
@@ -344,6 +355,9 @@ class PendingStep:
     # (vertices, Association of `points` on their surface): the innovation test's, which the
     # point selection reuses when the vertices are the prediction's.
     association: tuple | None = None
+    # (vertices, Association, measurement sigma, simulation sigma) the prior's error scale is
+    # learnt from (`_learn_prior_error_scale`), with the covariance
+    prior_error_evidence: tuple | None = None
     prepare_ms: float = 0.0  # wall time of `prepare` (the "association" stage)
     # The share of the correction published (core/estimation/persistence.py): 1 when the optimum is published.
     published_share: float = 1.0
@@ -409,9 +423,11 @@ class SlidingWindowEstimator:
             free = self.graph.free_dofs
             unit_information = (self.unit_prior_scale * scipy.sparse.csr_matrix(rest_stiffness)[free][:, free]
                                 + PRIOR_RIDGE * scipy.sparse.identity(free.size, format="csr"))
-            self.unit_prior_covariance = np.zeros((initial_mesh.vertex_count, 3, 3))  # zero on fixed vertices
-            self.unit_prior_covariance[self.graph.free_vertices] = MarginalCovariance(PRIOR_MARGINAL_SAMPLES).blocks(
-                unit_information)
+            # Drawn on the background thread (CHOLMOD without the GIL) while the rest is set up and
+            # the first cloud and its prediction are awaited; an update needs it only for its
+            # covariance (`unit_prior_covariance`).
+            self._unit_prior_covariance: np.ndarray | Future = worker_threads.start_background(
+                _unit_prior_covariance, unit_information, initial_mesh.vertex_count, self.graph.free_vertices)
         self.marginals = MarginalCovariance()
         # lambda^2: the prediction's real error over the prior's model of it, learnt from each
         # update's innovation (core/estimation/covariance.py); 1 until the first.
@@ -433,6 +449,14 @@ class SlidingWindowEstimator:
         self.last_stamp_ns: int | None = None
         self.deadline: float | None = None  # perf_counter() at which the update's time budget ends
         self._pending_changes = _PendingChanges()
+
+    @property
+    def unit_prior_covariance(self) -> np.ndarray:
+        """(N, 3, 3) the prior's covariance blocks at the rest shape for a unit simulation sigma,
+        zero on fixed vertices (waiting for the draws started at construction)."""
+        if isinstance(self._unit_prior_covariance, Future):
+            self._unit_prior_covariance = self._unit_prior_covariance.result()
+        return self._unit_prior_covariance
 
     # ----------------------------------------------------------------------------- settings
     def reconfigure(self, **changes) -> None:
@@ -468,6 +492,8 @@ class SlidingWindowEstimator:
         precondition PCG and are checked against each block they serve or refactored for it
         (linear_solvers.py), and the marginals', refactored for each covariance. The two never
         run updates at once: this one until the copy is `resume`d in its place, then the copy."""
+        if "simulation" in self.enabled:
+            self.unit_prior_covariance  # noqa: B018 - a Future cannot be copied: its blocks are
         shared = (self.initial_mesh, self._pending_changes, self.solver, self.marginals)
         return copy.deepcopy(self, memo={id(item): item for item in shared})
 
@@ -642,7 +668,8 @@ class SlidingWindowEstimator:
             pending.messages.append(innovation.rejection)
         if innovation.association is not None:
             pending.association = (predicted, innovation.association)
-            self._learn_prior_error_scale(predicted, innovation.association)
+            # learnt with the covariance it scales, at this cloud's noise estimate
+            pending.prior_error_evidence = (predicted, innovation.association, self.noise.sigma, self.simulation_sigma)
         prediction = predicted
         if prediction is None:
             prediction = self.last_estimate
@@ -675,9 +702,11 @@ class SlidingWindowEstimator:
         pending.prepare_ms = 1e3 * (time.perf_counter() - start)
         return pending
 
-    def _learn_prior_error_scale(self, predicted: np.ndarray, association) -> None:
+    def _learn_prior_error_scale(self, predicted: np.ndarray, association, noise_sigma: float,
+                                 simulation_sigma: float) -> None:
         """lambda^2 from the cloud's distances to the predicted surface against the prior's
-        variance along each point's normal (core/estimation/covariance.py); kept when too few points tell."""
+        variance along each point's normal (core/estimation/covariance.py), at the sigmas of the
+        update's start; kept when too few points tell."""
         if "simulation" not in self.enabled:
             return
         found = association.triangle >= 0
@@ -685,8 +714,8 @@ class SlidingWindowEstimator:
         corners = self.mesh.surface_triangles[triangle]
         normals = self.mesh.triangle_normals(predicted)[triangle]
         at_points = np.einsum("pk,pkij->pij", association.barycentric[found], self.unit_prior_covariance[corners])
-        variance = self.simulation_sigma**2 * np.einsum("pi,pij,pj->p", normals, at_points, normals)
-        scale = prior_error_scale(association.distance[found], variance, self.noise.sigma, GATE_SIGMAS)
+        variance = simulation_sigma**2 * np.einsum("pi,pij,pj->p", normals, at_points, normals)
+        scale = prior_error_scale(association.distance[found], variance, noise_sigma, GATE_SIGMAS)
         if scale is not None:
             self.prior_error_scale = self._prior_error_memory.add(scale)
 
@@ -882,6 +911,8 @@ class SlidingWindowEstimator:
         by the prior's learnt error."""
         graph = self.graph
         key, prior = pending.key, None
+        if pending.prior_error_evidence is not None:
+            self._learn_prior_error_scale(*pending.prior_error_evidence)
         try:
             factor = self.solver.state_factor(key)
             posterior = self.marginals.blocks(graph.newest_information(), seed=key, factor=factor)
