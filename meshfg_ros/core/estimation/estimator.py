@@ -493,7 +493,7 @@ class SlidingWindowEstimator:
         (linear_solvers.py), and the marginals', refactored for each covariance. The two never
         run updates at once: this one until the copy is `resume`d in its place, then the copy."""
         if "simulation" in self.enabled:
-            self.unit_prior_covariance  # noqa: B018 - a Future cannot be copied: its blocks are
+            self._unit_prior_covariance = self.unit_prior_covariance  # waited for: a Future cannot be deep-copied
         shared = (self.initial_mesh, self._pending_changes, self.solver, self.marginals)
         return copy.deepcopy(self, memo={id(item): item for item in shared})
 
