@@ -2,6 +2,7 @@
 conditioning choice against the full batch, posterior std, and bad input."""
 
 import re
+import threading
 from dataclasses import replace
 
 import numpy as np
@@ -9,7 +10,7 @@ import pytest
 
 from meshfg_ros.benchmarks.baselines import WhitenedProblem, freeze_associations, synthetic_sequence
 from meshfg_ros.core.estimation import estimator as estimator_module
-from meshfg_ros.core.estimation.covariance import DENSE_MAX_DOFS
+from meshfg_ros.core.estimation.covariance import DENSE_MAX_DOFS, MarginalCovariance
 from meshfg_ros.core.estimation.estimator import (
     FACTOR_CONFIGURATIONS,
     EstimatorConfig,
@@ -386,10 +387,6 @@ def test_the_priors_marginal_is_drawn_beside_the_set_up_and_gives_the_same_covar
     and returns; the first update waits for them only at its covariance. With one worker thread
     they are drawn in line: the same blocks either way (one CHOLMOD call), the same first
     estimate and covariance, and a snapshot taken before they are needed holds them too."""
-    import threading
-
-    from meshfg_ros.core.estimation.covariance import MarginalCovariance
-
     mesh, sequence = synthetic_sequence(target_vertices=400, points_per_step=800, steps=1, size=0.1,
                                         noise_sigma=5e-4, prediction_error=2e-3, seed=4)
     original = MarginalCovariance.blocks
@@ -400,21 +397,57 @@ def test_the_priors_marginal_is_drawn_beside_the_set_up_and_gives_the_same_covar
         monkeypatch.setattr(MarginalCovariance, "blocks", lambda marginal, *args, **kwargs: drawn_on.append(
             threading.current_thread().name) or original(marginal, *args, **kwargs))
         estimator = SlidingWindowEstimator(mesh, EstimatorConfig(window_size=2))
+        snapshot = estimator.snapshot()  # waits for the draws
         prior_blocks = drawn_on[:]
-        copy = estimator.snapshot()
         monkeypatch.setattr(MarginalCovariance, "blocks", original)
         step = sequence[0]
         result = estimator.update(step.stamp_ns, step.points, step.predicted)
-        runs[threads] = (estimator.unit_prior_covariance, copy.unit_prior_covariance, result)
+        runs[threads] = (estimator.unit_prior_covariance, snapshot.unit_prior_covariance, result)
         assert len(prior_blocks) == 1
         assert prior_blocks[0].startswith("meshfg-background") == (threads == "2")
-    (inline, inline_copy, first), (beside, beside_copy, second) = runs["1"], runs["2"]
-    assert estimator.graph.block_size > DENSE_MAX_DOFS and np.all(np.einsum("vii->v", beside[mesh.free_vertices]) > 0)
+    (inline, inline_snapshot, first), (beside, beside_snapshot, second) = runs["1"], runs["2"]
+    assert estimator.graph.block_size > DENSE_MAX_DOFS
+    assert np.all(np.einsum("vii->v", beside[mesh.free_vertices]) > 0)
     np.testing.assert_array_equal(inline, beside)
-    np.testing.assert_array_equal(inline_copy, beside_copy)
+    np.testing.assert_array_equal(inline_snapshot, beside_snapshot)
     # the update's own work may be split over the worker threads: equal to rounding
     np.testing.assert_allclose(first.positions, second.positions, rtol=0, atol=1e-12)
     np.testing.assert_allclose(first.position_covariance, second.position_covariance, rtol=1e-9, atol=1e-20)
+
+
+def test_an_update_is_prepared_before_the_priors_marginal_is_drawn_and_learns_its_scale_at_that_noise(monkeypatch):
+    """`prepare` does not wait for the prior's blocks (the draws are held here until it has
+    returned); `solve` learns the prior's error scale with the covariance, from the innovation at
+    the measurement sigma that held when the update was prepared, although the update re-weights
+    its points with a new noise estimate in between."""
+    monkeypatch.setenv("MESHFG_WORKER_THREADS", "2")
+    mesh, sequence = synthetic_sequence(target_vertices=400, points_per_step=800, steps=1, size=0.1,
+                                        noise_sigma=5e-4, prediction_error=2e-3, seed=4)
+    release = threading.Event()
+    draw = estimator_module._prior_blocks_at_rest
+    monkeypatch.setattr(estimator_module, "_prior_blocks_at_rest",
+                        lambda *args: release.wait(60) and draw(*args))
+    learnt_at = []
+    scale = estimator_module.prior_error_scale
+    monkeypatch.setattr(estimator_module, "prior_error_scale",
+                        lambda distances, variance, sigma, gate: learnt_at.append(sigma) or scale(distances, variance,
+                                                                                                 sigma, gate))
+    estimator = SlidingWindowEstimator(mesh, EstimatorConfig(window_size=2))
+    step = sequence[0]
+    prepared = []
+    preparing = threading.Thread(target=lambda: prepared.append(estimator.prepare(step.stamp_ns, step.points,
+                                                                                   step.predicted)))
+    preparing.start()
+    preparing.join(30)
+    held = not release.is_set()
+    release.set()
+    preparing.join()
+    assert held and len(prepared) == 1 and learnt_at == []
+    sigma_at_prepare = estimator.noise.sigma
+    result = estimator.solve(prepared[0])
+    assert "re-weighted" in result.message and estimator.noise.sigma != sigma_at_prepare
+    assert learnt_at == [sigma_at_prepare]
+    assert estimator.prior_error_scale != 1.0 and np.all(result.position_std[mesh.free_vertices] > 0)
 
 
 def test_the_covariance_draws_go_through_the_factor_the_linear_solver_holds_for_the_newest_state():

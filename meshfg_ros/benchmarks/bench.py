@@ -566,8 +566,9 @@ def format_report(result: dict) -> str:
             live = result["organ_live"][load]
             busy = f", {live['busy_processes']} busy processes" if load == "loaded" else ""
             lines.append(f"Live pipeline at organ scale ({Path(result['organ_live']['recording']).name}{busy}): "
-                         f"the first estimate {live['first_latency_ms']:.0f} ms after its cloud (its update factors the "
-                         f"block the later ones borrow); after it {live['estimated_after_start']} of {live['clouds_after_start']} clouds "
+                         f"the first estimate {live['first_latency_ms']:.0f} ms after its cloud (its update "
+                         f"factors the block the later ones borrow); after it {live['estimated_after_start']} of "
+                         f"{live['clouds_after_start']} clouds "
                          f"estimated, latency max {live['latency_ms_max_after_start']:.0f} ms (target "
                          f"{CLOUD_PERIOD_MS:g} ms), {live['degraded_after_start']} degraded; over all "
                          f"{live['steps']} of {live['expected_steps']} clouds estimated, latency median "

@@ -242,9 +242,9 @@ def measure_live_latency(
     overhead_ms_median (latency minus the estimator's own solve time: prediction, transport,
     pairing, and waiting behind earlier steps when a solve outlasts the cloud period),
     degraded_steps, degraded_after_first (the estimates after the first), rate and single_process;
-    and the same after the start-up (the first estimate
-    includes the nodes' set-up on the mesh, which the clouds played from a recording's start wait
-    for): first_latency_ms, clouds_after_start and estimated_after_start (clouds that arrived after
+    and the same after the start-up (the first estimate's update factors its block, which the later
+    ones borrow, and a cloud that comes while the nodes set up on the mesh waits for them):
+    first_latency_ms, clouds_after_start and estimated_after_start (clouds that arrived after
     the first estimate, and how many of them were estimated), and latency_ms_max_after_start and
     degraded_after_start over those same clouds (a cloud that arrived while the first was still
     being estimated waited for the start-up too). With a `reference` (the recording's ground

@@ -13,8 +13,9 @@ is unlike a threaded BLAS, which meets all its threads at every supernode (blas.
 1 computes everything on the calling thread. With more than one, work needed only later also
 runs beside the caller (`start_background`): the simulator's stiffness factor of a newly learnt
 Poisson ratio (core/physics/simulator.py, RestFactor), the block factor the next state of the
-estimator's window borrows (core/solvers/linear_solvers.py, PCGSolver.refactor_newest_beside)
-and the next update's covariance draws (core/estimation/covariance.py). The default is the
+estimator's window borrows (core/solvers/linear_solvers.py, PCGSolver.refactor_newest_beside),
+the next update's covariance draws (core/estimation/covariance.py) and, while an estimator is
+set up, its prior's covariance blocks at rest (core/estimation/estimator.py). The default is the
 number of cores the process may run on, at most 2 (on this package's 2-core target the
 estimator and the simulator take turns, so both cores serve whichever computes).
 """

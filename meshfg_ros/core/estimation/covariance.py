@@ -72,8 +72,9 @@ the bound 0 there), so the published lambda^2 is the mean of the recent updates'
 weighted by PRIOR_ERROR_MEMORY times the next one's weight, and of the model's own lambda^2 = 1,
 weighted as an estimate made before the first update: the prediction's error grows as the
 simulation drifts, and the mean follows within a few updates. A^-1's blocks at the rest shape
-are drawn once, beside the estimator's set-up (estimator.py, `unit_prior_covariance`), and
-scaled with the simulation sigma of each update.
+are drawn once per estimator (again on the cut mesh after a cut), beside its set-up where there
+are two worker threads (estimator.py, `unit_prior_covariance`), and scaled with the simulation
+sigma of each update.
 """
 
 from __future__ import annotations

@@ -321,12 +321,13 @@ class StepResult:
 # The stages of an update, in order, as StepResult.stage_ms names them: checking the input,
 # associating the points with the predicted surface and building the new state's factors;
 # LM's linearisations, cost evaluations and step tests; its linear solves (the convergence tests'
-# preconditioner applications included); the covariance.
+# preconditioner applications included); the covariance (with the prior's error scale learnt for
+# it, and in an estimator's first update the wait for the prior's blocks drawn at construction).
 STAGES = ("association", "linearisation", "linear_solves", "covariance")
 
 
-def _unit_prior_covariance(unit_information: scipy.sparse.csr_matrix, vertex_count: int,
-                           free_vertices: np.ndarray) -> np.ndarray:
+def _prior_blocks_at_rest(unit_information: scipy.sparse.csr_matrix, vertex_count: int,
+                          free_vertices: np.ndarray) -> np.ndarray:
     """(N, 3, 3) the marginal covariance blocks of `unit_information` (over the free vertices'
     coordinates), zero on the fixed vertices."""
     covariance = np.zeros((vertex_count, 3, 3))
@@ -355,9 +356,9 @@ class PendingStep:
     # (vertices, Association of `points` on their surface): the innovation test's, which the
     # point selection reuses when the vertices are the prediction's.
     association: tuple | None = None
-    # (vertices, Association, measurement sigma, simulation sigma) the prior's error scale is
-    # learnt from (`_learn_prior_error_scale`), with the covariance
-    prior_error_evidence: tuple | None = None
+    # (measurement sigma, simulation sigma) at prepare: the prior's error scale is learnt from
+    # `association` at these, with the covariance it scales (`_learn_prior_error_scale`)
+    prior_error_sigmas: tuple | None = None
     prepare_ms: float = 0.0  # wall time of `prepare` (the "association" stage)
     # The share of the correction published (core/estimation/persistence.py): 1 when the optimum is published.
     published_share: float = 1.0
@@ -427,7 +428,7 @@ class SlidingWindowEstimator:
             # the first cloud and its prediction are awaited; an update needs it only for its
             # covariance (`unit_prior_covariance`).
             self._unit_prior_covariance: np.ndarray | Future = worker_threads.start_background(
-                _unit_prior_covariance, unit_information, initial_mesh.vertex_count, self.graph.free_vertices)
+                _prior_blocks_at_rest, unit_information, initial_mesh.vertex_count, self.graph.free_vertices)
         self.marginals = MarginalCovariance()
         # lambda^2: the prediction's real error over the prior's model of it, learnt from each
         # update's innovation (core/estimation/covariance.py); 1 until the first.
@@ -453,7 +454,9 @@ class SlidingWindowEstimator:
     @property
     def unit_prior_covariance(self) -> np.ndarray:
         """(N, 3, 3) the prior's covariance blocks at the rest shape for a unit simulation sigma,
-        zero on fixed vertices (waiting for the draws started at construction)."""
+        zero on fixed vertices, waiting for the draws started at construction. Raises what those
+        draws raised (out of memory, a non-positive pivot): each update then fails with it, in
+        its message."""
         if isinstance(self._unit_prior_covariance, Future):
             self._unit_prior_covariance = self._unit_prior_covariance.result()
         return self._unit_prior_covariance
@@ -493,7 +496,7 @@ class SlidingWindowEstimator:
         (linear_solvers.py), and the marginals', refactored for each covariance. The two never
         run updates at once: this one until the copy is `resume`d in its place, then the copy."""
         if "simulation" in self.enabled:
-            self._unit_prior_covariance = self.unit_prior_covariance  # waited for: a Future cannot be deep-copied
+            self.unit_prior_covariance  # noqa: B018 - waited for here: a Future cannot be deep-copied
         shared = (self.initial_mesh, self._pending_changes, self.solver, self.marginals)
         return copy.deepcopy(self, memo={id(item): item for item in shared})
 
@@ -668,8 +671,7 @@ class SlidingWindowEstimator:
             pending.messages.append(innovation.rejection)
         if innovation.association is not None:
             pending.association = (predicted, innovation.association)
-            # learnt with the covariance it scales, at this cloud's noise estimate
-            pending.prior_error_evidence = (predicted, innovation.association, self.noise.sigma, self.simulation_sigma)
+            pending.prior_error_sigmas = (self.noise.sigma, self.simulation_sigma)
         prediction = predicted
         if prediction is None:
             prediction = self.last_estimate
@@ -911,8 +913,8 @@ class SlidingWindowEstimator:
         by the prior's learnt error."""
         graph = self.graph
         key, prior = pending.key, None
-        if pending.prior_error_evidence is not None:
-            self._learn_prior_error_scale(*pending.prior_error_evidence)
+        if pending.prior_error_sigmas is not None:
+            self._learn_prior_error_scale(*pending.association, *pending.prior_error_sigmas)
         try:
             factor = self.solver.state_factor(key)
             posterior = self.marginals.blocks(graph.newest_information(), seed=key, factor=factor)
