@@ -1,6 +1,9 @@
 """Levenberg-Marquardt and the linear solvers: optimum against scipy and GTSAM, indefinite
 systems, inversion rejection, solver agreement and fallback."""
 
+import threading
+from concurrent.futures import Future
+
 import numpy as np
 import pytest
 import scipy.optimize
@@ -8,6 +11,8 @@ import scipy.sparse
 import scipy.sparse.linalg
 
 from meshfg_ros.benchmarks.baselines import compare_single_update
+from meshfg_ros.core.estimation import covariance
+from meshfg_ros.core.estimation.covariance import MarginalCovariance
 from meshfg_ros.core.estimation.factor_graph import MIN_VOLUME_RATIO_PER_STEP, FactorGraph
 from meshfg_ros.core.estimation.factors import PhysicsPriorFactor, prior_scale
 from meshfg_ros.core.physics.fem import ElasticModel
@@ -25,7 +30,7 @@ from meshfg_ros.core.solvers.linear_solvers import (
 )
 from meshfg_ros.core.solvers.linear_system import WindowSystem
 from meshfg_ros.core.geometry.mesh import signed_volumes
-from meshfg_ros.core.solvers import sparse_cholesky
+from meshfg_ros.core.solvers import linear_solvers, sparse_cholesky
 from meshfg_ros.synthetic.meshing import cube_mesh
 
 from test_factors import build_window, cube, model  # noqa: F401  (fixtures)
@@ -459,8 +464,6 @@ def test_a_drifted_borrowed_factor_is_replaced_by_one_made_beside_the_caller(cub
 def test_a_factor_that_fails_beside_the_caller_goes_back_to_the_spares(cube, model, monkeypatch):  # noqa: F811
     """A factorisation beside the caller that runs out of memory (or meets a non-positive pivot)
     leaves the newest state with the factor it borrowed and its spare reusable; the solve goes on."""
-    from concurrent.futures import Future
-
     pcg, system, rhs, _ = _drifted_borrower(cube, model)
     lent = pcg.state_factor(system.keys[2])
     spares = len(pcg._spare)
@@ -484,11 +487,6 @@ def test_the_next_covariance_draws_queue_behind_the_factor_made_beside(cube, mod
     prepares the next update's) are made once, on the background thread after its factorisation,
     and the marginals of the next state's block through that factor use them: the numbers of
     draws made on the caller's thread through the same factor."""
-    import threading
-
-    from meshfg_ros.core.estimation import covariance
-    from meshfg_ros.core.estimation.covariance import MarginalCovariance
-
     monkeypatch.setenv("MESHFG_WORKER_THREADS", "2")
     monkeypatch.setattr(covariance, "DENSE_MAX_DOFS", 0)  # draws for the cube's small blocks too
     pcg, system, rhs, _ = _drifted_borrower(cube, model)
@@ -515,10 +513,6 @@ def test_the_solves_of_states_with_factors_of_their_own_run_side_by_side(cube, m
     """Blocks with factors of their own are preconditioned by one CHOLMOD call per factor, the
     calls split over the worker threads (from PARALLEL_MIN_SIZE rows, here lowered to the cube's
     blocks): two threads take part, and PCG gives the solution the calls in turn give."""
-    import threading
-
-    import meshfg_ros.core.solvers.linear_solvers as linear_solvers
-
     system, rhs = window_system(cube, model)
     reference = np.linalg.solve(system.to_csr().toarray(), rhs)
     threads = []
