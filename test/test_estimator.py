@@ -320,6 +320,43 @@ def test_an_update_solved_again_after_re_weighting_reports_every_run(scene):
     assert result.accepted_steps == sum(runs) and runs[0] >= 1
 
 
+def test_the_first_update_weighs_its_cloud_at_the_clouds_own_noise_and_solves_once():
+    """A nominal sigma 4x the real noise, and a prediction well within the noise: the first update
+    moves the sigma to the spread of its points about the prediction before it optimises, so it
+    solves the window once (no re-weighting), at a sigma within REWEIGHT_CHANGE of the spread
+    about its optimum."""
+    noise_sigma = 5e-4
+    mesh, sequence = synthetic_sequence(target_vertices=100, points_per_step=800, steps=2, size=0.1,
+                                        noise_sigma=noise_sigma, prediction_error=1e-4, seed=3)
+    estimator = SlidingWindowEstimator(mesh, EstimatorConfig(measurement_sigma=4 * noise_sigma, **OPTIMUM))
+    step = sequence[0]
+    result = estimator.update(step.stamp_ns, step.points, step.predicted)
+    assert "re-weighted" not in result.message
+    assert len(re.findall(r"steps accepted", result.message)) == 1
+    assert result.measurement_sigma == pytest.approx(noise_sigma, rel=estimator_module.REWEIGHT_CHANGE)
+    assert abs(estimator.noise.spread / result.measurement_sigma - 1.0) <= estimator_module.REWEIGHT_CHANGE
+    # later updates start from the spread about the last optimum, not about their prediction
+    spread_before = estimator.noise.spread
+    noisier = sequence[1].points + np.random.default_rng(0).normal(scale=3 * noise_sigma, size=sequence[1].points.shape)
+    second = estimator.update(sequence[1].stamp_ns, noisier, sequence[1].predicted)
+    assert "re-weighted" in second.message and estimator.noise.spread > 2 * spread_before
+
+
+def test_a_first_prediction_off_by_more_than_the_noise_starts_the_first_update_at_the_nominal_sigma():
+    """A prediction 8x the noise off: the spread about it is mostly its own error, so the first
+    update is prepared at the nominal sigma and its noise estimate comes from its optimum."""
+    noise_sigma = 5e-4
+    mesh, sequence = synthetic_sequence(target_vertices=100, points_per_step=800, steps=1, size=0.1,
+                                        noise_sigma=noise_sigma, prediction_error=4e-3, seed=3)
+    nominal = 4 * noise_sigma
+    estimator = SlidingWindowEstimator(mesh, EstimatorConfig(measurement_sigma=nominal, **OPTIMUM))
+    step = sequence[0]
+    pending = estimator.prepare(step.stamp_ns, step.points, step.predicted)
+    assert estimator.noise.sigma == nominal and not np.isfinite(estimator.noise.spread)
+    result = estimator.solve(pending)
+    assert "re-weighted" in result.message and result.measurement_sigma < 0.6 * nominal
+
+
 def test_the_update_stages_account_for_its_time(scene):
     """StepResult.stage_ms: each stage of STAGES measured, none negative, together within the
     update's own time; the linear solves are at least the LM solves the result lists."""
@@ -418,8 +455,8 @@ def test_the_priors_marginal_is_drawn_beside_the_set_up_and_gives_the_same_covar
 def test_an_update_is_prepared_before_the_priors_marginal_is_drawn_and_learns_its_scale_at_that_noise(monkeypatch):
     """`prepare` does not wait for the prior's blocks (the draws are held here until it has
     returned); `solve` learns the prior's error scale with the covariance, from the innovation at
-    the measurement sigma that held when the update was prepared, although the update re-weights
-    its points with a new noise estimate in between."""
+    the measurement sigma that held before the update's cloud, although the update re-weights its
+    points with a new noise estimate from that cloud in between."""
     monkeypatch.setenv("MESHFG_WORKER_THREADS", "2")
     mesh, sequence = synthetic_sequence(target_vertices=400, points_per_step=800, steps=1, size=0.1,
                                         noise_sigma=5e-4, prediction_error=2e-3, seed=4)
@@ -434,6 +471,7 @@ def test_an_update_is_prepared_before_the_priors_marginal_is_drawn_and_learns_it
                                                                                                  sigma, gate))
     estimator = SlidingWindowEstimator(mesh, EstimatorConfig(window_size=2))
     step = sequence[0]
+    sigma_before = estimator.noise.sigma
     prepared = []
     preparing = threading.Thread(target=lambda: prepared.append(estimator.prepare(step.stamp_ns, step.points,
                                                                                    step.predicted)))
@@ -445,8 +483,8 @@ def test_an_update_is_prepared_before_the_priors_marginal_is_drawn_and_learns_it
     assert held and len(prepared) == 1 and learnt_at == []
     sigma_at_prepare = estimator.noise.sigma
     result = estimator.solve(prepared[0])
-    assert "re-weighted" in result.message and estimator.noise.sigma != sigma_at_prepare
-    assert learnt_at == [sigma_at_prepare]
+    assert "re-weighted" in result.message and estimator.noise.sigma not in (sigma_before, sigma_at_prepare)
+    assert learnt_at == [sigma_before]
     assert estimator.prior_error_scale != 1.0 and np.all(result.position_std[mesh.free_vertices] > 0)
 
 

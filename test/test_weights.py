@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from meshfg_ros.core.estimation.weights import MIN_POINTS, MeasurementNoise, WeightError
+from meshfg_ros.core.estimation.weights import (MIN_POINTS, MIN_POINTS_PER_TRIANGLE, MeasurementNoise, WeightError,
+                                               offsets_within_triangles)
 
 
 def half_normal(sigma, count, seed=0):
@@ -45,3 +46,23 @@ def test_a_spread_beyond_the_bounds_is_flagged():
     assert noise.spread_beyond_bounds and noise.spread == pytest.approx(0.05e-3, rel=0.1)
     noise.observe(half_normal(15e-3, 1000))  # fifteen times
     assert noise.spread_beyond_bounds
+
+
+def test_offsets_within_triangles_keep_the_noise_and_drop_each_triangles_common_offset():
+    """Signed distances = a large offset per triangle (a prediction's smooth error) + noise of
+    sigma: the robust spread of what is left is sigma (the m / (m - 1) scaling undoes the mean's
+    share), where the raw distances' spread is several times it; triangles with fewer than
+    MIN_POINTS_PER_TRIANGLE points are left out."""
+    rng = np.random.default_rng(2)
+    sigma, triangles = 1e-3, 3000
+    per_triangle = rng.integers(MIN_POINTS_PER_TRIANGLE, 7, triangles)
+    triangle = np.repeat(np.arange(triangles), per_triangle)
+    signed = rng.normal(scale=5 * sigma, size=triangles)[triangle] + rng.normal(scale=sigma, size=triangle.size)
+    lone = np.arange(triangles, triangles + 50)  # one point each
+    left = offsets_within_triangles(np.concatenate([signed, rng.normal(size=50)]), np.concatenate([triangle, lone]))
+    assert left.shape == signed.shape and np.all(left >= 0)
+    noise = MeasurementNoise(sigma, max_step=100.0)
+    noise.observe(left)
+    assert noise.spread == pytest.approx(sigma, rel=0.05)
+    noise.observe(np.abs(signed))
+    assert noise.spread > 3 * sigma

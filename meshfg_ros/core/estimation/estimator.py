@@ -124,7 +124,7 @@ from meshfg_ros.core.estimation.measurement_selection import (
     select_points,
     set_aside_far_input,
 )
-from meshfg_ros.core.inputs.input_checks import Scene, StampError, check_stamp
+from meshfg_ros.core.inputs.input_checks import Scene, StampError, check_stamp, innovation_spread
 from meshfg_ros.core.solvers.levenberg_marquardt import LevenbergMarquardtConfig, levenberg_marquardt
 from meshfg_ros.core.solvers.linear_solvers import LINEAR_SOLVERS, LinearSolveError, NotPositiveDefiniteError, make_linear_solver
 from meshfg_ros.core.geometry.mesh import InvalidMeshError, TetMesh, signed_volumes
@@ -132,7 +132,7 @@ from meshfg_ros.core.estimation.persistence import CorrectionPersistence
 from meshfg_ros.core.estimation.noise import ROBUST_KERNELS, make_robust_kernel
 from meshfg_ros.core.settings import check_settings, dynamic_fields, setting
 from meshfg_ros.core.physics.tissue_and_tool import TissueAndTool
-from meshfg_ros.core.estimation.weights import PRIOR_NOISE_RATIO, MeasurementNoise
+from meshfg_ros.core.estimation.weights import MIN_POINTS, PRIOR_NOISE_RATIO, MeasurementNoise, offsets_within_triangles
 
 __all__ = [
     "FACTOR_CONFIGURATIONS",
@@ -182,7 +182,9 @@ NOISE_OFF_NOMINAL = "measurement_sigma far from the clouds' spread: check it and
 # threshold does not move while the weights are learnt.
 RELINEARIZATION_SIGMAS = 1.0
 # An update whose estimated measurement sigma moved by more than REWEIGHT_CHANGE (relative) is
-# solved again with it, at most MAX_REWEIGHT_ROUNDS times (the first update, from the nominal).
+# solved again with it, at most MAX_REWEIGHT_ROUNDS times (the noise changed between clouds, or
+# the first update's estimate about its prediction missed); the same rounds bound the first
+# update's estimate before it optimises.
 REWEIGHT_CHANGE = 0.25
 MAX_REWEIGHT_ROUNDS = 4
 
@@ -671,7 +673,10 @@ class SlidingWindowEstimator:
             pending.messages.append(innovation.rejection)
         if innovation.association is not None:
             pending.association = (predicted, innovation.association)
+            # The prior's error scale is learnt from these distances against a noise estimate
+            # made without them: one made from them would explain their spread away.
             pending.prior_error_sigmas = (self.noise.sigma, self.simulation_sigma)
+            self._estimate_noise_before_first_update(points, predicted, innovation.association, viewpoint)
         prediction = predicted
         if prediction is None:
             prediction = self.last_estimate
@@ -703,6 +708,38 @@ class SlidingWindowEstimator:
                 factor.invalidate_information()
         pending.prepare_ms = 1e3 * (time.perf_counter() - start)
         return pending
+
+    def _estimate_noise_before_first_update(self, points, predicted, association, viewpoint) -> None:
+        """With estimate_weights and no noise estimate yet (the first update, or the first after
+        a new nominal sigma), move the measurement sigma to the spread of the points the
+        measurement factor selects about the predicted surface, the gate following the sigma (at
+        most MAX_REWEIGHT_ROUNDS times, until it moves by REWEIGHT_CHANGE or less). The first
+        optimisation then weighs the cloud at its own noise, not at the nominal sigma, and
+        `solve` rarely has to re-weight and solve the window again. Later updates keep the
+        spread about the last optimum.
+
+        Only where the prediction fits the cloud to within its noise: where the spread about
+        the prediction exceeds, by more than REWEIGHT_CHANGE, the spread left once each
+        triangle's mean offset is removed (weights.offsets_within_triangles: the prediction's
+        error is smooth, the noise is not), the prediction is off by more than the noise, the
+        first optimum keeps part of that misfit in its residuals, and neither spread tells the
+        noise estimate it will give; the update then starts from the nominal sigma."""
+        cfg = self.config
+        if (not cfg.estimate_weights or "measurement" not in self.enabled or np.isfinite(self.noise.spread)
+                or points is None or not len(points)):
+            return
+        normals = self.mesh.triangle_normals(predicted)
+        for _ in range(MAX_REWEIGHT_ROUNDS):
+            selected = select_points(points, self.mesh.surface_triangles, predicted, self.noise.sigma,
+                                     cfg.gating_distance, viewpoint, association)
+            triangle = selected.association.triangle
+            signed = np.einsum("ij,ij->i", selected.points - selected.association.closest, normals[triangle])
+            local = offsets_within_triangles(signed, triangle)
+            if len(local) < MIN_POINTS or (innovation_spread(np.abs(signed)) >
+                                           (1.0 + REWEIGHT_CHANGE) * innovation_spread(local)):
+                return
+            if self.noise.observe(local) <= REWEIGHT_CHANGE:
+                return
 
     def _learn_prior_error_scale(self, predicted: np.ndarray, association, noise_sigma: float,
                                  simulation_sigma: float) -> None:
@@ -764,7 +801,9 @@ class SlidingWindowEstimator:
         With estimate_weights, the optimum's residual distances update the measurement sigma
         (weights.py) for the next update; when it moves by more than REWEIGHT_CHANGE, the newest
         state's factors are rebuilt with it and the window is solved again from where it is (at
-        most MAX_REWEIGHT_ROUNDS times: typically the first update, from the nominal sigma)."""
+        most MAX_REWEIGHT_ROUNDS times: where the noise changed between clouds, or where the
+        first update's prediction was too far off for its noise estimate about the prediction,
+        `_estimate_noise_before_first_update`)."""
         graph = self.graph
         messages = pending.messages
         optimise_start = time.perf_counter()
