@@ -419,6 +419,33 @@ def test_the_updates_factor_into_the_window_factors_reserved_when_the_estimator_
     assert all(result.converged and result.accepted_steps >= 1 for result in results)
 
 
+def test_the_priors_stiffness_is_located_in_the_block_pattern_at_set_up(scene, monkeypatch):
+    """The set-up locates the stiffness pattern's entries in the block pattern: the first update
+    then locates at most the volume barrier's element blocks (12 x 12 entries each), where an
+    estimator whose located pattern was dropped locates the whole stiffness, with the same
+    estimate."""
+    mesh, sequence = scene
+    step = sequence[0]
+    graph_type = type(SlidingWindowEstimator(mesh, EstimatorConfig()).graph)
+    slots, located = graph_type._slots, []
+    monkeypatch.setattr(graph_type, "_slots",
+                        lambda graph, rows, cols: located.append(rows.size) or slots(graph, rows, cols))
+
+    def first_update(drop_located: bool):
+        estimator = SlidingWindowEstimator(mesh, EstimatorConfig())
+        if drop_located:
+            estimator.graph._csr_slot_cache = None
+        located.clear()
+        result = estimator.update(step.stamp_ns, step.points, step.predicted)
+        return result, list(located), estimator.model.stiffness().nnz
+
+    result, sizes, stiffness_entries = first_update(False)
+    assert all(size % 144 == 0 and size < stiffness_entries for size in sizes)
+    reference, sizes, _ = first_update(True)
+    assert stiffness_entries in sizes
+    np.testing.assert_allclose(result.positions, reference.positions, rtol=0, atol=1e-12)
+
+
 def test_the_priors_marginal_is_drawn_beside_the_set_up_and_gives_the_same_covariance(monkeypatch):
     """Building the estimator starts the draws of the prior's marginal on the background thread
     and returns; the first update waits for them only at its covariance. With one worker thread

@@ -417,6 +417,7 @@ class SlidingWindowEstimator:
             cfg = self.config
             self.model = ElasticModel(initial_mesh.vertices, initial_mesh.tetrahedra, cfg.youngs_modulus, cfg.poisson_ratio)
             rest_stiffness = self.model.stiffness(None, kind=cfg.stiffness_kind, spd_projection=cfg.spd_projection)
+            self.graph.locate_hessian_pattern(rest_stiffness)  # the prior's information has K's pattern
             # scale * K has mean diagonal 1 / sigma^2 with scale = unit_prior_scale / sigma^2
             self.unit_prior_scale = prior_scale(rest_stiffness, 1.0, self.graph.free_dofs)
             # kappa V_e per element: the prior's volume barrier in the prior's own units
