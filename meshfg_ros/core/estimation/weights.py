@@ -6,11 +6,12 @@ surface at 0.8-2.2x the datasheet value in the accuracy suite's scenes (estimate
 measurement sigma is therefore estimated after every update, from the distances d_k of the
 cloud's points to the optimised surface: sigma = 1.4826 median(d_k), the scale of a half-normal,
 robust to the leaks the gate and the robust kernel left in (up to half of the points). Before
-the first update, which has no optimum yet, the estimator takes the spread of the selected
-points about the predicted surface less each triangle's mean offset (`offsets_within_triangles`;
-estimator.py, `_estimate_noise_before_first_update`): the prediction's error is a smooth field,
-nearly one offset along the normal over a triangle, so it leaves the spread about the triangle's
-mean while the noise, independent between points, stays in it. The redundancy correction sqrt(n / (n - tr(H^-1 H_m))) of a variance-component estimate changes it
+the first update, which has no optimum yet, the estimator takes the selected points' spread
+about the predicted surface where the prediction fits them to within their noise (estimator.py,
+`_estimate_noise_before_first_update`): their spread once each triangle's mean offset is removed
+(`offsets_within_triangles`) tells, since the prediction's error is a smooth field, nearly one
+offset along the normal over a triangle, while the noise is independent between points. The
+redundancy correction sqrt(n / (n - tr(H^-1 H_m))) of a variance-component estimate changes it
 by 1-7 % with a thousand points (Hutchinson traces, measured on liver-push) and is left out.
 
 The simulator's trust is not estimated from the residuals. Variance-component (Foerstner)
@@ -93,12 +94,12 @@ MIN_POINTS_PER_TRIANGLE = 3
 
 
 def offsets_within_triangles(signed_distances: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """|d_k - mean of d over point k's triangle| sqrt(m / (m - 1)) for the points of triangles
-    holding m >= MIN_POINTS_PER_TRIANGLE points (K,) signed distances [m] to their closest
-    triangle (K,): what stays of the distances once each triangle's common offset is removed,
-    scaled so that independent noise of sigma keeps its spread (the mean of m takes 1/m of
-    its variance from each point). Their robust spread (`MeasurementNoise.observe`) estimates the
-    noise without a smooth offset of the surface the distances were measured to."""
+    """Points' signed distances d (K,) [m] to their closest triangles `triangles` (K,) less
+    each triangle's common offset: |d_k - mean of d over k's triangle| sqrt(m / (m - 1)) for
+    the points of the triangles that hold m >= MIN_POINTS_PER_TRIANGLE of them (the scaling
+    keeps the spread of independent noise, of which the mean of m removes a share 1/m). Their
+    robust spread (`MeasurementNoise.observe`) estimates the noise without a smooth offset of
+    the surface the distances were measured to."""
     signed_distances = np.asarray(signed_distances, dtype=np.float64)
     triangles = np.asarray(triangles, dtype=np.int64)
     counts = np.bincount(triangles)
