@@ -183,8 +183,8 @@ NOISE_OFF_NOMINAL = "measurement_sigma far from the clouds' spread: check it and
 RELINEARIZATION_SIGMAS = 1.0
 # An update whose estimated measurement sigma moved by more than REWEIGHT_CHANGE (relative) is
 # solved again with it, at most MAX_REWEIGHT_ROUNDS times (the noise changed between clouds, or
-# the first update's estimate about its prediction missed); the same rounds bound the first
-# update's estimate before it optimises.
+# the first update started from the nominal sigma or from an estimate about its prediction that
+# missed); the same rounds bound the first update's estimate before it optimises.
 REWEIGHT_CHANGE = 0.25
 MAX_REWEIGHT_ROUNDS = 4
 
