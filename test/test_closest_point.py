@@ -250,9 +250,10 @@ def _median_edge(vertices, triangles) -> float:
 @pytest.mark.parametrize("reach_edges", [None, 0.2, 0.8])
 def test_the_grid_answers_the_points_within_its_reach_as_the_all_pairs_search_does(reach_edges):
     """Points on both sides of the liver's surface (curved, uneven triangles) at distances up to
-    twice the grid's reach: every point the grid answers gets the all-pairs search's triangle
-    (its first minimiser: the lowest index among ties), and every point within the reach is
-    answered by the grid, not passed on to libigl."""
+    three times the grid's reach, and points spread over a box three times the liver's size: every
+    point the grid answers gets the all-pairs search's triangle (its first minimiser: the lowest
+    index among ties); every point within twice the reach is answered by the grid (beyond the
+    reach from the cells around it), and far points are passed on to libigl."""
     from meshfg_ros.synthetic.scenarios import liver_mesh
 
     mesh = liver_mesh()
@@ -265,14 +266,19 @@ def test_the_grid_answers_the_points_within_its_reach_as_the_all_pairs_search_do
     anchors = vertices[rng.choice(np.unique(triangles), 1500)]
     directions = rng.normal(size=anchors.shape)
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
-    points = anchors + directions * rng.uniform(0.0, 2.0 * effective, size=(len(anchors), 1))
+    near = anchors + directions * rng.uniform(0.0, 3.0 * effective, size=(len(anchors), 1))
+    low, high = vertices.min(axis=0), vertices.max(axis=0)
+    spread = rng.uniform(low - (high - low), high + (high - low), size=(1500, 3))
+    points = np.concatenate([near, spread])
     answered = _grid_answers(index, points)
     reference = brute_force_closest(points, vertices, triangles)
     mine = answered >= 0
     np.testing.assert_array_equal(answered[mine], reference.triangle[mine])
     within = reference.distance < 0.999 * effective
-    assert within.sum() > 300 and np.all(mine[within])
-    assert np.count_nonzero(~mine) > 100  # the far half goes to libigl's tree
+    beyond = ~within & (reference.distance < 2.0 * effective)
+    assert within.sum() > 300 and beyond.sum() > 200
+    assert np.all(mine[within]) and np.all(mine[beyond])
+    assert np.count_nonzero(~mine) > 100  # the far points go to libigl's tree
     full = index.associate(points)
     np.testing.assert_allclose(full.distance, reference.distance, rtol=0, atol=1e-15)
 
