@@ -239,7 +239,7 @@ def test_index_of_one_triangle_and_empty_queries():
 def _grid_answers(index: ClosestPointIndex, points) -> np.ndarray:
     """The surface grid's own answers (-1 where it defers to libigl's tree)."""
     return closest_point._grid_closest(np.ascontiguousarray(points, dtype=np.float64), index.vertices,
-                                       index.triangles, *index._grid)
+                                       index.triangles, *index._grid, index._most_scanned)
 
 
 def _median_edge(vertices, triangles) -> float:
@@ -247,20 +247,22 @@ def _median_edge(vertices, triangles) -> float:
     return float(np.median(np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2)))
 
 
+@pytest.mark.parametrize("scan_beyond_reach", [False, True])
 @pytest.mark.parametrize("reach_edges", [None, 0.2, 0.8])
-def test_the_grid_answers_the_points_within_its_reach_as_the_all_pairs_search_does(reach_edges):
+def test_the_grid_answers_the_points_within_its_reach_as_the_all_pairs_search_does(reach_edges, scan_beyond_reach):
     """Points on both sides of the liver's surface (curved, uneven triangles) at distances up to
     three times the grid's reach, and points spread over a box three times the liver's size: every
     point the grid answers gets the all-pairs search's triangle (its first minimiser: the lowest
-    index among ties); every point within twice the reach is answered by the grid (beyond the
-    reach from the cells around it), and far points are passed on to libigl."""
+    index among ties); every point within the reach is answered by the grid, and with
+    `scan_beyond_reach` every one within 1.5 times the reach too (from the cells around it), while
+    far points are passed on to libigl; without it every point beyond the reach is."""
     from meshfg_ros.synthetic.scenarios import liver_mesh
 
     mesh = liver_mesh()
     vertices, triangles = mesh.vertices, mesh.surface_triangles
     edge = _median_edge(vertices, triangles)
     reach = None if reach_edges is None else reach_edges * edge
-    index = ClosestPointIndex(vertices, triangles, reach)
+    index = ClosestPointIndex(vertices, triangles, reach, scan_beyond_reach=scan_beyond_reach)
     effective = (closest_point.GRID_REACH_EDGES if reach_edges is None else reach_edges) * edge
     rng = np.random.default_rng(21)
     anchors = vertices[rng.choice(np.unique(triangles), 1500)]
@@ -275,10 +277,14 @@ def test_the_grid_answers_the_points_within_its_reach_as_the_all_pairs_search_do
     mine = answered >= 0
     np.testing.assert_array_equal(answered[mine], reference.triangle[mine])
     within = reference.distance < 0.999 * effective
-    beyond = ~within & (reference.distance < 2.0 * effective)
-    assert within.sum() > 300 and beyond.sum() > 200
-    assert np.all(mine[within]) and np.all(mine[beyond])
-    assert np.count_nonzero(~mine) > 100  # the far points go to libigl's tree
+    beyond = (reference.distance > 1.001 * effective) & (reference.distance < 1.5 * effective)
+    assert within.sum() > 300 and beyond.sum() > 100
+    assert np.all(mine[within])
+    if scan_beyond_reach:
+        assert np.all(mine[beyond])
+        assert np.count_nonzero(~mine) > 100  # the far points go to libigl's tree
+    else:
+        assert not mine[reference.distance > 1.001 * effective].any()
     full = index.associate(points)
     np.testing.assert_allclose(full.distance, reference.distance, rtol=0, atol=1e-15)
 

@@ -59,8 +59,8 @@ __all__ = [
 BARRIER_VOLUME_RATIO = 0.5
 # The trials' closest-triangle searches answer from the surface grid the points within this many
 # times the farthest point's distance at the state of their given association (the prediction;
-# LM's steps move the surface by a fraction of that); libigl's tree answers the few beyond
-# (closest_point.py).
+# LM's steps move the surface by a fraction of that, but the grid's reach is held to one edge);
+# the grid's cells around them answer the few beyond (closest_point.py, `scan_beyond_reach`).
 TRIAL_REACH = 1.25
 # A point's Gauss-Newton term (_distance_hessians) is weighted by the second
 # derivative of its robust cost along its distance, w (rho' + 2 s rho'') (RobustKernel.curvature),
@@ -597,7 +597,8 @@ class PointToSurfaceFactor(Factor):
     (measurement_selection.py). `association_at`, (vertices (N, 3), the points' Association
     there) where the caller has it, answers the first query at those vertices, and sets how far
     from the surface the trials' searches expect the points: the surface grid answers those
-    within TRIAL_REACH times the farthest one's distance (closest_point.py).
+    within TRIAL_REACH times the farthest one's distance, and the few beyond from the cells
+    around them (closest_point.py).
     Cost: 0.5 sum_k w_k rho(|r_k|^2), w_k = 1/sigma_k^2, rho the robust kernel (identity
     without one); its gradient carries the IRLS weights w_k rho'(|r_k|^2), its Gauss-Newton
     terms the curvature along each point's distance (see CURVATURE_FLOOR).
@@ -649,7 +650,8 @@ class PointToSurfaceFactor(Factor):
             if np.array_equal(kept_vertices, vertices):
                 return kept
         if self._frozen_triangle is None:
-            return self._remember(vertices, ClosestPointIndex(vertices, self.triangles, self._reach).associate(self.points))
+            index = ClosestPointIndex(vertices, self.triangles, self._reach, scan_beyond_reach=True)
+            return self._remember(vertices, index.associate(self.points))
         projection = project_onto_mesh_triangles(self.points, vertices, self.triangles, self._frozen_triangle)
         return self._remember(vertices, Association(self._frozen_triangle, projection.closest, projection.barycentric,
                                                     projection.region, np.sqrt(projection.squared_distance)))

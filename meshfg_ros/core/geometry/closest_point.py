@@ -300,9 +300,9 @@ _GRID_MAX_CELLS_PER_TRIANGLE = 64
 # this many points: 20,000 points near the organ-scale surface take 10 ms on one thread.
 PARALLEL_MIN_POINTS = 4000
 _GRID_ROUNDING = 1e-9
-# A point beyond the reach is searched in the cells around it (`_grid_closest`) when they are at
-# most this many; farther points (outliers, many cells away) go to libigl's tree.
-_GRID_MAX_SCANNED_CELLS = 64
+# With `scan_beyond_reach`, a point beyond the reach is searched in the cells around it
+# (`_grid_closest`) when they are at most this many; farther points go to libigl's tree.
+_GRID_MAX_SCANNED_CELLS = 27
 
 
 @numba.njit((read_only(float64, 2), read_only(int64, 2)), cache=True, boundscheck=True, error_model="numpy")
@@ -369,22 +369,35 @@ def _scan_cell(p, vertices, triangles, starts, items, k, best, best_triangle):
     return best, best_triangle
 
 
+@numba.njit(inline="always")
+def _cell_range(p, radius, origin, dims, cell, low, high):
+    """The grid cells [low, high] (per axis, clamped to the grid) that the cube of half-width
+    `radius` about p overlaps; returns their count (a float: far points must not overflow)."""
+    count = 1.0
+    for axis in range(3):
+        least = min(max((p[axis] - radius - origin[axis]) / cell, 0.0), dims[axis] - 1.0)
+        most = min(max((p[axis] + radius - origin[axis]) / cell, 0.0), dims[axis] - 1.0)
+        low[axis], high[axis] = int(least), int(most)
+        count *= high[axis] - low[axis] + 1.0
+    return count
+
+
 @numba.njit((read_only(float64, 2), read_only(float64, 2), read_only(int64, 2), read_only(float64, 1),
-             read_only(int64, 1), float64, float64, float64, read_only(int64, 1), read_only(int64, 1)),
+             read_only(int64, 1), float64, float64, float64, read_only(int64, 1), read_only(int64, 1), int64),
             cache=True, boundscheck=False, error_model="numpy", nogil=True)
-def _grid_closest(points, vertices, triangles, origin, dims, cell, certified, slack, starts, items):
+def _grid_closest(points, vertices, triangles, origin, dims, cell, certified, slack, starts, items, most_scanned):
     """Closest triangle per point (the lowest index among equal distances), or -1 where the grid
     cannot answer.
 
     A point inside the grid whose closest triangle in its own cell's list lies within the
     certified reach r is answered from that list. Otherwise, with d the distance to the best
-    triangle found (in its own cell's list, or for a point outside the grid the nearest grid
-    cell's; where that list is empty, in the lists of the cells around it), every triangle at most d away is listed in a cell within d - r of the
-    point: a triangle's list cells cover the ball of radius r about each of its points, so
-    about its closest point to p, which lies d - r or less from p along the way. Those cells
-    are scanned when there are at most _GRID_MAX_SCANNED_CELLS of them (points a little beyond
-    the reach: the leaks a measurement gate lets through); the others are left to libigl.
-    `slack` bounds the rounding of the cells' bounds (see `_make_grid`).
+    triangle in the lists of the cells within half a cell of the point (or for a point outside
+    the grid, of the grid's nearest cells), every triangle at most d away is listed in a cell
+    within d - r of the point: a triangle's list cells cover the ball of radius r about each of
+    its points, so about its closest point to p, which lies d - r or less from p along the way.
+    Those cells are scanned when there are at most `most_scanned` of them (points a little
+    beyond the reach: the leaks a measurement gate lets through; 0 scans none); the others are
+    left to libigl. `slack` bounds the rounding of the cells' bounds (see `_make_grid`).
 
     Not bounds-checked, which halves its time (0.4 against 0.75 ms for 2,000 points near the
     paper-scale surface): it reads through cell indices it has clamped to `dims` and through the
@@ -392,6 +405,8 @@ def _grid_closest(points, vertices, triangles, origin, dims, cell, certified, sl
     found = np.full(points.shape[0], -1, dtype=np.int64)
     certified_reach = np.sqrt(certified)
     nearest = np.empty(3, dtype=np.int64)
+    near_low = np.empty(3, dtype=np.int64)
+    near_high = np.empty(3, dtype=np.int64)
     low = np.empty(3, dtype=np.int64)
     high = np.empty(3, dtype=np.int64)
     for i in range(points.shape[0]):
@@ -407,30 +422,31 @@ def _grid_closest(points, vertices, triangles, origin, dims, cell, certified, sl
         if inside and best <= certified:
             found[i] = best_triangle
             continue
-        if best_triangle < 0:  # an empty list: a candidate from the cells around it
-            for x in range(max(nearest[0] - 1, 0), min(nearest[0] + 2, dims[0])):
-                for y in range(max(nearest[1] - 1, 0), min(nearest[1] + 2, dims[1])):
-                    for z in range(max(nearest[2] - 1, 0), min(nearest[2] + 2, dims[2])):
-                        best, best_triangle = _scan_cell(p, vertices, triangles, starts, items,
-                                                         (x * dims[1] + y) * dims[2] + z, best, best_triangle)
-            if best_triangle < 0:
-                continue
-        radius = max(np.sqrt(best) - certified_reach, 0.0) + 2.0 * slack
-        count = 1.0
-        for axis in range(3):
-            least = min(max((p[axis] - radius - origin[axis]) / cell, 0.0), dims[axis] - 1.0)
-            most = min(max((p[axis] + radius - origin[axis]) / cell, 0.0), dims[axis] - 1.0)
-            low[axis], high[axis] = int(least), int(most)
-            count *= high[axis] - low[axis] + 1.0
-        if count > _GRID_MAX_SCANNED_CELLS:
+        if most_scanned == 0:
             continue
-        for x in range(low[0], high[0] + 1):
-            for y in range(low[1], high[1] + 1):
-                for z in range(low[2], high[2] + 1):
+        # Beyond the reach: first the cells within half a cell of the point (a near candidate),
+        # then those within its best distance less the reach.
+        _cell_range(p, 0.5 * cell, origin, dims, cell, near_low, near_high)
+        for x in range(near_low[0], near_high[0] + 1):
+            for y in range(near_low[1], near_high[1] + 1):
+                for z in range(near_low[2], near_high[2] + 1):
                     scanned = (x * dims[1] + y) * dims[2] + z
                     if scanned != k:
                         best, best_triangle = _scan_cell(p, vertices, triangles, starts, items, scanned,
                                                          best, best_triangle)
+        if best_triangle < 0:
+            continue
+        radius = max(np.sqrt(best) - certified_reach, 0.0) + 2.0 * slack
+        if _cell_range(p, radius, origin, dims, cell, low, high) > most_scanned:
+            continue
+        for x in range(low[0], high[0] + 1):
+            for y in range(low[1], high[1] + 1):
+                for z in range(low[2], high[2] + 1):
+                    done = (near_low[0] <= x <= near_high[0] and near_low[1] <= y <= near_high[1]
+                            and near_low[2] <= z <= near_high[2])
+                    if not done and (x * dims[1] + y) * dims[2] + z != k:
+                        best, best_triangle = _scan_cell(p, vertices, triangles, starts, items,
+                                                         (x * dims[1] + y) * dims[2] + z, best, best_triangle)
         found[i] = best_triangle
     return found
 
@@ -454,10 +470,15 @@ class ClosestPointIndex:
 
     vertices (N, 3), triangles (F, 3) int indices into vertices. `reach` (m, optional): the
     distance from the surface within which most queried points lie (default GRID_REACH_EDGES
-    median edges); the grid answers the points within it, libigl the others.
+    median edges); the grid answers the points within it, libigl the others. With
+    `scan_beyond_reach`, for queries of points nearly all within the reach (a measurement
+    factor's gated points, searched once per state), the grid also answers the few a little
+    beyond it, from the cells around them, where building libigl's tree for them would cost more
+    than the search; points anywhere (a planner's, a whole cloud's outliers) are better left to
+    the tree, which a query of many points amortises.
     """
 
-    def __init__(self, vertices, triangles, reach: float | None = None):
+    def __init__(self, vertices, triangles, reach: float | None = None, scan_beyond_reach: bool = False):
         vertices = np.asarray(vertices, dtype=np.float64)
         triangles = np.asarray(triangles)
         if vertices.ndim != 2 or vertices.shape[1] != 3 or not np.all(np.isfinite(vertices)):
@@ -473,6 +494,7 @@ class ClosestPointIndex:
         self.triangles = np.ascontiguousarray(triangles, dtype=np.int64)
         self._tree = None  # libigl's, made when a point first needs it
         self._grid = self._make_grid(reach)
+        self._most_scanned = _GRID_MAX_SCANNED_CELLS if scan_beyond_reach else 0
 
     def _make_grid(self, reach: float | None):
         """(origin, dims, cell, certified squared reach, its rounding slack, starts, items) of the
@@ -500,7 +522,7 @@ class ClosestPointIndex:
         if not len(points):
             return _association(points, self.vertices, self.triangles, np.zeros(0, dtype=np.int64))
         triangle = np.concatenate(worker_threads.run_parts(_grid_closest, [
-            (share, self.vertices, self.triangles, *self._grid)
+            (share, self.vertices, self.triangles, *self._grid, self._most_scanned)
             for share in worker_threads.split(points, len(points) // PARALLEL_MIN_POINTS)]))
         unanswered = np.flatnonzero(triangle < 0)
         if unanswered.size:
