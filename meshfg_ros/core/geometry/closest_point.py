@@ -28,12 +28,14 @@ the surface, made per state: each triangle is listed in the cells that its bound
 grown by a reach, overlaps, and a point whose closest listed triangle lies within the reach is
 answered from its own cell's list, exactly (any triangle at least as close lies within the
 reach, so its grown box holds the point and its cell lists it); ties go to the lowest triangle
-index, as in the all-pairs search. A point a little beyond the reach (a leak that a measurement
-gate lets through) is answered, as exactly, from the lists of the few cells around it that can
-hold a triangle as close as the best one its own list gave. libigl's AABB tree (a
-bounding-volume hierarchy over the triangles) answers the points far beyond the reach; a search
-with none of them builds no tree (on the organ-scale surface a tree per state cost about a third
-of a trial's search, for the hundred or so gated points of a cloud of 20,000 beyond one edge).
+index, as in the all-pairs search. libigl's AABB tree (a bounding-volume hierarchy over the
+triangles) answers the points the grid cannot: outside it, or farther than the reach. With
+`scan_beyond_reach` (the measurement factor's searches), a point a little beyond the reach (a
+leak that the gate let through) is answered by the grid too, as exactly, from the lists of the
+few cells around it that can hold a triangle as close as the best one within half a cell of
+it; a search with no point far beyond builds no tree (on the organ-scale surface a tree per
+state cost about a third of a trial's search, for the hundred or so gated points of a cloud of
+20,000 beyond one edge).
 libigl has no search bounded to a distance from the surface and builds its tree anew for each
 state: near the paper-scale surface the grid answers in about half libigl's time, on the
 organ-scale surface the two are alike (docs/design-notes.md, "Where an update's time goes",
@@ -417,6 +419,8 @@ def _grid_closest(points, vertices, triangles, origin, dims, cell, certified, sl
             if not 0.0 <= position < dims[axis]:
                 inside = False
             nearest[axis] = int(min(max(position, 0.0), dims[axis] - 1.0))
+        if not inside and most_scanned == 0:
+            continue
         k = (nearest[0] * dims[1] + nearest[1]) * dims[2] + nearest[2]
         best, best_triangle = _scan_cell(p, vertices, triangles, starts, items, k, np.inf, -1)
         if inside and best <= certified:
