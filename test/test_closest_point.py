@@ -315,21 +315,24 @@ def test_a_reach_beyond_the_largest_is_held_to_it_and_no_reach_means_the_default
     assert default == pytest.approx((closest_point.GRID_REACH_EDGES * edge) ** 2, rel=1e-6)
 
 
-def test_degenerate_and_far_flung_surfaces_are_searched_exactly():
+@pytest.mark.parametrize("scan_beyond_reach", [False, True])
+def test_degenerate_and_far_flung_surfaces_are_searched_exactly(scan_beyond_reach):
     """Triangles that are all one point (no edge length to size the grid by), and a surface with
-    one triangle 1e70 m away (the grid's cells would be countless at the edge length): the
-    association still equals the all-pairs search."""
+    one triangle 1e70 m away (the grid's cells would be countless at the edge length, and the
+    rounding slack swallows the reach): the association still equals the all-pairs search."""
     rng = np.random.default_rng(3)
     points = rng.uniform(-1.0, 1.0, size=(200, 3))
     collapsed = np.zeros((4, 3))
-    index = ClosestPointIndex(collapsed, np.array([[0, 1, 2], [1, 2, 3]]))
+    index = ClosestPointIndex(collapsed, np.array([[0, 1, 2], [1, 2, 3]]), scan_beyond_reach=scan_beyond_reach)
     np.testing.assert_allclose(index.associate(points).distance, np.linalg.norm(points, axis=1), rtol=0, atol=1e-15)
     mesh = cube_mesh(side=1.0, divisions=4)
     far = np.concatenate([mesh.vertices, [[1e70, 0.0, 0.0], [1e70, 1.0, 0.0], [1e70, 0.0, 1.0]]])
     n = len(mesh.vertices)
     triangles = np.concatenate([mesh.surface_triangles, [[n, n + 1, n + 2]]])
-    index = ClosestPointIndex(far, triangles)
+    index = ClosestPointIndex(far, triangles, scan_beyond_reach=scan_beyond_reach)
     assert np.prod(index._grid[1]) <= 64 * len(triangles)
     association = index.associate(points)
     reference = brute_force_closest(points, far, triangles)
+    if scan_beyond_reach:  # the grid answers every point here, breaking ties as the all-pairs search
+        np.testing.assert_array_equal(association.triangle, reference.triangle)
     np.testing.assert_allclose(association.distance, reference.distance, rtol=0, atol=1e-15)
