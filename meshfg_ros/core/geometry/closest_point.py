@@ -372,6 +372,20 @@ def _scan_cell(p, vertices, triangles, starts, items, k, best, best_triangle):
 
 
 @numba.njit(inline="always")
+def _scan_cells(p, vertices, triangles, starts, items, dims, low, high, done_low, done_high, best, best_triangle):
+    """`_scan_cell` over the cells [low, high] (per axis) but those in [done_low, done_high],
+    already scanned."""
+    for x in range(low[0], high[0] + 1):
+        for y in range(low[1], high[1] + 1):
+            for z in range(low[2], high[2] + 1):
+                if not (done_low[0] <= x <= done_high[0] and done_low[1] <= y <= done_high[1]
+                        and done_low[2] <= z <= done_high[2]):
+                    best, best_triangle = _scan_cell(p, vertices, triangles, starts, items,
+                                                     (x * dims[1] + y) * dims[2] + z, best, best_triangle)
+    return best, best_triangle
+
+
+@numba.njit(inline="always")
 def _cell_range(p, radius, origin, dims, cell, low, high):
     """The grid cells [low, high] (per axis, clamped to the grid) that the cube of half-width
     `radius` about p overlaps; returns their count (a float: far points must not overflow)."""
@@ -428,29 +442,18 @@ def _grid_closest(points, vertices, triangles, origin, dims, cell, certified, sl
             continue
         if most_scanned == 0:
             continue
-        # Beyond the reach: first the cells within half a cell of the point (a near candidate),
-        # then those within its best distance less the reach.
+        # Beyond the reach: first the cells within half a cell of the point (a near candidate; they
+        # hold the nearest cell, scanned above), then those within its best distance less the reach.
         _cell_range(p, 0.5 * cell, origin, dims, cell, near_low, near_high)
-        for x in range(near_low[0], near_high[0] + 1):
-            for y in range(near_low[1], near_high[1] + 1):
-                for z in range(near_low[2], near_high[2] + 1):
-                    scanned = (x * dims[1] + y) * dims[2] + z
-                    if scanned != k:
-                        best, best_triangle = _scan_cell(p, vertices, triangles, starts, items, scanned,
-                                                         best, best_triangle)
+        best, best_triangle = _scan_cells(p, vertices, triangles, starts, items, dims, near_low, near_high,
+                                          nearest, nearest, best, best_triangle)
         if best_triangle < 0:
             continue
         radius = max(np.sqrt(best) - certified_reach, 0.0) + 2.0 * slack
         if _cell_range(p, radius, origin, dims, cell, low, high) > most_scanned:
             continue
-        for x in range(low[0], high[0] + 1):
-            for y in range(low[1], high[1] + 1):
-                for z in range(low[2], high[2] + 1):
-                    done = (near_low[0] <= x <= near_high[0] and near_low[1] <= y <= near_high[1]
-                            and near_low[2] <= z <= near_high[2])
-                    if not done and (x * dims[1] + y) * dims[2] + z != k:
-                        best, best_triangle = _scan_cell(p, vertices, triangles, starts, items,
-                                                         (x * dims[1] + y) * dims[2] + z, best, best_triangle)
+        best, best_triangle = _scan_cells(p, vertices, triangles, starts, items, dims, low, high,
+                                          near_low, near_high, best, best_triangle)
         found[i] = best_triangle
     return found
 
