@@ -82,9 +82,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg
 import scipy.sparse
-from scipy.stats import chi2
-
 import meshfg_ros.core.worker_threads as worker_threads
+from meshfg_ros.core.estimation import chi_squared
 from meshfg_ros.core.inputs.input_checks import innovation_spread
 from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError
 from meshfg_ros.core.solvers.sparse_cholesky import SparseCholesky
@@ -104,10 +103,10 @@ SLOPE_STANDARD_ERRORS = 2.0
 # Weight of an update's lambda^2 estimate relative to the next one's (module doc).
 PRIOR_ERROR_MEMORY = 0.7
 # The median of chi^2 with one degree of freedom: of d^2 / variance for a normal d.
-_CHI2_1_MEDIAN = float(chi2.ppf(0.5, 1))
+_CHI2_1_MEDIAN = float(chi_squared.quantile(0.5, 1))
 # The standard error of the median of n values v x / c (x ~ chi^2(1)) is _MEDIAN_ERROR v / sqrt(n):
 # 1 / (2 sqrt(n) f(v)), the density of v x / c at its median v being c pdf_chi2(c) / v.
-_MEDIAN_ERROR = 1.0 / (2.0 * _CHI2_1_MEDIAN * float(chi2.pdf(_CHI2_1_MEDIAN, 1)))
+_MEDIAN_ERROR = 1.0 / (2.0 * _CHI2_1_MEDIAN * float(chi_squared.density(_CHI2_1_MEDIAN, 1)))
 # Bounds of lambda^2 (a prior's std 1000 times too small or too large).
 _SCALE_RANGE = (1e-6, 1e6)
 
