@@ -62,7 +62,7 @@ def test_the_live_nodes_do_not_load_the_synthetic_scenes_or_the_evaluation():
 @pytest.mark.slow  # a fresh interpreter
 def test_nodes_and_offline_tools_do_not_import_scipy_stats():
     """scipy.stats takes about half a second to import, in every process that starts a node or
-    a command; the chi-squared functions come from core/estimation/chi_squared.py instead."""
+    a command; the chi-squared quantile comes from scipy.special instead (covariance.py)."""
     loaded = _loaded_after_import(("meshfg_ros.nodes.estimator_node", "meshfg_ros.nodes.simulation_node",
                                    "meshfg_ros.nodes.stack", "meshfg_ros.cli", *OFFLINE_MODULES))
     assert not {name for name in loaded if name.startswith("scipy.stats")}

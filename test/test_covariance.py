@@ -13,6 +13,8 @@ from meshfg_ros.core.estimation.covariance import (
     DENSE_MAX_DOFS,
     ForgettingMean,
     MarginalCovariance,
+    _chi_squared_density,
+    chi_squared_quantile,
     clipped_inverse,
     prior_error_scale,
     published_covariance,
@@ -224,3 +226,12 @@ def test_forgetting_mean_starts_at_its_initial_value_and_follows_the_values():
     assert value == pytest.approx(3.0, rel=1e-6)
     with pytest.raises(ValueError):
         ForgettingMean(1.0, initial=1.0)
+
+
+@pytest.mark.parametrize("dof", [1, 2, 3, 7.5])
+def test_chi_squared_quantile_and_density_are_scipy_stats_ones(dof):
+    probability = np.linspace(0.001, 0.999, 999)
+    np.testing.assert_allclose(chi_squared_quantile(probability, dof), chi2.ppf(probability, dof), rtol=1e-13)
+    x = np.linspace(0.01, 40.0, 1000)
+    np.testing.assert_allclose(_chi_squared_density(x, dof), chi2.pdf(x, dof), rtol=1e-13)
+    assert chi_squared_quantile(0.95, 3) == pytest.approx(7.8147, abs=1e-4)

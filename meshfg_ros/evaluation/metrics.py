@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from meshfg_ros.core.estimation import chi_squared
+from meshfg_ros.core.estimation.covariance import chi_squared_quantile
 from meshfg_ros.synthetic.camera import as_point_array, as_triangle_array, first_ray_hits
 
 
@@ -95,7 +95,7 @@ class Calibration:
     With std_i = sqrt(trace(Sigma_ii) / 3), the normalised estimation error squared (NEES) of
     vertex i is |estimate_i - truth_i|^2 / std_i^2. For an error drawn from N(0, std_i^2 I3) it
     is chi-squared with 3 degrees of freedom: mean 3, and a vertex lies inside its level-p
-    ellipsoid (NEES <= chi_squared.quantile(p, 3)) with probability p. For an anisotropic Sigma_ii the mean
+    ellipsoid (NEES <= chi_squared_quantile(p, 3)) with probability p. For an anisotropic Sigma_ii the mean
     is still 3 and the coverage approximate. Mean NEES above 3 and coverage below the level:
     the uncertainty is too small (overconfident); below 3 and above it: too large.
 
@@ -129,7 +129,7 @@ class Calibration:
             raise ValueError(f"levels must be a 1-D array of values in (0, 1), got {levels}")
         if not self.vertices:
             return np.full(len(levels), np.nan)
-        bounds = chi_squared.quantile(levels, _POSITION_DOF)
+        bounds = chi_squared_quantile(levels, _POSITION_DOF)
         return np.count_nonzero(self.nees[:, None] <= bounds[None, :], axis=0) / self.vertices
 
     @property

@@ -82,14 +82,14 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg
 import scipy.sparse
+from scipy.special import gammaincinv, gammaln, xlogy
 import meshfg_ros.core.worker_threads as worker_threads
-from meshfg_ros.core.estimation import chi_squared
 from meshfg_ros.core.inputs.input_checks import innovation_spread
 from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError
 from meshfg_ros.core.solvers.sparse_cholesky import SparseCholesky
 from meshfg_ros.core.estimation.weights import MIN_POINTS
 
-__all__ = ["DENSE_MAX_DOFS", "MARGINAL_SAMPLES", "PRIOR_ERROR_MEMORY", "PRIOR_VARIANCE_BINS", "SLOPE_STANDARD_ERRORS",
+__all__ = ["DENSE_MAX_DOFS", "chi_squared_quantile", "MARGINAL_SAMPLES", "PRIOR_ERROR_MEMORY", "PRIOR_VARIANCE_BINS", "SLOPE_STANDARD_ERRORS",
            "ForgettingMean", "MarginalCovariance", "clipped_inverse", "prior_error_scale", "published_covariance"]
 
 # Up to this many unknowns the marginals are exact (a dense inverse takes a few milliseconds).
@@ -102,11 +102,25 @@ PRIOR_VARIANCE_BINS = 8
 SLOPE_STANDARD_ERRORS = 2.0
 # Weight of an update's lambda^2 estimate relative to the next one's (module doc).
 PRIOR_ERROR_MEMORY = 0.7
+
+
+def chi_squared_quantile(probability, dof: float):
+    """x with P(chi^2_dof <= x) = probability: scipy.stats.chi2.ppf, through the scipy.special
+    function it calls (the same numbers), since importing scipy.stats takes about half a second
+    of every node's and command's start-up."""
+    return 2.0 * gammaincinv(dof / 2.0, probability)
+
+
+def _chi_squared_density(x, dof: float):
+    """The density of chi^2_dof at x > 0: scipy.stats.chi2.pdf, as chi_squared_quantile says why."""
+    return np.exp(xlogy(dof / 2.0 - 1.0, x) - x / 2.0 - gammaln(dof / 2.0) - np.log(2.0) * dof / 2.0)
+
+
 # The median of chi^2 with one degree of freedom: of d^2 / variance for a normal d.
-_CHI2_1_MEDIAN = float(chi_squared.quantile(0.5, 1))
+_CHI2_1_MEDIAN = float(chi_squared_quantile(0.5, 1))
 # The standard error of the median of n values v x / c (x ~ chi^2(1)) is _MEDIAN_ERROR v / sqrt(n):
 # 1 / (2 sqrt(n) f(v)), the density of v x / c at its median v being c pdf_chi2(c) / v.
-_MEDIAN_ERROR = 1.0 / (2.0 * _CHI2_1_MEDIAN * float(chi_squared.density(_CHI2_1_MEDIAN, 1)))
+_MEDIAN_ERROR = 1.0 / (2.0 * _CHI2_1_MEDIAN * float(_chi_squared_density(_CHI2_1_MEDIAN, 1)))
 # Bounds of lambda^2 (a prior's std 1000 times too small or too large).
 _SCALE_RANGE = (1e-6, 1e6)
 
