@@ -95,9 +95,10 @@ class Calibration:
     With std_i = sqrt(trace(Sigma_ii) / 3), the normalised estimation error squared (NEES) of
     vertex i is |estimate_i - truth_i|^2 / std_i^2. For an error drawn from N(0, std_i^2 I3) it
     is chi-squared with 3 degrees of freedom: mean 3, and a vertex lies inside its level-p
-    ellipsoid (NEES <= chi_squared_quantile(p, 3)) with probability p. For an anisotropic Sigma_ii the mean
-    is still 3 and the coverage approximate. Mean NEES above 3 and coverage below the level:
-    the uncertainty is too small (overconfident); below 3 and above it: too large.
+    ellipsoid (NEES <= chi_squared_quantile(p, 3)) with probability p. For an anisotropic
+    Sigma_ii the mean is still 3 and the coverage approximate. Mean NEES above 3 and coverage
+    below the level: the uncertainty is too small (overconfident); below 3 and above it: too
+    large.
 
     nees and std hold the judged vertices only (finite positive std). Vertices with a zero or
     non-finite std are left out and counted in `left_out`; of them, those published with a zero

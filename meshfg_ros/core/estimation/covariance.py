@@ -83,14 +83,16 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse
 from scipy.special import gammaincinv, gammaln, xlogy
+
 import meshfg_ros.core.worker_threads as worker_threads
 from meshfg_ros.core.inputs.input_checks import innovation_spread
 from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError
 from meshfg_ros.core.solvers.sparse_cholesky import SparseCholesky
 from meshfg_ros.core.estimation.weights import MIN_POINTS
 
-__all__ = ["DENSE_MAX_DOFS", "chi_squared_quantile", "MARGINAL_SAMPLES", "PRIOR_ERROR_MEMORY", "PRIOR_VARIANCE_BINS", "SLOPE_STANDARD_ERRORS",
-           "ForgettingMean", "MarginalCovariance", "clipped_inverse", "prior_error_scale", "published_covariance"]
+__all__ = ["DENSE_MAX_DOFS", "MARGINAL_SAMPLES", "PRIOR_ERROR_MEMORY", "PRIOR_VARIANCE_BINS", "SLOPE_STANDARD_ERRORS",
+           "ForgettingMean", "MarginalCovariance", "chi_squared_quantile", "clipped_inverse", "prior_error_scale",
+           "published_covariance"]
 
 # Up to this many unknowns the marginals are exact (a dense inverse takes a few milliseconds).
 DENSE_MAX_DOFS = 600
