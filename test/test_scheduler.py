@@ -405,5 +405,7 @@ def test_a_cloud_waits_as_long_as_the_simulator_recently_took(scenario):
     assert scheduler.next_step(now_s=2.0 + 1.5 * 1.2).predicted is None  # the learnt wait is over
     late = scheduler.add_prediction(Prediction(second.stamp_ns, second.truth), now_s=4.0)
     # The late prediction is measured too (2 s from the cloud's arrival): the next cloud waits for it.
+    # The warning names the wait the cloud had, not the longer one the late prediction sets.
     assert late.counter == "predictions_rejected" and "prediction takes 2000 ms" in late.reason
+    assert f"it waited {1.5 * 1.2:.2f} s" in late.reason
     assert scheduler.prediction_wait_s == pytest.approx(1.5 * 2.0)

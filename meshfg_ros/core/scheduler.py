@@ -507,9 +507,10 @@ class EstimationScheduler:
         self._last_step_ns: int | None = None
         self._solver_free_s = 0.0
         self._prediction_times_s: deque[float] = deque(maxlen=PREDICTION_TIMES_KEPT)
-        # (stamp, when its prediction could start) of the last cloud run without its answer, so
-        # that a late prediction's time is measured too and the next clouds wait for theirs
-        self._ran_without_answer: tuple[int, float] | None = None
+        # (stamp, when its prediction could start, how long it waited) of the last cloud run
+        # without its answer, so that a late prediction's time is measured too and the next
+        # clouds wait for theirs, and its warning says how long that cloud waited
+        self._ran_without_answer: tuple[int, float, float] | None = None
         self._update_s = 0.0  # wall time of the last step
         # and of the recent steps that had a prediction (what a stall's clouds cost to run again)
         self._predicted_update_times_s: deque[float] = deque(maxlen=PREDICTION_TIMES_KEPT)
@@ -628,8 +629,10 @@ class EstimationScheduler:
         if newest is not None and newest - stamp > self._jump_ns:
             self._answers.clear()  # the simulator restarted its timeline (a looped recording)
         elif self._last_step_ns is not None and 0 <= self._last_step_ns - stamp <= self._jump_ns:
+            ran = self._ran_without_answer
+            waited = f"it waited {ran[2]:.2f} s; " if ran is not None and ran[0] == stamp else ""
             return Rejection("predictions_rejected", f"prediction at {stamp} ns came after its cloud ran without it "
-                             f"(after {self.prediction_wait_s:.2f} s; {self._cost_per_cloud()}): the step ran degraded")
+                             f"({waited}{self._cost_per_cloud()}): the step ran degraded")
         if answer.positions is not None and answer.positions.shape != self.mesh.vertices.shape:
             self._newest_answer_ns = stamp
             self._answers[stamp] = Prediction(stamp, None, "wrong vertex count")
@@ -671,7 +674,8 @@ class EstimationScheduler:
         for old in [other for other in self._answers if other <= stamp]:
             del self._answers[old]
         if answer is None:
-            self._ran_without_answer = (stamp, max(queued.arrival_s, self._solver_free_s))
+            start_s = max(queued.arrival_s, self._solver_free_s)
+            self._ran_without_answer = (stamp, start_s, max(now_s - start_s, 0.0))
         self._last_step_ns = stamp
         tool_pose = answer.tool_pose if answer is not None and answer.tool_pose is not None else self._tool_pose(stamp)
         predicted = answer.positions if answer is not None else None
