@@ -220,7 +220,9 @@ class EstimatorNodeConfig:
         SchedulingTimeouts.prediction_timeout, "Seconds (wall time) a cloud waits at least for its simulator prediction "
         "before the step runs degraded without it; longer while the simulator's recent predictions took longer "
         f"({PREDICTION_WAIT_MARGIN:g}x the longest of the last {PREDICTION_TIMES_KEPT}, at most "
-        f"{MAX_PREDICTION_WAIT_S:g} s).", range=(0.0, 60.0))
+        f"{MAX_PREDICTION_WAIT_S:g} s); up to {MAX_PREDICTION_WAIT_S:g} s while a simulation node publishes and "
+        f"fewer than {PREDICTION_TIMES_KEPT} of its prediction times are known (its set-up on the mesh).",
+        range=(0.0, 60.0))
     prediction_source: str = setting(
         "simulation_node", "Where each cloud's prediction comes from: simulation_node (this project's, on "
         "prediction_request / predicted_mesh) or sim_bridge (the XPBD tissue simulator's sim_bridge service "

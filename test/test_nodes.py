@@ -51,6 +51,7 @@ from meshfg_ros.io.recording import RecordingWriter
 from meshfg_ros.nodes.estimator_node import PREDICTION_QOS
 from meshfg_ros.markers import MAX_ELLIPSOIDS, NAMESPACE_ELLIPSOIDS, NAMESPACE_LEGEND
 from meshfg_ros.nodes.ros_conversions import (
+    REQUEST_QOS,
     MeshMessages,
     position_covariance_from_msg,
     position_std_from_msg,
@@ -523,7 +524,9 @@ def test_estimator_node_survives_bad_input_and_recovers_from_a_missing_simulator
     io.mesh.publish(mesh_msg(mesh))
     points = top_points()
 
-    # Without a simulator the step runs degraded after prediction_timeout.
+    # The probe publishes predicted_mesh but answers nothing, as a simulator that never answers:
+    # the first cloud waits for it MAX_PREDICTION_WAIT_S (as for one that sets up, next test),
+    # then runs degraded; the later ones wait prediction_timeout.
     io.send(cloud_msg(points, 1 * S), steps=1, degraded_steps=1)
     malformed = cloud_msg(points, 2 * S)
     malformed.data = malformed.data[:-5]
@@ -582,6 +585,34 @@ def test_estimator_node_survives_bad_input_and_recovers_from_a_missing_simulator
     top = np.isclose(mesh.vertices[:, 2], SIDE)
     assert np.abs(np.asarray(io.estimates[2].positions).reshape(-1, 3)[top, 2] - SIDE).max() < 2e-3
     assert node.alive()
+    assert_clean_exit(node, node.interrupt())
+
+
+@pytest.mark.slow
+def test_the_first_cloud_waits_for_a_simulation_node_that_sets_up(probe, processes, tmp_path):
+    """A simulation node that is there (it publishes predicted_mesh) but answers the first request
+    only after prediction_timeout, as when it sets up on a large mesh: the first cloud waits for
+    that answer and is estimated with it, not degraded. (The answer comes a second after the
+    request, three times prediction_timeout: where the node ran the cloud degraded, the step
+    counts it.)"""
+    mesh = pushed_cube()
+    node = Process(tmp_path, "estimator_node", *ros_args("/setup", "prediction_timeout:=0.3", "window_size:=3"))
+    processes.append(node)
+    io = EstimatorProbe(probe, "/setup")
+    requests = []
+    probe.create_subscription(Header, "/setup/prediction_request", requests.append, REQUEST_QOS)
+    assert spin_until(probe, lambda: io.cloud.get_subscription_count() == 1
+                      and io.prediction.get_subscription_count() == 1
+                      and io.status_subscription.get_publisher_count() == 1)
+    io.mesh.publish(mesh_msg(mesh))
+    io.wait_for(clouds_received=0)
+    io.send(cloud_msg(top_points(), 1 * S), clouds_received=1)
+    assert spin_until(probe, lambda: any(stamp_ns_from_msg(r.stamp) == 1 * S for r in requests))
+    time.sleep(1.0)  # the simulator's set-up
+    io.prediction.publish(mesh_msg(mesh, 1 * S))
+    counters = io.wait_for(steps=1)
+    assert counters["degraded_steps"] == "0" and counters["predictions_received"] == "1"
+    assert counters.get("predictions_rejected", "0") == "0"
     assert_clean_exit(node, node.interrupt())
 
 

@@ -6,6 +6,8 @@ from offline_helpers import NOISE_SIGMA, TOOL_RADIUS, tiny_scenario
 
 from meshfg_ros.core.estimation.estimator import EstimatorConfig
 from meshfg_ros.core.scheduler import (
+    MAX_PREDICTION_WAIT_S,
+    PREDICTION_TIMES_KEPT,
     EstimationScheduler,
     OfflinePipeline,
     Prediction,
@@ -43,6 +45,45 @@ def test_a_cloud_waits_for_its_prediction_until_the_timeout(scenario):
     assert ready is not None and ready.predicted is None and ready.stamp_ns == step.stamp_ns
     outcome = scheduler.run(ready)
     assert outcome.result is not None and outcome.result.degraded
+
+
+def test_clouds_wait_for_a_simulator_that_is_there_until_its_prediction_times_are_known():
+    """A simulator that is there: until PREDICTION_TIMES_KEPT prediction times are measured, a
+    cloud waits for its prediction up to MAX_PREDICTION_WAIT_S, beyond prediction_timeout (the
+    first prediction includes the simulator's set-up) and beyond 1.5x the times measured so far
+    (the second here takes twice the first); then the measured times set the wait. A simulator
+    that never answers costs the first cloud MAX_PREDICTION_WAIT_S, once; without a simulator the
+    first cloud waits prediction_timeout."""
+    scenario = tiny_scenario(steps=PREDICTION_TIMES_KEPT + 1)
+    config = EstimatorConfig(measurement_sigma=NOISE_SIGMA, tool_radius=TOOL_RADIUS, max_iterations=3)
+    present = EstimationScheduler(scenario.initial_mesh, config, timeouts=TIMEOUTS, simulator_present=lambda: True)
+    start_s = 0.0
+    for step, took_s in zip(scenario.steps, [1.0] + [2.0] * (PREDICTION_TIMES_KEPT - 1)):
+        present.add_cloud(step.stamp_ns, step.points, now_s=start_s)
+        assert present.next_step(now_s=start_s + took_s - 0.05) is None  # still waiting
+        present.add_prediction(Prediction(step.stamp_ns, step.truth), now_s=start_s + took_s)
+        paired = present.next_step(now_s=start_s + took_s)
+        assert paired.stamp_ns == step.stamp_ns and np.array_equal(paired.predicted, step.truth)
+        clock = iter((start_s + took_s, start_s + took_s + 0.1))
+        assert not present.run(paired, now=lambda: next(clock)).result.degraded
+        start_s += 10.0
+    last = scenario.steps[PREDICTION_TIMES_KEPT]  # the times are known: 1.5 x 2 s
+    present.add_cloud(last.stamp_ns, last.points, now_s=start_s)
+    assert present.next_step(now_s=start_s + 1.5 * 2.0 - 0.05) is None
+    assert present.next_step(now_s=start_s + 1.5 * 2.0).predicted is None
+    first, second = scenario.steps[:2]
+    silent = EstimationScheduler(scenario.initial_mesh, config, timeouts=TIMEOUTS, simulator_present=lambda: True)
+    silent.add_cloud(first.stamp_ns, first.points, now_s=0.0)
+    assert silent.next_step(now_s=MAX_PREDICTION_WAIT_S - 0.05) is None
+    ran = silent.next_step(now_s=MAX_PREDICTION_WAIT_S)
+    assert ran.stamp_ns == first.stamp_ns and ran.predicted is None
+    clock = iter((MAX_PREDICTION_WAIT_S, MAX_PREDICTION_WAIT_S + 0.1))
+    silent.run(ran, now=lambda: next(clock))
+    silent.add_cloud(second.stamp_ns, second.points, now_s=10.0)
+    assert silent.next_step(now_s=10.0 + TIMEOUTS.prediction_timeout).predicted is None
+    absent = EstimationScheduler(scenario.initial_mesh, config, timeouts=TIMEOUTS, simulator_present=lambda: False)
+    absent.add_cloud(first.stamp_ns, first.points, now_s=0.0)
+    assert absent.next_step(now_s=TIMEOUTS.prediction_timeout).predicted is None
 
 
 def test_an_answer_or_a_later_answer_releases_a_cloud_at_once(scenario):

@@ -14,7 +14,12 @@ Two schedulers share the work, as the two nodes do:
   answer for a later cloud has come, or it has waited for its prediction: prediction_timeout, or
   longer where the simulator's recent predictions took longer (`prediction_wait_s`, so that a
   large mesh's slow predictions still arrive in time); without a prediction the step runs
-  degraded.
+  degraded. Until PREDICTION_TIMES_KEPT prediction times are measured, a cloud waits up to
+  MAX_PREDICTION_WAIT_S for a simulator that is there (the caller says whether one is:
+  `simulator_present`), unless a cloud already ran without its prediction: the first
+  prediction includes the simulator's own set-up on the mesh, one or two measured times do not
+  yet say how long the next takes (at organ scale on a loaded machine the second took 1.6x the
+  first), and the first estimates without their physics would start the window without it.
 
 After a stalled tool stream the simulator also answers the stamps it could not predict
 (`Prediction.catch_up`), and the estimator runs those clouds again with them before the next
@@ -490,11 +495,16 @@ class EstimationScheduler:
                  clock_jump_threshold: float = DEFAULT_CLOCK_JUMP_THRESHOLD_S,
                  tool_pose_extrapolation: float = TOOL_POSE_HORIZON_S,
                  timeouts: SchedulingTimeouts = SchedulingTimeouts(),
-                 scale_origin: np.ndarray | None = None) -> None:
+                 scale_origin: np.ndarray | None = None,
+                 simulator_present: Callable[[], bool] | None = None) -> None:
         """scale_origin: where mesh_scale scales a mesh read from a file (mesh_pose's position),
-        for the registration check's units hint; None for a mesh given in the world frame."""
+        for the registration check's units hint; None for a mesh given in the world frame.
+        simulator_present: whether a simulator is there to answer (the estimator node: a
+        publisher on predicted_mesh), asked while the clouds wait for the first answers (module
+        docstring); None: never assumed."""
         self.mesh = mesh
         self.timeouts = timeouts
+        self._simulator_present = simulator_present
         self._scale_origin = scale_origin
         self.estimator = SlidingWindowEstimator(mesh, config)
         self.scene = check_initial_mesh(mesh.vertices)
@@ -656,13 +666,22 @@ class EstimationScheduler:
             held.predictions[answer.stamp_ns] = answer
             return True
 
+    def _wait_s(self) -> float:
+        """How long the oldest cloud waits for its prediction: prediction_wait_s, or at least
+        MAX_PREDICTION_WAIT_S while a simulator is there whose prediction times are not yet
+        known and no cloud ran without its prediction (module docstring)."""
+        if (len(self._prediction_times_s) < PREDICTION_TIMES_KEPT and self._ran_without_answer is None
+                and self._simulator_present is not None and self._simulator_present()):
+            return max(self.prediction_wait_s, MAX_PREDICTION_WAIT_S)
+        return self.prediction_wait_s
+
     def next_step(self, now_s: float = 0.0, flush: bool = False) -> CloudStep | None:
         """The oldest cloud if it is ready to run (module docstring), else None."""
         if not self._clouds:
             return None
         queued = self._clouds[0]
         stamp = queued.stamp_ns
-        waited = flush or now_s - max(queued.arrival_s, self._solver_free_s) >= self.prediction_wait_s
+        waited = flush or now_s - max(queued.arrival_s, self._solver_free_s) >= self._wait_s()
         answer = self._answers.get(stamp)
         later_answer = any(stamp < other <= self._newest_cloud_ns for other in self._answers)
         if answer is None and not (later_answer or waited):

@@ -81,8 +81,10 @@ class EstimatorNode(Node):
             self, self.params["sim_bridge_service"], self.params["sim_bridge_stiffness"], self._frame,
             self._inputs.placer.transforms, self.params["prediction_timeout"], self._on_bridge_answer)
         self._planner_service = PlannerService(self, self._inputs.placer)
+        self._predictions = None  # the simulation node's predictions; none with sim_bridge
         if self._bridge is None:  # else nothing but the service predicts
-            self.create_subscription(TetraMesh, "predicted_mesh", self._on_prediction, PREDICTION_QOS)
+            self._predictions = self.create_subscription(TetraMesh, "predicted_mesh", self._on_prediction,
+                                                         PREDICTION_QOS)
             self.create_subscription(PredictionFailure, "prediction_failed", self._on_failure, PREDICTION_QOS)
         self.create_subscription(PoseStamped, "tool_pose", self._on_tool_pose, tool_pose_qos(self.params))
         points_qos = RELIABLE_POINTS_QOS if self.params["points_reliable"] else qos_profile_sensor_data
@@ -118,7 +120,8 @@ class EstimatorNode(Node):
             mesh, estimator_config(self.params), clock_jump_threshold=self.params["clock_jump_threshold"],
             tool_pose_extrapolation=self.params["tool_pose_horizon"],
             timeouts=SchedulingTimeouts(prediction_timeout=self.params["prediction_timeout"]),
-            scale_origin=np.asarray(self.params["mesh_pose"][:3]) if self._mesh.from_file else None)
+            scale_origin=np.asarray(self.params["mesh_pose"][:3]) if self._mesh.from_file else None,
+            simulator_present=None if self._predictions is None else self._simulation_node_present)
         self.outputs.set_mesh(state)
         if self._bridge is not None:
             self._bridge.set_mesh(mesh)
@@ -126,6 +129,10 @@ class EstimatorNode(Node):
             self._scheduler = scheduler
         self.get_logger().info(f"sparse Cholesky BLAS: {blas.backend().name}, {blas.backend().threads} thread(s); "
                                f"worker threads: {worker_threads.count()}")
+
+    def _simulation_node_present(self) -> bool:
+        """Whether a simulation node publishes predicted_mesh (for the first cloud's wait)."""
+        return self._predictions.get_publisher_count() > 0
 
     def _on_cloud(self, msg: PointCloud2) -> None:
         arrival_s = time.monotonic()
