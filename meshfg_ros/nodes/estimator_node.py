@@ -131,7 +131,7 @@ class EstimatorNode(Node):
                                f"worker threads: {worker_threads.count()}")
 
     def _simulation_node_present(self) -> bool:
-        """Whether a simulation node publishes predicted_mesh (for the first cloud's wait)."""
+        """Whether a simulation node publishes predicted_mesh (the first clouds' wait, core/scheduler.py)."""
         return self._predictions.get_publisher_count() > 0
 
     def _on_cloud(self, msg: PointCloud2) -> None:
