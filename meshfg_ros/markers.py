@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from meshfg_ros.core.estimation.covariance import chi_squared_quantile
 from meshfg_ros.io.messages import MessageFactory, RosbagsMessageFactory, header_msg
 
 MARKER_ARRAY = "visualization_msgs/msg/MarkerArray"
@@ -34,7 +35,7 @@ SPHERE, LINE_LIST, CUBE_LIST, POINTS, TEXT_VIEW_FACING, TRIANGLE_LIST, ADD = 2, 
 MAX_ELLIPSOIDS = 200
 # The ellipsoid {d : d^T Sigma^-1 d <= r^2} holds 95 % of a 3-D Gaussian's probability for r^2 the
 # chi-square quantile with 3 degrees of freedom (7.8147: semi-axes 2.80 sqrt(eigenvalues)).
-_CHI2_3DOF_95 = 7.814727903251179
+_CHI2_3DOF_95 = float(chi_squared_quantile(0.95, 3))
 _ELLIPSOID_ALPHA = 0.6
 # Line width, point size and legend text height as fractions of the mesh's bounding-box diagonal.
 _LINE_WIDTH_FRACTION = 2e-3

@@ -602,7 +602,12 @@ class EstimationScheduler:
     @property
     def prediction_wait_s(self) -> float:
         """How long a cloud waits for its prediction: prediction_timeout, or PREDICTION_WAIT_MARGIN
-        times the longest of the recent predictions' times when longer (at most MAX_PREDICTION_WAIT_S)."""
+        times the longest of the recent predictions' times when longer (at most MAX_PREDICTION_WAIT_S);
+        MAX_PREDICTION_WAIT_S while a simulator is there whose times are not yet known and no cloud
+        ran without its prediction (module docstring)."""
+        if (len(self._prediction_times_s) < PREDICTION_TIMES_KEPT and self._ran_without_answer is None
+                and self._simulator_present is not None and self._simulator_present()):
+            return max(self.timeouts.prediction_timeout, MAX_PREDICTION_WAIT_S)
         measured = PREDICTION_WAIT_MARGIN * max(self._prediction_times_s, default=0.0)
         return max(self.timeouts.prediction_timeout, min(measured, MAX_PREDICTION_WAIT_S))
 
@@ -666,22 +671,13 @@ class EstimationScheduler:
             held.predictions[answer.stamp_ns] = answer
             return True
 
-    def _wait_s(self) -> float:
-        """How long the oldest cloud waits for its prediction: prediction_wait_s, or at least
-        MAX_PREDICTION_WAIT_S while a simulator is there whose prediction times are not yet
-        known and no cloud ran without its prediction (module docstring)."""
-        if (len(self._prediction_times_s) < PREDICTION_TIMES_KEPT and self._ran_without_answer is None
-                and self._simulator_present is not None and self._simulator_present()):
-            return max(self.prediction_wait_s, MAX_PREDICTION_WAIT_S)
-        return self.prediction_wait_s
-
     def next_step(self, now_s: float = 0.0, flush: bool = False) -> CloudStep | None:
         """The oldest cloud if it is ready to run (module docstring), else None."""
         if not self._clouds:
             return None
         queued = self._clouds[0]
         stamp = queued.stamp_ns
-        waited = flush or now_s - max(queued.arrival_s, self._solver_free_s) >= self._wait_s()
+        waited = flush or now_s - max(queued.arrival_s, self._solver_free_s) >= self.prediction_wait_s
         answer = self._answers.get(stamp)
         later_answer = any(stamp < other <= self._newest_cloud_ns for other in self._answers)
         if answer is None and not (later_answer or waited):
