@@ -3,6 +3,7 @@ equilibrium under body load, sticky sphere contact, errors."""
 
 import numpy as np
 import pytest
+import scipy.sparse
 
 from meshfg_ros.core.physics.fem import ElasticModel
 from meshfg_ros.core.geometry.mesh import signed_volumes
@@ -133,6 +134,31 @@ def test_prescribed_vertices_reach_their_targets():
         solid.equilibrium(mesh.vertices, mesh.fixed_vertices[:1], mesh.vertices[mesh.fixed_vertices[:1]])
     with pytest.raises(HyperelasticInputError, match="prescribed_positions"):
         solid.equilibrium(mesh.vertices, top, targets[:-1])
+
+
+def test_newton_directions_solve_definite_and_indefinite_tangents():
+    """A positive definite free-dof tangent is solved by Cholesky, its factor refactored for the
+    next tangent of the same pattern; an indefinite one (shifted down past its smallest
+    eigenvalue) by LU, as a lifting step needs its direction whatever the energy's slope."""
+    mesh = block()
+    solid = heterogeneous_solid(mesh)
+    free = np.flatnonzero(np.repeat(~np.isin(np.arange(mesh.vertex_count), mesh.fixed_vertices), 3))
+    tangent = solid.tangent(deformed(mesh))[free][:, free].tocsr()
+    rhs = np.random.default_rng(3).normal(size=free.size)
+    direction = solid._symmetric_solve(tangent, rhs)
+    assert np.linalg.norm(tangent @ direction - rhs) <= 1e-10 * np.linalg.norm(rhs)
+    factor = solid._tangent_factor
+    assert factor is not None
+    stiffer = (2.0 * tangent).tocsr()
+    assert np.linalg.norm(stiffer @ solid._symmetric_solve(stiffer, rhs) - rhs) <= 1e-10 * np.linalg.norm(rhs)
+    assert solid._tangent_factor is factor
+
+    dense = tangent.toarray()
+    eigenvalues = np.linalg.eigvalsh(dense)
+    shift = 0.5 * (eigenvalues[0] + eigenvalues[1])  # one negative eigenvalue, none zero
+    indefinite = (tangent - shift * scipy.sparse.identity(free.size, format="csr")).tocsr()
+    direction = solid._symmetric_solve(indefinite, rhs)
+    np.testing.assert_allclose(direction, np.linalg.solve(dense - shift * np.eye(free.size), rhs), rtol=1e-8, atol=0.0)
 
 
 def test_newton_that_runs_out_of_iterations_raises(monkeypatch):
