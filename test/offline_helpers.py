@@ -6,6 +6,7 @@ well under a second, unlike the full scenarios of core.scenarios.
 """
 from __future__ import annotations
 
+import functools
 import importlib.metadata
 import sys
 from pathlib import Path
@@ -17,7 +18,7 @@ from scipy.spatial.transform import Rotation
 from meshfg_ros.core.physics.fem import ElasticModel
 from meshfg_ros.synthetic.meshing import box_mesh, cube_mesh
 from meshfg_ros.evaluation.metrics import sample_surface
-from meshfg_ros.synthetic.scenarios import FIRST_STAMP_NS, STEP_PERIOD_NS, Scenario, ScenarioStep, pose
+from meshfg_ros.synthetic.scenarios import FIRST_STAMP_NS, STEP_PERIOD_NS, Scenario, ScenarioStep, generate, pose
 from meshfg_ros.core.physics.simulator import ElasticSimulator, SimulatorConfig
 
 SIDE = 0.02
@@ -32,6 +33,13 @@ BAGS = REPOSITORY / "bags"
 # tool arm's base in the world (each [x, y, z, qx, qy, qz, qw], static).
 OPTICAL = np.array([0.0, 0.0, 0.05, *Rotation.from_euler("xyz", [-90.0, 0.0, -90.0], degrees=True).as_quat()])
 BASE = np.array([0.3, -0.2, 0.1, *Rotation.from_euler("xyz", [0.0, 0.0, 40.0], degrees=True).as_quat()])
+
+
+@functools.lru_cache(maxsize=2)
+def shared_scene(name: str, seed: int) -> Scenario:
+    """`generate(name, seed=seed)` once per test session, for tests that only read the scene (a
+    mismatch scene's ten-step truth takes about 12 s)."""
+    return generate(name, seed=seed)
 
 
 def robot_statics():

@@ -6,6 +6,7 @@ that simulator mid-sequence (sheet-cut), served in its answers' invalid element 
 followed by every estimate from then on."""
 import numpy as np
 import pytest
+from offline_helpers import shared_scene
 
 from meshfg_ros.evaluation.bridge_accuracy import bridge_accuracy
 from meshfg_ros.synthetic.scenarios import generate
@@ -16,7 +17,7 @@ TARGET = 0.8  # FG / simulation RMSE over all vertices (issue 43)
 
 
 def test_the_estimate_beats_the_external_simulator_alone_on_liver_gravity():
-    result = bridge_accuracy(generate("liver-gravity", seed=0))
+    result = bridge_accuracy(shared_scene("liver-gravity", seed=0))
     fg, sim = np.array(result["fg_rmse"]), np.array(result["sim_rmse"])
     assert len(fg) == 10 and np.all(np.isfinite(fg))
     assert sim[-1] > 5e-4  # the simulator's own error grows: the scene's model is off

@@ -6,6 +6,7 @@ the same path does (evaluation/bridge_accuracy.py)."""
 import numpy as np
 import pytest
 import yaml
+from offline_helpers import shared_scene
 from sim_bridge.srv import FactorGraphState
 from test_nodes import (  # noqa: F401 - probe and processes are fixtures
     FACTORY,
@@ -32,7 +33,6 @@ from meshfg_ros.io.tf_messages import TF_STATIC_TOPIC, transforms_to_tf_message
 from meshfg_ros.nodes.frame_inputs import TF_STATIC_QOS
 from meshfg_ros.parameters import parameters_yaml
 from meshfg_ros.replay import SIMULATOR_PARAMETERS
-from meshfg_ros.synthetic.scenarios import generate
 
 pytestmark = pytest.mark.slow  # a scene's truth, then two node processes over DDS
 
@@ -40,7 +40,7 @@ TARGET = 0.8
 
 
 def test_estimates_from_the_server_beat_its_states_on_liver_gravity(probe, processes, tmp_path):
-    scene = generate("liver-gravity", seed=0)
+    scene = shared_scene("liver-gravity", seed=0)
     mesh_file = tmp_path / "scene.vtu"
     save_mesh(scene.initial_mesh, mesh_file)
     params = {SIMULATOR_PARAMETERS[name]: value for name, value in vars(scene.simulator_config).items()
