@@ -338,8 +338,8 @@ ORGAN_RECORDING_SEED = 5
 def organ_recording() -> Path:
     """The organ-scale recording of the organ_live section: the organ-slab scene
     (meshfg_ros.synthetic: a slab with a stiff inclusion, meshed to ~6,400 vertices, full-resolution
-    clouds of about 7,000 points), synthesized once (a few minutes) into the user's cache, under a
-    name that changes with the scene's mesh size."""
+    clouds of about 7,000 points), synthesized once (about 90 s on 2 cores) into the user's cache,
+    under a name that changes with the scene's mesh size."""
     from meshfg_ros.synthetic.mismatch_scenes import ORGAN_SLAB_MESH_SIZE
     from meshfg_ros.synthetic.recordings import synthesize
 
@@ -347,7 +347,8 @@ def organ_recording() -> Path:
     path = cache / f"organ-slab-{1e6 * ORGAN_SLAB_MESH_SIZE:.0f}um-seed{ORGAN_RECORDING_SEED}"
     if not path.exists():
         cache.mkdir(parents=True, exist_ok=True)
-        print(f"bench: synthesizing the organ-scale recording into {path} (once; a few minutes)", file=sys.stderr)
+        print(f"bench: synthesizing the organ-scale recording into {path} (once; about 90 s on 2 cores)",
+              file=sys.stderr)
         partial = cache / f"{path.name}.partial-{os.getpid()}"
         synthesize("organ-slab", partial, seed=ORGAN_RECORDING_SEED)
         partial.rename(path)
