@@ -345,8 +345,8 @@ class NeoHookeanSolid:
 
     def _symmetric_solve(self, matrix: scipy.sparse.spmatrix, right_hand_side: np.ndarray) -> np.ndarray:
         """matrix^-1 rhs for a symmetric free-dof tangent (whole vertices: its dofs come in x, y,
-        z triples): by sparse Cholesky (CHOLMOD) where it is positive definite, as at most Newton
-        steps, else by SuperLU's LU, which also solves an indefinite tangent (a lifting step
+        z triples): by sparse Cholesky (CHOLMOD) where it is positive definite (at most Newton
+        steps), else by SuperLU's LU, which also solves an indefinite tangent (a lifting step
         takes its direction whatever the energy's slope). The ten-step truths of liver-gravity and
         slab-inclusion (124 and 122 directions, about 3,900 and 3,700 free dofs) took 2.1 and
         1.6 s for their directions against 9.1 and 7.2 s with SuperLU alone, and the same
