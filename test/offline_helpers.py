@@ -1,9 +1,9 @@
 """Small synthetic scenes and recordings for the offline tests (synth, replay, eval, render, CLI).
 
 A 2 cm cube of 27 vertices, bottom fixed, pushed down on its top by a 5 mm sphere for a few
-1 Hz steps; measurements are noisy samples of the true top, +x and +y faces. Everything runs in
-well under a second, unlike the full scenarios of core.scenarios (`shared_scene` synthesizes
-one of those once per test session).
+1 Hz steps; measurements are noisy samples of the true top, +x and +y faces. Everything runs
+in well under a second, unlike the full scenarios of synthetic/scenarios.py (`shared_scene`
+synthesizes one of those once per test session).
 """
 from __future__ import annotations
 
