@@ -117,7 +117,8 @@ def _synth_arguments(parser: argparse.ArgumentParser) -> None:
 def run_synth(args: argparse.Namespace) -> int:
     from meshfg_ros.synthetic.recordings import synthesize
 
-    counts = synthesize(args.scenario, args.out, seed=args.seed, max_points=args.max_points)
+    counts = synthesize(args.scenario, args.out, seed=args.seed, max_points=args.max_points,
+                        progress=_progress(f"synth {args.scenario} truth"))
     print(f"wrote {args.out}: " + ", ".join(f"{topic} x{count}" for topic, count in sorted(counts.items())))
     return 0
 

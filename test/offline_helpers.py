@@ -36,6 +36,16 @@ OPTICAL = np.array([0.0, 0.0, 0.05, *Rotation.from_euler("xyz", [-90.0, 0.0, -90
 BASE = np.array([0.3, -0.2, 0.1, *Rotation.from_euler("xyz", [0.0, 0.0, 40.0], degrees=True).as_quat()])
 
 
+def counting_progress(seen: list):
+    """A progress(iterable, total) wrapper that records the total, then each step it passes on."""
+    def progress(steps, total):
+        seen.append(total)
+        for step in steps:
+            seen.append("step")
+            yield step
+    return progress
+
+
 @functools.lru_cache(maxsize=2)
 def shared_scene(name: str, seed: int) -> Scenario:
     """`generate(name, seed=seed)` once per test session, for tests that only read the scene (a

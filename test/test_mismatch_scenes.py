@@ -5,6 +5,7 @@ from dataclasses import asdict
 
 import numpy as np
 import pytest
+from offline_helpers import counting_progress
 
 from meshfg_ros.core.geometry.mesh import signed_volumes
 from meshfg_ros.synthetic.scenarios import MISMATCH_SCENARIOS, SCENARIOS, ScenarioError, generate
@@ -50,6 +51,12 @@ def open_loop(scene):
 def test_scenes_are_registered():
     assert set(MISMATCH_SCENARIOS) <= set(SCENARIOS)
     assert len(set(SCENARIOS)) == len(SCENARIOS) == 12
+
+
+def test_the_hyperelastic_truth_reports_each_step_to_the_progress():
+    seen = []
+    generate("dome-tilted", seed=SEED, steps=STEPS, progress=counting_progress(seen))
+    assert seen == [STEPS] + ["step"] * STEPS
 
 
 def test_same_seed_gives_equal_scenes(scene_pair):

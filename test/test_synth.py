@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
-from offline_helpers import BAGS, MESHFG, mkl_installed, tiny_scenario
+from offline_helpers import BAGS, MESHFG, counting_progress, mkl_installed, tiny_scenario
 from rosbags.highlevel import AnyReader
 
-from meshfg_ros.synthetic.scenarios import FIRST_STAMP_NS
+from meshfg_ros.synthetic.scenarios import FIRST_STAMP_NS, generate
 from meshfg_ros.io.messages import MeshState, PointCloudRecord, PoseRecord, meshfg_typestore
 from meshfg_ros.io.pointcloud import decode_pointcloud2
 from meshfg_ros.io.recording import RecordingExistsError, RecordingReader
@@ -150,6 +150,15 @@ def test_independent_mcap_reader_decodes_every_message(recording):
     assert seen == counts
 
 
+def test_generate_reports_each_truth_step_to_its_progress():
+    seen = []
+    scenario = generate("cube-translate", seed=0, steps=3, progress=counting_progress(seen))
+    assert len(scenario.steps) == 3
+    assert seen == [3, "step", "step", "step"]
+    generate("cube-translate", seed=0, steps=2)  # the progress belonged to the call that returned
+    assert seen == [3, "step", "step", "step"]
+
+
 def test_bundled_recordings_are_listed_and_small():
     readme = (BAGS / "README.md").read_text()
     for name, seed in BUNDLED.items():
@@ -182,7 +191,9 @@ def regenerate_bundled(tmp_path, **environment) -> Path:
     if max_points is not None:
         command += ["--max-points", str(max_points)]
     env = {key: value for key, value in os.environ.items() if key != "MESHFG_BLAS"}
-    subprocess.run(command, check=True, capture_output=True, timeout=300, env={**env, **environment})
+    result = subprocess.run(command, check=True, capture_output=True, text=True, timeout=300,
+                            env={**env, **environment})
+    assert f"synth {REGENERATED} truth" in result.stderr  # its progress bar over the truth's steps
     return out
 
 

@@ -350,7 +350,8 @@ def organ_recording() -> Path:
         print(f"bench: synthesizing the organ-scale recording into {path} (once; about 90 s on 2 cores)",
               file=sys.stderr)
         partial = cache / f"{path.name}.partial-{os.getpid()}"
-        synthesize("organ-slab", partial, seed=ORGAN_RECORDING_SEED)
+        synthesize("organ-slab", partial, seed=ORGAN_RECORDING_SEED,
+                   progress=lambda steps, total: tqdm(steps, total=total, desc="organ-slab truth", file=sys.stderr))
         partial.rename(path)
     return path
 

@@ -262,8 +262,10 @@ def summary(rows: list[dict]) -> dict:
     return result
 
 
-def _recording(name: str, scenes_dir: Path, seed: int, bundled: Callable[[str], Path | None]) -> Path:
-    """The scene's recording: bundled, or synthesised once into scenes_dir (kept for reruns)."""
+def _recording(name: str, scenes_dir: Path, seed: int, bundled: Callable[[str], Path | None],
+               progress=None) -> Path:
+    """The scene's recording: bundled, or synthesised once into scenes_dir (kept for reruns),
+    its truth's steps reported to `progress` (as `generate`'s)."""
     if name in BUNDLED_SCENES and seed == 0:
         path = bundled(name)
         if path is not None:
@@ -271,7 +273,7 @@ def _recording(name: str, scenes_dir: Path, seed: int, bundled: Callable[[str], 
     path = scenes_dir / f"{name}-seed{seed}"
     if not (path / "metadata.yaml").is_file():
         print(f"accuracy: synthesising {name} (seed {seed}) into {path}", file=sys.stderr)
-        synthesize(name, path, seed=seed)
+        synthesize(name, path, seed=seed, progress=progress)
     return path
 
 
@@ -282,7 +284,8 @@ def run_accuracy(out: Path, scenes=SCENES, seed: int = 0, bundled: Callable[[str
     out.mkdir(parents=True, exist_ok=True)
     rows = []
     for name in scenes:
-        recording = _recording(name, out / "scenes", seed, bundled)
+        recording = _recording(name, out / "scenes", seed, bundled,
+                               None if progress is None else progress(f"{name} truth"))
         replay = out / name / "replay"
         if replay.exists():
             _remove_tree(replay)

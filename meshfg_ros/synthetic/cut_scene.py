@@ -41,7 +41,7 @@ from meshfg_ros.synthetic.mismatch_scenes import (
     _smooth_field,
     _straight_path,
 )
-from meshfg_ros.synthetic.scenarios import Scenario, ScenarioError
+from meshfg_ros.synthetic.scenarios import Scenario, ScenarioError, truth_steps
 
 __all__ = ["SHEET_MESH_SIZE", "build_cut_scene"]
 
@@ -137,7 +137,8 @@ def _cut_truth(mesh, youngs: np.ndarray, unstressed: np.ndarray, loading: _Loadi
     contact = StickySphereContact(solid, loading.tool_radius, loading.true_tool_centres[0], TRUTH_SUBSTEPS,
                                   loading.body_forces[0])
     truths, cut = [], False
-    for centre, force, slots in zip(loading.true_tool_centres[1:], loading.body_forces[1:], removed):
+    for centre, force, slots in truth_steps(zip(loading.true_tool_centres[1:], loading.body_forces[1:], removed),
+                                            len(removed)):
         if slots.size and not cut:
             cut_mesh = mesh.without_elements(slots)
             held = cut_mesh.vertices.copy()

@@ -46,7 +46,8 @@ from scipy.spatial.transform import Rotation
 from meshfg_ros.synthetic.camera import CaptureOptions, PinholeCamera, capture
 from meshfg_ros.core.geometry.mesh import TetMesh, signed_volumes
 from meshfg_ros.synthetic.meshing import MeshingError, compact_tetrahedra, gmsh_model
-from meshfg_ros.synthetic.scenarios import Scenario, ScenarioError, ScenarioStep, _stamp, liver_mesh, pose
+from meshfg_ros.synthetic.scenarios import (Scenario, ScenarioError, ScenarioStep, _stamp, liver_mesh, pose,
+                                             truth_steps)
 from meshfg_ros.core.physics.simulator import SimulatorConfig
 
 from meshfg_ros.synthetic.hyperelastic import NeoHookeanSolid, StickySphereContact
@@ -206,7 +207,8 @@ def _simulate_truth(scene_mesh: _SceneMesh, loading: _Loading) -> list[np.ndarra
     contact = StickySphereContact(solid, loading.tool_radius, loading.true_tool_centres[0], TRUTH_SUBSTEPS,
                                   loading.body_forces[0])
     return [contact.advance(centre, force)
-            for centre, force in zip(loading.true_tool_centres[1:], loading.body_forces[1:])]
+            for centre, force in truth_steps(zip(loading.true_tool_centres[1:], loading.body_forces[1:]),
+                                             len(loading.true_tool_centres) - 1)]
 
 
 def _assemble(name: str, seed: int, rng: np.random.Generator, scene_mesh: _SceneMesh, loading: _Loading,

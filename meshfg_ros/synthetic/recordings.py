@@ -113,10 +113,12 @@ def write_scenario(scenario: Scenario, path: str | Path, max_points: int | None 
         return dict(writer.counts)
 
 
-def synthesize(name: str, path: str | Path, seed: int = 0, max_points: int | None = None) -> dict[str, int]:
-    """Generate scenario `name` from `seed` and write it to `path` (see write_scenario)."""
+def synthesize(name: str, path: str | Path, seed: int = 0, max_points: int | None = None,
+               progress=None) -> dict[str, int]:
+    """Generate scenario `name` from `seed` and write it to `path` (see write_scenario);
+    `progress` as `generate`'s."""
     path = Path(path)
     if path.exists() or path.is_symlink():
         # Checked before the (slow) generation as well as by the writer.
         raise RecordingExistsError(f"{path} exists already; recordings are never overwritten")
-    return write_scenario(generate(name, seed), path, max_points)
+    return write_scenario(generate(name, seed, progress=progress), path, max_points)

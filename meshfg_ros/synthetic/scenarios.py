@@ -10,7 +10,8 @@ the model; see shared notes on modelling.
 """
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterable, Iterator
+from contextvars import ContextVar
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from pathlib import Path
@@ -80,8 +81,20 @@ class Scenario:
             yield "cloud", step.stamp_ns, step.points
 
 
-def generate(name: str, seed: int = 0, steps: int | None = None) -> Scenario:
-    """Build scenario `name` deterministically from `seed`."""
+# Where the scene being generated reports its truth's steps (`generate`'s `progress`), so that
+# the scene builders and their truth simulations need not pass it down to one another.
+_TRUTH_PROGRESS: ContextVar[Callable | None] = ContextVar("truth_progress", default=None)
+
+
+def truth_steps(steps: Iterable, total: int) -> Iterable:
+    """`steps` of a truth simulation, reported to the progress of the `generate` call it runs in."""
+    progress = _TRUTH_PROGRESS.get()
+    return steps if progress is None else progress(steps, total)
+
+
+def generate(name: str, seed: int = 0, steps: int | None = None, progress: Callable | None = None) -> Scenario:
+    """Build scenario `name` deterministically from `seed`. `progress`: a progress(iterable,
+    total) wrapper (a tqdm bar in the CLI) that the truth's simulation reports its steps to."""
     builders = {
         "cube-translate": lambda: _cube(seed, steps or 15, motion="translate", prior="spd"),
         "cube-shear-spd": lambda: _cube(seed, steps or 15, motion="shear", prior="spd"),
@@ -94,7 +107,11 @@ def generate(name: str, seed: int = 0, steps: int | None = None) -> Scenario:
     }
     if name not in builders:
         raise ScenarioError(f"unknown scenario {name!r}; choose one of {', '.join(SCENARIOS)}")
-    return builders[name]()
+    token = _TRUTH_PROGRESS.set(progress)
+    try:
+        return builders[name]()
+    finally:
+        _TRUTH_PROGRESS.reset(token)
 
 
 def _mismatch_scene(name: str, seed: int, steps: int) -> Scenario:
@@ -125,7 +142,7 @@ def _simulate_truth(mesh: TetMesh, config: SimulatorConfig, tool_poses, grasped=
     simulator = ElasticSimulator(mesh, config, grasped_vertices=grasped)
     simulator.reset(tool_poses[0])
     state, states = mesh.vertices.copy(), []
-    for tool_pose in tool_poses[1:]:
+    for tool_pose in truth_steps(tool_poses[1:], len(tool_poses) - 1):
         state = simulator.predict(state, tool_pose, STEP_PERIOD_NS * 1e-9)
         states.append(state)
     return states
