@@ -90,9 +90,13 @@ def cpu_vendor() -> str:
 
 
 def cpu_model() -> str:
-    """The CPU model name and the number of cores this process may run on."""
+    """The CPU model name, its family and model numbers where the CPU gives them, and the number
+    of cores this process may run on. A virtual machine may show a bare name ("AMD EPYC") for
+    CPUs of several generations, which the family and model tell apart."""
     name = _cpuinfo_field("model name") or platform.processor() or platform.machine() or "unknown CPU"
-    return f"{name}, {len(os.sched_getaffinity(0))} cores"
+    family, model = _cpuinfo_field("cpu family"), _cpuinfo_field("model")
+    generation = f" (family {family}, model {model})" if family and model else ""
+    return f"{name}{generation}, {len(os.sched_getaffinity(0))} cores"
 
 
 def choose(vendor: str, setting: str | None) -> str:

@@ -289,20 +289,22 @@ def _accuracy_arguments(parser: argparse.ArgumentParser) -> None:
     _results_argument(parser, "accuracy")
 
 
-def _results_argument(parser: argparse.ArgumentParser, section: str) -> None:
+def _results_argument(parser: argparse.ArgumentParser, section: str, why: str = "") -> None:
     parser.add_argument("--results", type=Path, metavar="MD",
-                        help=f"also write the printed tables into this markdown file's '{section}' section, with the "
-                             "machine and the commit (e.g. docs/results.md; created if missing, its other "
+                        help=f"also write the printed tables into this markdown file's '{section}' section ({why}with "
+                             "the machine and the commit; e.g. docs/results.md; created if missing, its other "
                              "sections kept)")
 
 
-def _write_results(args: argparse.Namespace, section: str, report: str, markdown: bool) -> None:
-    """The printed report into --results' section (results_file.py), said on stdout."""
+def _write_results(args: argparse.Namespace, section: str, report: str, markdown: bool,
+                   machine: str | None = None) -> None:
+    """The printed report into --results' section (results_file.py), said on stdout; `machine`:
+    the CPU it was measured on (default: this process's)."""
     if args.results is None:
         return
     from meshfg_ros import results_file
 
-    results_file.write_section(args.results, section, args.command_line, report, markdown=markdown)
+    results_file.write_section(args.results, section, args.command_line, report, markdown=markdown, machine=machine)
     print(f"wrote section '{section}' of {args.results}")
 
 
@@ -357,7 +359,7 @@ def _bench_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--runs", type=_positive_integer, default=1,
                         help="measure this many times in a row and say in how many runs each target held "
                              "(default 1)")
-    _results_argument(parser, "bench")
+    _results_argument(parser, "bench on <this CPU>", "a section per CPU model, since speed depends on it; ")
 
 
 def run_bench(args: argparse.Namespace) -> int:
@@ -389,7 +391,10 @@ def run_bench(args: argparse.Namespace) -> int:
             bench.write_tally_plot(results, args.plot)
     if args.plot is not None:
         print(f"wrote {args.plot}")
-    _write_results(args, "bench", "\n".join(printed), markdown=False)
+    from meshfg_ros.results_file import bench_section
+
+    _write_results(args, bench_section(results[0]["machine"]["cpu"]), "\n".join(printed), markdown=False,
+                   machine=results[0]["machine"]["cpu"])
     return 0
 
 

@@ -3,8 +3,10 @@
 `meshfg accuracy --results FILE` and `meshfg bench --results FILE` (FILE: docs/results.md in
 this repository) write the text they print into FILE, between markers named after the section,
 under the command line that made it, the machine (CPU model, cores) and the commit it ran on.
-A run rewrites its own section only: the other commands' sections are kept as they are. Figures
-are therefore never typed by hand, and each says what made it and where.
+A run rewrites its own section only: the other commands' sections are kept as they are. The bench
+writes a section per CPU model (`bench_section`): its figures depend on the machine, and the
+project's machines differ, so a run on one keeps the figures of the others. Figures are
+therefore never typed by hand, and each says what made it and where.
 """
 
 from __future__ import annotations
@@ -13,14 +15,14 @@ import os
 import subprocess
 from pathlib import Path
 
-__all__ = ["HEADER", "commit", "read_section", "section_text", "write_section"]
+__all__ = ["HEADER", "bench_section", "commit", "read_section", "section_text", "write_section"]
 
 HEADER = """# Results
 
 Generated: each section is written by the command it names (`--results docs/results.md`), with
-the machine and the commit it ran on; running a command again rewrites its section only. Do not
-edit by hand. What the columns mean and which targets they are judged against: README.md,
-"Results".
+the machine and the commit it ran on; running a command again rewrites its section only (the
+bench's: the one of its CPU model). Do not edit by hand. What the columns mean and which
+targets they are judged against: README.md, "Results".
 """
 
 _REPOSITORY = Path(__file__).resolve().parent.parent
@@ -32,6 +34,12 @@ def _begin(section: str) -> str:
 
 def _end(section: str) -> str:
     return f"<!-- meshfg results: {section}: end -->"
+
+
+def bench_section(machine: str) -> str:
+    """The name of `meshfg bench`'s section for the CPU `machine` (as blas.cpu_model names it):
+    one section per CPU model (module doc)."""
+    return f"bench on {machine}"
 
 
 def commit(repository: Path = _REPOSITORY, results: Path | None = None) -> str:

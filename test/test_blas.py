@@ -111,6 +111,15 @@ def test_choice_follows_the_cpu_vendor_unless_set():
 
 
 @pytest.mark.slow
+def test_cpu_model_names_the_family_and_model_that_a_bare_name_hides(monkeypatch):
+    cpuinfo = {"model name": "AMD EPYC", "cpu family": "26", "model": "2"}
+    monkeypatch.setattr(blas, "_cpuinfo_field", cpuinfo.get)
+    cores = len(os.sched_getaffinity(0))
+    assert blas.cpu_model() == f"AMD EPYC (family 26, model 2), {cores} cores"
+    cpuinfo.pop("cpu family")  # a CPU (or an OS) that gives no family: the name alone
+    assert blas.cpu_model() == f"AMD EPYC, {cores} cores"
+
+
 def test_bundled_blas_solves_without_mkl(bundled):
     assert bundled["backend"] == "bundled" and bundled["detail"].startswith("MESHFG_BLAS=bundled")
     assert bundled["mkl_calls"] == []  # MKL was never called

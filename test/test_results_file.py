@@ -11,6 +11,7 @@ from meshfg_ros.benchmarks import bench
 from meshfg_ros.evaluation import accuracy
 
 ON = {"cpu": "Some CPU 9000, 2 cores", "blas": "bundled", "blas_threads": 1, "blas_detail": "chosen for SomeVendor"}
+BENCH = "bench on Some CPU 9000, 2 cores"  # the bench's section: one per CPU model
 
 
 def accuracy_result(ratio: float) -> dict:
@@ -18,13 +19,13 @@ def accuracy_result(ratio: float) -> dict:
     return {"scenes": rows, "summary": accuracy.summary(rows)}
 
 
-def bench_result(p95_ms: float) -> dict:
-    row = {"machine": ON, "vertices": 512, "points": 2000, "window_size": 10, "median_ms": 20.0, "p95_ms": p95_ms,
+def bench_result(p95_ms: float, on: dict = ON) -> dict:
+    row = {"machine": on, "vertices": 512, "points": 2000, "window_size": 10, "median_ms": 20.0, "p95_ms": p95_ms,
            "latencies_ms": [20.0, p95_ms], "iterations": 1.0, "linear_solve_ms": 7.0, "rmse_mm": 0.25,
            "prediction_rmse_mm": 0.49, "measurement_sigma_m": 1e-3, "converged_share": 1.0,
            "stages": {"vertices": 512, "prediction": 40.0, "messaging": 1.0, "learning": 5.0,
                       "update": {"association": 3.0, "linearisation": 9.0, "linear_solves": 7.0, "covariance": 2.0}}}
-    return {"machine": ON, "paper_scale": row}
+    return {"machine": on, "paper_scale": row}
 
 
 @pytest.fixture
@@ -61,7 +62,7 @@ def test_each_command_writes_what_it_printed_into_its_own_section(tmp_path, caps
     assert cli.main(["bench", "--sections", "estimator", "--results", str(results)]) == 0
     bench_report = printed_report(capsys, "wrote section")
     assert "p95 25.0 ms" in bench_report and bench_report.startswith("CPU: Some CPU 9000")
-    assert f"```text\n{bench_report}\n```" in results_file.read_section(results, "bench")
+    assert f"```text\n{bench_report}\n```" in results_file.read_section(results, BENCH)
     assert results_file.read_section(results, "accuracy") == section  # the other section kept
 
     # Running a command again replaces its section only, once.
@@ -72,8 +73,27 @@ def test_each_command_writes_what_it_printed_into_its_own_section(tmp_path, caps
     assert "| liver-push | 1.000 / 1.000 | 0.60 |" in again
     text = results.read_text()
     assert again in results_file.read_section(results, "accuracy") and accuracy_table not in text
-    assert text.count("## accuracy\n") == 1 and text.count("## bench\n") == 1
-    assert f"```text\n{bench_report}\n```" in results_file.read_section(results, "bench")
+    assert text.count("## accuracy\n") == 1 and text.count(f"## {BENCH}\n") == 1
+    assert f"```text\n{bench_report}\n```" in results_file.read_section(results, BENCH)
+
+
+def test_each_cpu_model_keeps_its_own_bench_section(tmp_path, capsys, fixed_measurements):
+    results = tmp_path / "results.md"
+    other = {**ON, "cpu": "Other CPU 100 (family 25, model 1), 2 cores"}
+    fixed_measurements["bench"] += [bench_result(25.0), bench_result(41.0, other), bench_result(27.0)]
+    assert cli.main(["bench", "--sections", "estimator", "--results", str(results)]) == 0
+    first = printed_report(capsys, "wrote section")
+    assert cli.main(["bench", "--sections", "estimator", "--results", str(results)]) == 0
+    on_other = printed_report(capsys, "wrote section")
+    assert "p95 41.0 ms" in on_other
+    mine, theirs = results_file.read_section(results, BENCH), results_file.read_section(results, f"bench on {other['cpu']}")
+    assert f"```text\n{first}\n```" in mine and "on Some CPU 9000, 2 cores, commit" in mine
+    assert f"```text\n{on_other}\n```" in theirs and f"on {other['cpu']}, commit" in theirs
+    # A later run on the first CPU rewrites its section only.
+    assert cli.main(["bench", "--sections", "estimator", "--results", str(results)]) == 0
+    again = printed_report(capsys, "wrote section")
+    assert "p95 27.0 ms" in again and f"```text\n{again}\n```" in results_file.read_section(results, BENCH)
+    assert results_file.read_section(results, f"bench on {other['cpu']}") == theirs
 
 
 def test_bench_runs_and_their_tally_go_into_the_section(tmp_path, capsys, fixed_measurements):
@@ -82,7 +102,7 @@ def test_bench_runs_and_their_tally_go_into_the_section(tmp_path, capsys, fixed_
     assert cli.main(["bench", "--sections", "estimator", "--runs", "2", "--results", str(results)]) == 0
     printed = printed_report(capsys, "wrote section")
     assert "Run 2 of 2:" in printed and "met in 1 of 2 runs" in printed
-    assert f"```text\n{printed}\n```" in results_file.read_section(results, "bench")
+    assert f"```text\n{printed}\n```" in results_file.read_section(results, BENCH)
 
 
 def test_without_results_no_file_is_written(tmp_path, capsys, fixed_measurements, monkeypatch):
