@@ -151,7 +151,7 @@ def test_eval_and_render_end_to_end(recordings, tmp_path):
     completed = meshfg("render", recordings / "replay", "--out", tmp_path / "pictures", "--truth", recordings / "truth")
     assert completed.returncode == 0, completed.stderr
     assert sorted(p.name for p in (tmp_path / "pictures").iterdir()) == [
-        "convergence.png", "error_per_step.png", "estimate.png", "measurements.png"]
+        "calibration.png", "convergence.png", "error_per_step.png", "estimate.png", "measurements.png"]
 
 
 def test_replay_of_a_bundled_recording(tmp_path):

@@ -183,7 +183,9 @@ def test_tables_and_json(evaluation, tmp_path):
 def test_render_writes_pictures(camera_scene, evaluation, tmp_path):
     _, truth, replay = camera_scene
     written = render(replay, tmp_path / "pictures", truth, evaluation)
-    assert [p.name for p in written] == ["estimate.png", "measurements.png", "error_per_step.png", "convergence.png"]
+    assert "calibration" in evaluation  # the replay publishes position_std on the truth's mesh
+    assert [p.name for p in written] == ["estimate.png", "measurements.png", "error_per_step.png", "calibration.png",
+                                         "convergence.png"]
     for path in written:
         image = imread(path)
         assert image.ndim == 3 and image.shape[0] > 200 and image.shape[1] > 300

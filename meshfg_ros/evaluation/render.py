@@ -223,7 +223,10 @@ def _convergence_figure(statuses: list[StatusRecord], histories: list[np.ndarray
 
 def render(replay_path: str | Path, out_dir: str | Path, truth_path: str | Path | None = None,
            evaluation: dict | None = None) -> list[Path]:
-    """Write the PNGs of a replay into the new (or empty) directory out_dir; returns their paths.
+    """Write the PNGs of a replay into the new (or empty) directory out_dir; returns their paths:
+    the estimate, the last cloud on it, with a truth the error per step and the reliability
+    diagrams of the published std (where the replay publishes it on the truth's mesh), and the
+    convergence.
 
     evaluation: a result of evaluation.evaluate_recordings for the same pair (computed from
     truth_path when None and a truth is given).
@@ -256,6 +259,8 @@ def render(replay_path: str | Path, out_dir: str | Path, truth_path: str | Path 
         written.append(_save(_measurement_figure(final, faces, clouds[final.stamp_ns]), out / "measurements.png"))
     if evaluation is not None:
         written.append(_save(_error_figure(evaluation), out / "error_per_step.png"))
+        if "calibration" in evaluation:  # the published std against the truth (reliability diagrams)
+            written.append(_save(calibration_figure(evaluation), out / "calibration.png"))
     if statuses:
         written.append(_save(_convergence_figure(statuses, histories), out / "convergence.png"))
     return written
