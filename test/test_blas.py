@@ -110,7 +110,6 @@ def test_choice_follows_the_cpu_vendor_unless_set():
         blas.choose("GenuineIntel", "openblas")
 
 
-@pytest.mark.slow
 def test_cpu_model_names_the_family_and_model_that_a_bare_name_hides(monkeypatch):
     cpuinfo = {"model name": "AMD EPYC", "cpu family": "26", "model": "2"}
     monkeypatch.setattr(blas, "_cpuinfo_field", cpuinfo.get)
@@ -120,6 +119,7 @@ def test_cpu_model_names_the_family_and_model_that_a_bare_name_hides(monkeypatch
     assert blas.cpu_model() == f"AMD EPYC, {cores} cores"
 
 
+@pytest.mark.slow
 def test_bundled_blas_solves_without_mkl(bundled):
     assert bundled["backend"] == "bundled" and bundled["detail"].startswith("MESHFG_BLAS=bundled")
     assert bundled["mkl_calls"] == []  # MKL was never called
