@@ -393,8 +393,8 @@ def run_bench(args: argparse.Namespace) -> int:
         print(f"wrote {args.plot}")
     from meshfg_ros.results_file import bench_section
 
-    _write_results(args, bench_section(results[0]["machine"]["cpu"]), "\n".join(printed), markdown=False,
-                   machine=results[0]["machine"]["cpu"])
+    cpu = results[0]["machine"]["cpu"]
+    _write_results(args, bench_section(cpu), "\n".join(printed), markdown=False, machine=cpu)
     return 0
 
 
