@@ -11,13 +11,16 @@ from scipy.stats import chi2
 
 from meshfg_ros.core.estimation.covariance import (
     DENSE_MAX_DOFS,
+    MIN_SHARED_TRIANGLES,
     ForgettingMean,
     MarginalCovariance,
     _chi_squared_density,
     chi_squared_quantile,
     clipped_inverse,
+    persistent_offset_scale,
     prior_error_scale,
     published_covariance,
+    triangle_offsets,
 )
 from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError
 from meshfg_ros.core.solvers.sparse_cholesky import SparseCholesky
@@ -216,6 +219,77 @@ def test_prior_error_scale_is_the_median_estimate_where_the_prior_variances_do_n
         distances = np.abs(rng.normal(size=points)) * np.sqrt(variance + sigma**2)
         assert prior_error_scale(distances, variance, sigma, gate_spreads=np.inf) == pytest.approx(
             _median_estimate(distances, variance, sigma), rel=1e-9)
+
+
+def _two_clouds(rng, error_std, noise_sigma, faces=2000, points_per_face=20, leak_share=0.0):
+    """Two clouds' signed distances to a predicted surface of `faces` triangles whose normal
+    error is one N(0, error_std^2) offset per triangle, the same for both clouds, with
+    independent N(0, noise_sigma^2) noise; `leak_share` of the points are leaks, 10 noise
+    sigmas off the surface at the same triangles in both clouds."""
+    surface = np.arange(3 * faces).reshape(faces, 3)
+    error = rng.normal(0.0, error_std, faces)
+    leaking = np.arange(faces) < leak_share * faces
+    clouds = []
+    for _ in range(2):
+        triangle = rng.integers(0, faces, faces * points_per_face)
+        signed = error[triangle] + rng.normal(0.0, noise_sigma, triangle.size)
+        signed[leaking[triangle]] = 10.0 * noise_sigma
+        clouds.append((signed, triangle))
+    return surface, clouds
+
+
+@pytest.mark.parametrize("error_std", [0.0, 1e-5, 3e-5])
+def test_persistent_offsets_size_the_normal_error_without_the_noise(error_std):
+    """The noise variance is 100-infinity times the error's: the median estimate, with a noise
+    estimate 3 % low (as the optimum's residuals may set it), is off by several times the
+    error's scale; the persistent offsets, which need no noise estimate, are not."""
+    rng = np.random.default_rng(int(error_std * 1e6))
+    sigma, variance = 1e-4, 1e-10  # lambda^2 = error_std^2 / variance: 0, 1, 9
+    surface, clouds = _two_clouds(rng, error_std, sigma)
+    offsets = [triangle_offsets(signed, triangle, np.full(signed.size, variance), surface)
+               for signed, triangle in clouds]
+    assert persistent_offset_scale(None, offsets[0]) is None
+    estimate = persistent_offset_scale(offsets[0], offsets[1])
+    truth = error_std**2 / variance
+    # standard error: the triangle means' noise sigma^2 / 20 over variance, / sqrt(2000): about 0.11
+    assert abs(estimate - truth) < 0.4 + 0.15 * truth
+    signed, _ = clouds[1]
+    median = _median_estimate(np.abs(signed), np.full(signed.size, variance), 0.97 * sigma)
+    assert median - truth > 3.0
+
+
+def test_persistent_offsets_leave_out_leaks_beyond_their_gate():
+    rng = np.random.default_rng(5)
+    sigma, variance, error_std = 1e-4, 1e-10, 2e-5
+    surface, clouds = _two_clouds(rng, error_std, sigma, leak_share=0.2)
+    offsets = [triangle_offsets(signed, triangle, np.full(signed.size, variance), surface)
+               for signed, triangle in clouds]
+    leaking = offsets[0].counts[:400]  # _two_clouds' leaking triangles: the first 20 %
+    assert not leaking.any()  # their points are all gated out
+    assert persistent_offset_scale(offsets[0], offsets[1]) == pytest.approx(error_std**2 / variance, abs=0.5)
+
+
+def test_persistent_offsets_need_the_same_surface_and_enough_shared_triangles():
+    rng = np.random.default_rng(1)
+    surface, clouds = _two_clouds(rng, 1e-5, 1e-4, faces=50)
+    offsets = [triangle_offsets(signed, triangle, np.full(signed.size, 1e-10), surface) for signed, triangle in clouds]
+    assert persistent_offset_scale(offsets[0], offsets[1]) is not None
+    cut = triangle_offsets(*clouds[1], np.full(clouds[1][0].size, 1e-10), surface[:-1])
+    assert persistent_offset_scale(offsets[0], cut) is None
+    few = clouds[1][1] < MIN_SHARED_TRIANGLES - 1
+    sparse = triangle_offsets(clouds[1][0][few], clouds[1][1][few], np.full(np.count_nonzero(few), 1e-10), surface)
+    assert persistent_offset_scale(offsets[0], sparse) is None
+    # Too few usable points for the gate's spread: nothing passes.
+    assert not triangle_offsets(np.zeros(5), np.zeros(5, int), np.ones(5), surface).counts.any()
+
+
+def test_prior_error_scale_takes_the_persistent_estimate_where_it_is_the_larger():
+    rng = np.random.default_rng(2)
+    distances, variance = np.abs(rng.normal(size=1000)) * 1e-4, np.full(1000, 1e-10)
+    alone = prior_error_scale(distances, variance, 1e-4, 5.0)
+    assert prior_error_scale(distances, variance, 1e-4, 5.0, persistent=alone - 1.0) == pytest.approx(alone)
+    assert prior_error_scale(distances, variance, 1e-4, 5.0, persistent=alone + 7.0) == pytest.approx(alone + 7.0)
+    assert prior_error_scale(distances, variance, 1e-4, 5.0, persistent=1e9) == pytest.approx(1e6)
 
 
 def test_forgetting_mean_starts_at_its_initial_value_and_follows_the_values():

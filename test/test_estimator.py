@@ -494,8 +494,8 @@ def test_an_update_is_prepared_before_the_priors_marginal_is_drawn_and_learns_it
     learnt_at = []
     scale = estimator_module.prior_error_scale
     monkeypatch.setattr(estimator_module, "prior_error_scale",
-                        lambda distances, variance, sigma, gate: learnt_at.append(sigma) or scale(distances, variance,
-                                                                                                 sigma, gate))
+                        lambda distances, variance, sigma, gate, persistent: learnt_at.append(sigma) or scale(
+                            distances, variance, sigma, gate, persistent))
     estimator = SlidingWindowEstimator(mesh, EstimatorConfig(window_size=2))
     step = sequence[0]
     sigma_before = estimator.noise.sigma
@@ -513,6 +513,37 @@ def test_an_update_is_prepared_before_the_priors_marginal_is_drawn_and_learns_it
     assert "re-weighted" in result.message and estimator.noise.sigma not in (sigma_before, sigma_at_prepare)
     assert learnt_at == [sigma_before]
     assert estimator.prior_error_scale != 1.0 and np.all(result.position_std[mesh.free_vertices] > 0)
+
+
+def test_the_prior_error_scale_learns_from_the_offsets_successive_clouds_share(monkeypatch):
+    """From its second cloud on, the estimator gives prior_error_scale the persistent-offset
+    estimate (covariance.py, persistent_offset_scale) of the last two clouds: well above zero for
+    a prediction error that persists (a missed load), near zero for one whose direction changes
+    from cloud to cloud (the noise is as large either way); none for the first cloud and for the
+    first after a cut (another surface)."""
+    given = []
+    scale = estimator_module.prior_error_scale
+    monkeypatch.setattr(estimator_module, "prior_error_scale",
+                        lambda distances, variance, sigma, gate, persistent: given.append(persistent) or scale(
+                            distances, variance, sigma, gate, persistent))
+    mesh, changing = synthetic_sequence(target_vertices=400, points_per_step=2000, steps=4, size=0.1,
+                                        noise_sigma=1e-3, prediction_error=2e-3, seed=4)
+
+    def persistent_estimates(sequence, cut_before=None):
+        given.clear()
+        estimator = SlidingWindowEstimator(mesh, EstimatorConfig(window_size=2))
+        for index, step in enumerate(sequence):
+            if index == cut_before:
+                assert estimator.remove_elements([0])
+            estimator.update(step.stamp_ns, step.points, step.predicted)
+        return list(given)
+
+    persisting = persistent_estimates(_persistent(changing))
+    alternating = persistent_estimates(changing)
+    assert persisting[0] is None and alternating[0] is None
+    assert min(persisting[1:]) > 4.0 * max(abs(value) for value in alternating[1:])
+    after_cut = persistent_estimates(_persistent(changing), cut_before=2)
+    assert after_cut[2] is None and after_cut[1] is not None and after_cut[3] is not None
 
 
 def test_the_covariance_draws_go_through_the_factor_the_linear_solver_holds_for_the_newest_state():

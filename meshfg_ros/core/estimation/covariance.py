@@ -66,9 +66,22 @@ on the soft parts the slope is. It guards the hidden, soft parts, where an overc
 misleads a planner most. Only the points within the caller's gate (robust spreads of the
 distances, as the measurement factor gates its points) count: a cloud may hold leaks, which lie
 farther from the surface than the tissue's points. Leaks within the gate still raise the
-estimate (a conservative bias: with 20 % leaks spread over 10 spreads, about 15 %). One cloud's
-estimate is noisy where the prediction's error is below the measurement noise (it often reaches
-the bound 0 there), so the published lambda^2 is the mean of the recent updates' estimates, each
+estimate (a conservative bias: with 20 % leaks spread over 10 spreads, about 15 %).
+The median estimate subtracts the noise, which is most of the distances' spread: at lambda^2 = 1
+the prior's variance along the normal is a fifteenth to a twentieth of the points' noise
+variance on most of the accuracy suite's scenes, so a few per cent of error in the noise
+estimate is an error of one in lambda^2; the slope needs prior variances that spread. A third
+estimate holds no noise term: the prediction's error persists from cloud to cloud, the noise
+does not, so the product of two successive clouds' mean signed distances over a triangle of the
+predicted surface has the squared normal error there as its mean, whatever the noise
+(`persistent_offset_scale`: summed over the triangles both clouds saw, over the prior's variance
+along the normal there). An update's estimate is the largest of the three, never this one
+alone: the normal part is not all of the error (the sheared cube's error is 20 times its normal part,
+where the prior's shape says 4), and leaks that recur at the same places raise it (its gate is
+therefore tighter, PERSISTENT_OFFSET_GATE). It raises the estimate where the drift shows along
+the normals but the noise estimate hides it (slab-inclusion). One cloud's estimate is noisy
+where the prediction's error is below the measurement noise (it often reaches the bound 0
+there), so the published lambda^2 is the mean of the recent updates' estimates, each
 weighted by PRIOR_ERROR_MEMORY times the next one's weight, and of the model's own lambda^2 = 1,
 weighted as an estimate made before the first update: the prediction's error grows as the
 simulation drifts, and the mean follows within a few updates. A^-1's blocks at the rest shape
@@ -78,6 +91,8 @@ sigma of each update.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg
@@ -90,9 +105,10 @@ from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError
 from meshfg_ros.core.solvers.sparse_cholesky import SparseCholesky
 from meshfg_ros.core.estimation.weights import MIN_POINTS
 
-__all__ = ["DENSE_MAX_DOFS", "MARGINAL_SAMPLES", "PRIOR_ERROR_MEMORY", "PRIOR_VARIANCE_BINS", "SLOPE_STANDARD_ERRORS",
-           "ForgettingMean", "MarginalCovariance", "chi_squared_quantile", "clipped_inverse", "prior_error_scale",
-           "published_covariance"]
+__all__ = ["DENSE_MAX_DOFS", "MARGINAL_SAMPLES", "MIN_SHARED_TRIANGLES", "PERSISTENT_OFFSET_GATE", "PRIOR_ERROR_MEMORY",
+           "PRIOR_VARIANCE_BINS", "SLOPE_STANDARD_ERRORS", "ForgettingMean", "MarginalCovariance", "TriangleOffsets",
+           "chi_squared_quantile", "clipped_inverse", "persistent_offset_scale", "prior_error_scale",
+           "published_covariance", "triangle_offsets"]
 
 # Up to this many unknowns the marginals are exact (a dense inverse takes a few milliseconds).
 DENSE_MAX_DOFS = 600
@@ -104,6 +120,11 @@ PRIOR_VARIANCE_BINS = 8
 SLOPE_STANDARD_ERRORS = 2.0
 # Weight of an update's lambda^2 estimate relative to the next one's (module doc).
 PRIOR_ERROR_MEMORY = 0.7
+# The persistent-offset estimate of lambda^2 (module doc): its gate, in robust spreads of the
+# signed distances (leaks recur at the same places and pass a wider one: docs/design-notes.md),
+# and the fewest triangles two clouds must share for it.
+PERSISTENT_OFFSET_GATE = 2.5
+MIN_SHARED_TRIANGLES = 10
 
 
 def chi_squared_quantile(probability, dof: float):
@@ -237,12 +258,12 @@ class ForgettingMean:
 
 
 def prior_error_scale(distances: np.ndarray, prior_variance: np.ndarray, measurement_sigma: float,
-                      gate_spreads: float) -> float | None:
+                      gate_spreads: float, persistent: float | None = None) -> float | None:
     """lambda^2 (see the module doc) from a cloud's distances d_k (K,) to the predicted surface,
     the model's prior variance along each point's normal (K,), the measurement sigma, and the gate
-    in robust spreads of the distances: the larger of the median estimate and the slope
-    estimate (`_slope_estimate`); None when fewer than MIN_POINTS points have a finite distance
-    and a positive variance."""
+    in robust spreads of the distances: the largest of the median estimate, the slope estimate
+    (`_slope_estimate`) and `persistent` (`persistent_offset_scale`, where there is one); None
+    when fewer than MIN_POINTS points have a finite distance and a positive variance."""
     distances = np.asarray(distances, dtype=np.float64)
     prior_variance = np.asarray(prior_variance, dtype=np.float64)
     usable = np.isfinite(distances) & np.isfinite(prior_variance) & (prior_variance > 0.0)
@@ -251,7 +272,61 @@ def prior_error_scale(distances: np.ndarray, prior_variance: np.ndarray, measure
     usable &= distances <= gate_spreads * innovation_spread(distances[usable])
     squared, variance = distances[usable] ** 2 / _CHI2_1_MEDIAN, prior_variance[usable]
     median = float(np.median((squared - float(measurement_sigma) ** 2) / variance))
-    return float(np.clip(max(median, _slope_estimate(squared, variance)), *_SCALE_RANGE))
+    estimates = [median, _slope_estimate(squared, variance)] + ([] if persistent is None else [float(persistent)])
+    return float(np.clip(max(estimates), *_SCALE_RANGE))
+
+
+@dataclass(frozen=True)
+class TriangleOffsets:
+    """One cloud's points on the predicted surface, per triangle (`triangle_offsets`): how many
+    passed the gate, their mean signed distance [m] (0 where none did) and the mean of the
+    prior's variance along their normals [m^2], on the surface `triangles` (F, 3)."""
+
+    triangles: np.ndarray
+    counts: np.ndarray
+    means: np.ndarray
+    prior_variances: np.ndarray
+
+
+def triangle_offsets(signed_distances: np.ndarray, triangle: np.ndarray, prior_variance: np.ndarray,
+                     surface_triangles: np.ndarray) -> TriangleOffsets:
+    """Per triangle of `surface_triangles` (F, 3), the points' signed distances (K,) [m] to the
+    predicted surface, with their closest triangles (K,) and the prior's variance along their
+    normals (K,) [m^2], within PERSISTENT_OFFSET_GATE robust spreads of the distances: the
+    counts, mean distances and mean variances of `TriangleOffsets`."""
+    signed_distances = np.asarray(signed_distances, dtype=np.float64)
+    prior_variance = np.asarray(prior_variance, dtype=np.float64)
+    triangle = np.asarray(triangle, dtype=np.int64)
+    faces = len(surface_triangles)
+    usable = np.isfinite(signed_distances) & np.isfinite(prior_variance) & (prior_variance > 0.0)
+    if np.count_nonzero(usable) >= MIN_POINTS:
+        usable &= np.abs(signed_distances) <= PERSISTENT_OFFSET_GATE * innovation_spread(
+            np.abs(signed_distances[usable]))
+    else:
+        usable[:] = False
+    kept = triangle[usable]
+    counts = np.bincount(kept, minlength=faces)
+    seen = np.maximum(counts, 1)
+    means = np.bincount(kept, weights=signed_distances[usable], minlength=faces) / seen
+    variances = np.bincount(kept, weights=prior_variance[usable], minlength=faces) / seen
+    return TriangleOffsets(surface_triangles, counts, means, variances)
+
+
+def persistent_offset_scale(previous: TriangleOffsets | None, current: TriangleOffsets) -> float | None:
+    """lambda^2 from what two successive clouds' offsets share (module doc): the sum over the
+    triangles both saw of the product of their mean signed distances, over the sum of the
+    prior's variance along the normal there. Its mean is the prediction's squared normal error
+    over the model's, for an error that persists between the clouds, with no term of their
+    independent noise (which makes it scatter about zero where the error is below the noise).
+    None without a previous cloud, on another surface (a cut), or with fewer than
+    MIN_SHARED_TRIANGLES triangles seen by both."""
+    if previous is None or not np.array_equal(previous.triangles, current.triangles):
+        return None
+    both = (previous.counts > 0) & (current.counts > 0)
+    if np.count_nonzero(both) < MIN_SHARED_TRIANGLES:
+        return None
+    shared = float(previous.means[both] @ current.means[both])
+    return shared / float(current.prior_variances[both].sum())
 
 
 def _slope_estimate(squared: np.ndarray, variance: np.ndarray) -> float:

@@ -79,7 +79,8 @@ Design decisions (see also factors.py, factor_graph.py, levenberg_marquardt.py, 
   the newest state's marginal posterior at its last linearisation (given the window's other
   states, tied to it only by the weak temporal factors), mixed with the prior's covariance by the
   share of the correction published, with the prior's real error scale learnt from each cloud's
-  distances to the prediction (`_learn_prior_error_scale`).
+  distances to the prediction and from the offsets two successive clouds share
+  (`_learn_prior_error_scale`).
 - Dynamic settings (`reconfigure`: the sigmas, the robust kernel's scale, the gate) apply from
   the next update on: the factors it adds use them, the factors already in the window keep
   theirs (as they keep the weights estimated when they were added).
@@ -102,9 +103,12 @@ from meshfg_ros.core.estimation.covariance import (
     PRIOR_ERROR_MEMORY,
     ForgettingMean,
     MarginalCovariance,
+    TriangleOffsets,
     clipped_inverse,
+    persistent_offset_scale,
     prior_error_scale,
     published_covariance,
+    triangle_offsets,
 )
 from meshfg_ros.core.estimation.factor_graph import FactorGraph
 from meshfg_ros.core.estimation.factors import (
@@ -437,6 +441,9 @@ class SlidingWindowEstimator:
         # update's innovation (core/estimation/covariance.py); 1 until the first.
         self.prior_error_scale = 1.0
         self._prior_error_memory = ForgettingMean(PRIOR_ERROR_MEMORY, initial=self.prior_error_scale)
+        # The last cloud's offsets from its predicted surface, per triangle (covariance.py,
+        # `persistent_offset_scale`); None before the first cloud and after a cut.
+        self._last_offsets: TriangleOffsets | None = None
         self.noise = MeasurementNoise(self.config.measurement_sigma)
         self.persistence = CorrectionPersistence()
         # (N, 3) the persisting share of the last update's correction, which the next state
@@ -743,10 +750,11 @@ class SlidingWindowEstimator:
                 return
 
     def _learn_prior_error_scale(self, predicted: np.ndarray, association, noise_sigma: float,
-                                 simulation_sigma: float) -> None:
+                                 simulation_sigma: float, points: np.ndarray) -> None:
         """lambda^2 from the cloud's distances to the predicted surface against the prior's
         variance along each point's normal (core/estimation/covariance.py), at the sigmas of the
-        update's start; kept when too few points tell."""
+        update's start, and from the offsets per triangle it shares with the last cloud's
+        (`points`: the cloud `association` is of); kept when too few points tell."""
         if "simulation" not in self.enabled:
             return
         found = association.triangle >= 0
@@ -755,7 +763,11 @@ class SlidingWindowEstimator:
         normals = self.mesh.triangle_normals(predicted)[triangle]
         at_points = np.einsum("pk,pkij->pij", association.barycentric[found], self.unit_prior_covariance[corners])
         variance = simulation_sigma**2 * np.einsum("pi,pij,pj->p", normals, at_points, normals)
-        scale = prior_error_scale(association.distance[found], variance, noise_sigma, GATE_SIGMAS)
+        signed = np.einsum("ij,ij->i", points[found] - association.closest[found], normals)
+        offsets = triangle_offsets(signed, triangle, variance, self.mesh.surface_triangles)
+        persistent = persistent_offset_scale(self._last_offsets, offsets)
+        self._last_offsets = offsets
+        scale = prior_error_scale(association.distance[found], variance, noise_sigma, GATE_SIGMAS, persistent)
         if scale is not None:
             self.prior_error_scale = self._prior_error_memory.add(scale)
 
@@ -954,7 +966,7 @@ class SlidingWindowEstimator:
         graph = self.graph
         key, prior = pending.key, None
         if pending.prior_error_sigmas is not None:
-            self._learn_prior_error_scale(*pending.association, *pending.prior_error_sigmas)
+            self._learn_prior_error_scale(*pending.association, *pending.prior_error_sigmas, pending.points)
         try:
             factor = self.solver.state_factor(key)
             posterior = self.marginals.blocks(graph.newest_information(), seed=key, factor=factor)
