@@ -240,7 +240,7 @@ def _two_clouds(rng, error_std, noise_sigma, faces=2000, points_per_face=20, lea
 
 @pytest.mark.parametrize("error_std", [0.0, 1e-5, 3e-5])
 def test_persistent_offsets_size_the_normal_error_without_the_noise(error_std):
-    """The noise variance is 100-infinity times the error's: the median estimate, with a noise
+    """The noise variance is 11 times the error's or more: the median estimate, with a noise
     estimate 3 % low (as the optimum's residuals may set it), is off by several times the
     error's scale; the persistent offsets, which need no noise estimate, are not."""
     rng = np.random.default_rng(int(error_std * 1e6))
