@@ -68,9 +68,9 @@ distances, as the measurement factor gates its points) count: a cloud may hold l
 farther from the surface than the tissue's points. Leaks within the gate still raise the
 estimate (a conservative bias: with 20 % leaks spread over 10 spreads, about 15 %).
 The median estimate subtracts the noise, which is most of the distances' spread: at lambda^2 = 1
-the prior's variance along the normal is a fifteenth to a twentieth of the points' noise
-variance on most of the accuracy suite's scenes, so a few per cent of error in the noise
-estimate is an error of one in lambda^2; the slope needs prior variances that spread. A third
+the prior's variance along the normal (the median over a cloud's points) is a thirteenth to a
+nineteenth of the points' noise variance on six of the accuracy suite's nine scenes, so a few
+per cent of error in the noise estimate is an error of one in lambda^2; the slope needs prior variances that spread. A third
 estimate holds no noise term: the prediction's error persists from cloud to cloud, the noise
 does not, so the product of two successive clouds' mean signed distances over a triangle of the
 predicted surface has the squared normal error there as its mean, whatever the noise
