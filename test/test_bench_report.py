@@ -45,7 +45,10 @@ def test_every_figure_line_names_the_cpu_and_the_blas():
         "live": {"machine": ON, **live_row(300.0)},
         "organ_live": {"machine": ON, "recording": "/cache/organ-slab-seed5",
                        "idle": {**live_row(900.0), "vertex_rmse_live_m": 1.1e-4, "vertex_rmse_replay_m": 1e-4,
-                                "vertex_rmse_simulation_m": 2e-4, "live_over_replay": 1.1},
+                                "vertex_rmse_simulation_m": 2e-4, "live_over_replay": 1.1,
+                                "calibration": {source: {"all": {"mean_nees": 2.5, "coverage_95": 0.94},
+                                                         "unobserved_external": {"mean_nees": 0.4, "coverage_95": 1.0}}
+                                                for source in ("live", "replay")}},
                        "loaded": {"busy_processes": 2, **live_row(2500.0, degraded=1, steps=6)}},
     }
     lines = format_report(result).splitlines()
@@ -54,8 +57,8 @@ def test_every_figure_line_names_the_cpu_and_the_blas():
     figures = [line for line in lines[1:] if not line.startswith(("Core (ms):", "Baselines ("))]  # not headings
     # liver, the planner query, two estimator scales with their stage budgets, organ scale on one
     # worker thread, both loaded, meshfg and scipy twice, live and organ-scale live idle (with its
-    # accuracy) and loaded
-    assert len(figures) == 17
+    # accuracy and calibration) and loaded
+    assert len(figures) == 18
     assert all(line.endswith(TAG) for line in figures), [line for line in figures if not line.endswith(TAG)]
     budget = next(line for line in figures if "stage budget per cloud at 512 vertices" in line)
     # prediction 40 + update stages 21 + messaging 1 = 62 ms to the estimate, learning 5 after it
@@ -79,6 +82,10 @@ def test_every_figure_line_names_the_cpu_and_the_blas():
     assert rows["organ-scale live latency max after start-up, loaded"]["met_runs"] == 0
     assert any("vertex RMSE live 0.110 mm, offline replay 0.100 mm (live / replay 1.100" in line for line in figures)
     assert rows["organ-scale live vertex RMSE / offline replay's, idle"]["met_runs"] == 0  # 1.1 > 1.05
+    calibration = next(line for line in figures if line.lstrip().startswith("calibration of the published std"))
+    assert ("all free vertices mean NEES 2.50 (2.50, target 1-6), 95 % coverage 0.940 (0.940, target 0.85-0.995): "
+            "met; unobserved external mean NEES 0.40 (0.40, target 1-6), 95 % coverage 1.000") in calibration
+    assert calibration.split("; unobserved external")[1].split("[")[0].rstrip().endswith("NOT met")
     assert "organ-scale live vertex RMSE / offline replay's, loaded" not in rows  # no accuracy measured
 
 
@@ -143,30 +150,44 @@ def test_runs_are_tallied_per_target_in_its_own_direction():
 
 def test_a_live_run_is_judged_against_the_offline_replay_and_the_truth():
     """ReplayErrors on a recording with ground truth: a live run that received the replay's own
-    estimates matches it (ratio 1), one that received the truth has no error, and the
+    estimates and std matches it (ratio 1, the same calibration), one that received the truth has
+    no error, one whose std is twice the replay's has a quarter of its mean NEES, and the
     simulation alone is measured at the same stamps."""
     import numpy as np
 
     from meshfg_ros.benchmarks.latency import LiveRun, ReplayErrors
-    from meshfg_ros.replay import replay_recording
+    from meshfg_ros.evaluation.metrics import vertex_rmse
 
     bag = Path(__file__).resolve().parents[1] / "bags" / "cube-shear-spd"
     reference = ReplayErrors.of(bag)
-    steps = replay_recording(bag).steps[3:8]
-    stamps = np.array([step.stamp_ns for step in steps])
+    inputs = reference.inputs
+    stamps = np.array(inputs.stamps[3:8])
+    replay = [inputs.estimates["factor_graph"][stamp] for stamp in stamps]
+    replay_std = [inputs.position_std[stamp] for stamp in stamps]
 
-    def run(positions) -> LiveRun:
+    def run(positions, std) -> LiveRun:
         count = len(stamps)
-        return LiveRun(stamps, np.arange(count), np.array(positions), np.zeros((count, len(positions[0]))),
+        return LiveRun(stamps, np.arange(count), np.array(positions), np.array(std),
                        np.full(count, 100.0), np.zeros(count, bool), np.full(count, 50.0), count,
                        np.ones(count, bool), 15, {}, {}, {})
 
-    as_replay = reference.judge(run([step.result.positions for step in steps]))
+    as_replay = reference.judge(run(replay, replay_std))
     assert abs(as_replay["live_over_replay"] - 1.0) < 1e-12
-    assert as_replay["vertex_rmse_replay_m"] == np.mean([reference.replay_m[stamp] for stamp in stamps])
+    free = inputs.truth_mesh.free_vertices
+    replay_rmse = np.mean([vertex_rmse(positions, inputs.truth[stamp], free) for stamp, positions in zip(stamps, replay)])
+    assert abs(as_replay["vertex_rmse_replay_m"] - replay_rmse) < 1e-15
     assert 0 < as_replay["vertex_rmse_live_m"] < as_replay["vertex_rmse_simulation_m"]
-    as_truth = reference.judge(run([reference.truth[stamp] for stamp in stamps]))
+    calibration = as_replay["calibration"]
+    assert calibration["live"] == calibration["replay"]
+    for name in ("all", "unobserved_external"):
+        assert 0.0 < calibration["live"][name]["mean_nees"] and 0.0 < calibration["live"][name]["coverage_95"] <= 1.0
+    wider = reference.judge(run(replay, [2.0 * std for std in replay_std]))["calibration"]
+    for name in ("all", "unobserved_external"):
+        assert abs(wider["live"][name]["mean_nees"] - calibration["replay"][name]["mean_nees"] / 4.0) < 1e-9
+        assert wider["replay"] == calibration["replay"]
+    as_truth = reference.judge(run([inputs.truth[stamp] for stamp in stamps], replay_std))
     assert as_truth["vertex_rmse_live_m"] == 0.0 and as_truth["live_over_replay"] == 0.0
+    assert as_truth["calibration"]["live"]["all"] == {"mean_nees": 0.0, "coverage_95": 1.0}
 
 
 def test_every_cloud_target_needs_each_cloud_estimated_in_time_and_none_degraded_after_the_first():

@@ -18,7 +18,8 @@ Sections (each can be skipped):
   final cost, and meshfg's speed-up (GTSAM on a small window, see bench_baselines);
 - live: cloud arrival to estimate received downstream over real DDS on a bundled recording;
 - organ_live: the same at organ scale (organ_recording), idle and with one busy process per core,
-  with the live estimates' accuracy beside the offline replay's (latency.ReplayErrors).
+  with the live estimates' accuracy and the calibration of their published std beside the
+  offline replay's (latency.ReplayErrors), the calibration judged by `meshfg accuracy`'s targets.
 Timings on a shared 2-core machine are noisy: compare ratios taken in the same run, and over
 several runs (`--runs`), in how many each target held (`tally`).
 """
@@ -583,6 +584,8 @@ def format_report(result: dict) -> str:
                              f"offline replay {1e3 * live['vertex_rmse_replay_m']:.3f} mm (live / replay "
                              f"{live['live_over_replay']:.3f}, target <= {LIVE_ACCURACY_TARGET:g}), simulation alone "
                              f"{1e3 * live['vertex_rmse_simulation_m']:.3f} mm{_on(result['organ_live'])}")
+            if "calibration" in live:
+                lines.append(f"  {_live_calibration(live['calibration'])}{_on(result['organ_live'])}")
     if "live" in result:
         live = result["live"]
         lines.append(f"Live pipeline (separate node processes, real DDS, rate {live['rate']:g}): cloud arrival to "
@@ -590,6 +593,34 @@ def format_report(result: dict) -> str:
                      f"{live['latency_ms_p95']:.0f} ms over {live['steps']} steps (solve {live['solve_time_ms_median']:.0f} ms, "
                      f"prediction, transport and pairing {live['overhead_ms_median']:.0f} ms, {live['degraded_steps']} degraded){_on(live)}")
     return "\n".join(lines)
+
+
+def _live_calibration(calibration: dict) -> str:
+    """The live estimates' position_std against the truth, the offline replay's in brackets,
+    judged by `meshfg accuracy`'s calibration targets."""
+    from meshfg_ros.evaluation.accuracy import CALIBRATION_TARGETS
+    from meshfg_ros.evaluation.evaluate import CALIBRATION_POOLED_FROM_STEP
+
+    parts = []
+    for name, title, suffix in (("all", "all free vertices", "all"),
+                                ("unobserved_external", "unobserved external", "unobserved")):
+        live, replay = calibration["live"][name], calibration["replay"][name]
+        if live["mean_nees"] is None or live["coverage_95"] is None:
+            parts.append(f"{title} n/a")
+            continue
+        (nees_low, nees_high), _ = CALIBRATION_TARGETS[f"mean_nees_{suffix}"]
+        (coverage_low, coverage_high), _ = CALIBRATION_TARGETS[f"coverage_{suffix}"]
+        met = nees_low <= live["mean_nees"] <= nees_high and coverage_low <= live["coverage_95"] <= coverage_high
+        parts.append(f"{title} mean NEES {live['mean_nees']:.2f} ({_figure(replay['mean_nees'], 2)}, target "
+                     f"{nees_low:g}-{nees_high:g}), 95 % coverage {live['coverage_95']:.3f} "
+                     f"({_figure(replay['coverage_95'], 3)}, target {coverage_low:g}-{coverage_high:g}): "
+                     f"{'met' if met else 'NOT met'}")
+    return (f"calibration of the published std, pooled over its estimated clouds {CALIBRATION_POOLED_FROM_STEP} to "
+            f"the last (the offline replay's in brackets): " + "; ".join(parts))
+
+
+def _figure(value, digits: int) -> str:
+    return "n/a" if value is None else f"{value:.{digits}f}"
 
 
 def _stage_budget(row: dict) -> str:

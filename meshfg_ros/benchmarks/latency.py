@@ -25,9 +25,9 @@ import sys
 import tempfile
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import rclpy
@@ -42,6 +42,9 @@ from meshfg_ros.io.messages import stamp_ns_from_msg
 from meshfg_ros.replay import load_inputs, replay_parameters
 from meshfg_ros.io.tf_messages import TF_STATIC_TOPIC, TF_TOPIC
 from meshfg_ros.topics import INITIAL_MESH_TOPIC, POINTS_TOPIC, TOOL_POSE_TOPIC
+
+if TYPE_CHECKING:
+    from meshfg_ros.evaluation.evaluate import EvaluationInputs
 
 NAMESPACE = "/meshfg"
 READY_FILE = "recorder.ready"
@@ -185,47 +188,66 @@ def run_live_pipeline(
 
 @dataclass(frozen=True)
 class ReplayErrors:
-    """What a live run on a recording with ground truth is judged against: per stamp, the truth
-    and the vertex RMSE (free vertices) of the offline replay's estimate and of the simulation
-    alone, which the live nodes should match (the replay is what they compute without timing)."""
+    """What a live run on a recording with ground truth is judged against: the recording's truth
+    and clouds with its offline replay's estimates (`evaluation.evaluate.EvaluationInputs`),
+    which the live nodes should match (the replay is what they compute without timing). The live
+    estimates are evaluated as `meshfg eval` evaluates a replay, over the clouds the live run
+    estimated, and so is the replay over the same clouds."""
 
-    truth: dict[int, np.ndarray]
-    free_vertices: np.ndarray
-    replay_m: dict[int, float]
-    simulation_m: dict[int, float]
+    inputs: EvaluationInputs
 
     @classmethod
     def of(cls, bag: str | Path) -> ReplayErrors:
-        """Replay `bag` offline (meshfg_ros.replay) and measure it against the recording's truth."""
-        from meshfg_ros.evaluation.evaluate import mesh_states
-        from meshfg_ros.evaluation.metrics import vertex_rmse
-        from meshfg_ros.io.recording import RecordingReader
-        from meshfg_ros.replay import replay_recording
-        from meshfg_ros.topics import GROUND_TRUTH_TOPIC
+        """Replay `bag` offline (meshfg_ros.replay, as `meshfg replay` writes it) and read it
+        beside the recording's truth."""
+        from meshfg_ros.evaluation.evaluate import load_inputs as load_evaluation_inputs
+        from meshfg_ros.replay import write_replay
 
-        with RecordingReader(bag) as reader:
-            states = mesh_states(reader, GROUND_TRUTH_TOPIC)
-        truth = {state.stamp_ns: state.positions for state in states}
-        free = states[0].free_vertices
-        steps = [step for step in replay_recording(bag).steps if step.stamp_ns in truth]
-        return cls(truth, free,
-                   {step.stamp_ns: vertex_rmse(step.result.positions, truth[step.stamp_ns], free) for step in steps},
-                   {step.stamp_ns: vertex_rmse(step.simulation_only, truth[step.stamp_ns], free)
-                    for step in steps if step.simulation_only is not None})
+        with tempfile.TemporaryDirectory(prefix="meshfg-reference-") as workdir:
+            replay = Path(workdir) / "replay"
+            write_replay(bag, replay)
+            return cls(load_evaluation_inputs(replay, bag))
 
-    def judge(self, run: LiveRun) -> dict[str, float]:
-        """Mean vertex RMSE (m) over the stamps the live run estimated and the replay too: live,
-        replay and simulation alone, and the live run's over the replay's."""
-        from meshfg_ros.evaluation.metrics import vertex_rmse
+    def judge(self, run: LiveRun) -> dict:
+        """Over the stamps the live run estimated and the replay too: the mean vertex RMSE (m,
+        free vertices) live, of the replay and of the simulation alone, and the live run's over
+        the replay's; and `calibration`, the live and the replay's position_std's mean NEES and
+        95 % coverage per CALIBRATION_REPORTED_SETS, pooled over those stamps from the
+        CALIBRATION_POOLED_FROM_STEP-th on (each None where undefined)."""
+        from meshfg_ros.evaluation.evaluate import evaluate
 
-        rows = [(vertex_rmse(positions, self.truth[stamp], self.free_vertices), self.replay_m[stamp],
-                 self.simulation_m.get(stamp, np.nan))
-                for stamp, positions in zip(run.stamps_ns.tolist(), run.positions) if stamp in self.replay_m]
-        if not rows:
+        known = set(self.inputs.stamps)
+        estimated = [(stamp, positions, std) for stamp, positions, std in
+                     zip(run.stamps_ns.tolist(), run.positions, run.position_std) if stamp in known]
+        if not estimated:
             return {}
-        live, replay, simulation = np.mean(rows, axis=0)
-        return {"vertex_rmse_live_m": float(live), "vertex_rmse_replay_m": float(replay),
-                "vertex_rmse_simulation_m": float(simulation), "live_over_replay": float(live / replay)}
+        stamps = tuple(stamp for stamp, _, _ in estimated)
+        replay = evaluate(replace(self.inputs, stamps=stamps))
+        # The live estimates in the replay's place (on its topology after a cut: the live nodes
+        # follow the same cuts); no predictions, so no correction figures.
+        live = evaluate(replace(
+            self.inputs, stamps=stamps, estimates={"factor_graph": {stamp: positions for stamp, positions, _ in estimated}},
+            position_std={stamp: std for stamp, _, std in estimated}, predictions={},
+            estimate_meshes={"factor_graph": self.inputs.estimate_meshes.get("factor_graph", {})}))
+        rmse = {name: evaluation["vertex_rmse"][method]["all"]["mean"] for name, evaluation, method in (
+            ("live", live, "factor_graph"), ("replay", replay, "factor_graph"), ("simulation", replay, "simulation"))}
+        return {"vertex_rmse_live_m": rmse["live"], "vertex_rmse_replay_m": rmse["replay"],
+                "vertex_rmse_simulation_m": rmse["simulation"], "live_over_replay": rmse["live"] / rmse["replay"],
+                "calibration": {name: _pooled_calibration(evaluation) for name, evaluation in (("live", live),
+                                                                                              ("replay", replay))}}
+
+
+# The vertex sets whose pooled calibration ReplayErrors.judge reports, as `meshfg accuracy` does.
+CALIBRATION_REPORTED_SETS = ("all", "unobserved_external")
+
+
+def _pooled_calibration(evaluation: dict) -> dict:
+    """{set: {"mean_nees", "coverage_95"}} pooled over the steps (None where the evaluation has no
+    calibration or the set no vertex)."""
+    sets = evaluation.get("calibration", {}).get("sets", {})
+    pooled = {name: (sets.get(name) or {}).get("pooled") or {} for name in CALIBRATION_REPORTED_SETS}
+    return {name: {figure: summary.get(figure) for figure in ("mean_nees", "coverage_95")}
+            for name, summary in pooled.items()}
 
 
 def measure_live_latency(
