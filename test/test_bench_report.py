@@ -56,9 +56,11 @@ def test_every_figure_line_names_the_cpu_and_the_blas():
                         "(chosen for SomeVendor)")
     figures = [line for line in lines[1:] if not line.startswith(("Core (ms):", "Baselines ("))]  # not headings
     # liver, the planner query, two estimator scales with their stage budgets, organ scale on one
-    # worker thread, both loaded, meshfg and scipy twice, live and organ-scale live idle (with its
-    # accuracy and calibration) and loaded
-    assert len(figures) == 18
+    # worker thread, both loaded with their stage budgets, meshfg and scipy twice, live and
+    # organ-scale live idle (with its accuracy and calibration) and loaded
+    assert len(figures) == 20
+    loaded_budget = next(line for line in figures if "at 10648 vertices, with 2 busy processes (median ms)" in line)
+    assert "cloud to estimate 62 ms, then learning 5 before the next prediction: loop 67 ms" in loaded_budget
     assert all(line.endswith(TAG) for line in figures), [line for line in figures if not line.endswith(TAG)]
     budget = next(line for line in figures if "stage budget per cloud at 512 vertices" in line)
     # prediction 40 + update stages 21 + messaging 1 = 62 ms to the estimate, learning 5 after it

@@ -12,7 +12,8 @@ Sections (each can be skipped):
   then the learning before the next prediction), against the 1 s cloud period;
   With more than one worker thread (core/worker_threads.py), the organ-scale update on one too,
   as the baseline of what the threads save;
-- loaded: the estimator figures with one busy process per core (target: p95 at most 3x idle);
+- loaded: the estimator figures and stage budgets with one busy process per core (target: p95
+  at most 3x idle);
 - baselines: the same single window update (association frozen, information fixed) solved
   from the same start by meshfg's LM, GTSAM's LM and scipy's least_squares: median time and
   final cost, and meshfg's speed-up (GTSAM on a small window, see bench_baselines);
@@ -327,10 +328,12 @@ def one_worker_thread():
 
 
 def bench_loaded(progress: bool = True) -> dict:
-    """The estimator figures (bench_estimator) at both scales with one busy process per core."""
+    """The estimator figures (bench_estimator) and the stage budgets (bench_stages) at both
+    scales with one busy process per core."""
     with busy_cores() as loops:
-        return {"busy_processes": loops, "paper_scale": bench_estimator(PAPER_SCALE, progress),
-                "organ_scale": bench_estimator(ORGAN_SCALE, progress)}
+        return {"busy_processes": loops,
+                **{key: {**bench_estimator(scale, progress), "stages": bench_stages(scale)}
+                   for key, scale in (("paper_scale", PAPER_SCALE), ("organ_scale", ORGAN_SCALE))}}
 
 
 ORGAN_RECORDING_SEED = 5
@@ -550,6 +553,9 @@ def format_report(result: dict) -> str:
             lines.append(f"  with {loaded['busy_processes']} busy processes (one per core), {key}: median "
                          f"{row['median_ms']:.1f} ms, p95 {row['p95_ms']:.1f} ms{ratio} (target <= "
                          f"{LOADED_SLOWDOWN_TARGET:g}x){_on(loaded)}")
+            if "stages" in row:
+                lines.append(_stage_budget({**row, "machine": loaded["machine"]},
+                                           f", with {loaded['busy_processes']} busy processes"))
     if "baselines" in result:
         where = _on(result["baselines"])
         for base in (result["baselines"], result["baselines"]["paper_scale"]):
@@ -623,14 +629,15 @@ def _figure(value, digits: int) -> str:
     return "n/a" if value is None else f"{value:.{digits}f}"
 
 
-def _stage_budget(row: dict) -> str:
-    """One cloud's cost by stage at a scale, taken in turn as the loop runs them (bench_stages), against the period."""
+def _stage_budget(row: dict, load: str = "") -> str:
+    """One cloud's cost by stage at a scale, taken in turn as the loop runs them (bench_stages),
+    against the period; `load` says what else ran."""
     stages = row["stages"]
     update = stages["update"]
     parts = {"prediction": stages["prediction"], **update, "messaging": stages["messaging"]}
     latency = sum(parts.values())
     text = ", ".join(f"{name.replace('_', ' ')} {value:.0f}" for name, value in parts.items())
-    return (f"  stage budget per cloud at {stages['vertices']} vertices (median ms): {text}; cloud to estimate "
+    return (f"  stage budget per cloud at {stages['vertices']} vertices{load} (median ms): {text}; cloud to estimate "
             f"{latency:.0f} ms, then learning {stages['learning']:.0f} before the next prediction: loop "
             f"{latency + stages['learning']:.0f} ms against a {CLOUD_PERIOD_MS:.0f} ms cloud period{_on(row)}")
 
