@@ -210,6 +210,13 @@ def test_non_tetrahedral_files_raise(liver, tmp_path):
         load_mesh(legacy)
     with pytest.raises(MeshFileError, match="does not exist"):
         load_mesh(tmp_path / "missing.msh")
+    with pytest.raises(MeshFileError, match="is a folder, not a mesh file"):
+        load_mesh(tmp_path)
+    recording = tmp_path / "recording"
+    recording.mkdir()
+    (recording / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
+    with pytest.raises(MeshFileError, match=r"is a recording, not a mesh file: `meshfg mesh export .*recording --out"):
+        load_mesh(recording)
     with pytest.raises(MeshFileError, match="unsupported mesh format"):
         save_mesh(liver, tmp_path / "liver.stl")
 

@@ -175,6 +175,8 @@ def test_unreadable_file_is_a_one_line_error(tmp_path):
         read_patient_mesh(tmp_path / "bad.msh")
     with pytest.raises(MeshFileError, match="does not exist"):
         read_patient_mesh(tmp_path / "missing.vtu")
+    with pytest.raises(MeshFileError, match="is a folder, not a mesh file"):
+        read_patient_mesh(tmp_path)
 
 
 # --------------------------------------------------------------------------- against the clouds

@@ -28,6 +28,7 @@ __all__ = [
     "MeshFileError",
     "TetMesh",
     "check_degenerate",
+    "check_mesh_file",
     "cross",
     "element_ranges",
     "inverted_elements",
@@ -74,6 +75,19 @@ class DegenerateMeshError(ValueError):
 
 class MeshFileError(ValueError):
     """A mesh file that cannot be read as (or written from) a tetrahedral mesh."""
+
+
+def check_mesh_file(path: Path) -> None:
+    """MeshFileError unless `path` is a file: it does not exist, or it is a folder (a rosbag2
+    recording, whose initial mesh `meshfg mesh export` writes as a file, is named as one)."""
+    if path.is_file():
+        return
+    if not path.is_dir():
+        raise MeshFileError(f"{path} does not exist")
+    if (path / "metadata.yaml").is_file():
+        raise MeshFileError(f"{path} is a recording, not a mesh file: `meshfg mesh export {path} --out FILE` "
+                            "writes its initial mesh as one")
+    raise MeshFileError(f"{path} is a folder, not a mesh file")
 
 
 def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -638,8 +652,7 @@ def load_mesh(path) -> TetMesh:
     import meshio
 
     path = Path(path)
-    if not path.is_file():
-        raise MeshFileError(f"{path} does not exist")
+    check_mesh_file(path)
     fixed_flags = None
     if _is_gmsh_v1(path):
         vertices, tets = _read_gmsh_v1(path)

@@ -41,6 +41,7 @@ from meshfg_ros.core.geometry.mesh import (
     MeshFileError,
     TetMesh,
     _is_gmsh_v1,  # the legacy format meshio cannot read, which load_mesh reads itself
+    check_mesh_file,
     load_mesh,
 )
 from meshfg_ros.core.inputs.frames import transform_points
@@ -139,8 +140,7 @@ def read_patient_mesh(path: str | Path) -> PatientMeshFile:
     core.geometry.mesh.load_mesh, without groups). Only tetrahedra are kept, vertices of no tetrahedron
     are dropped; the `fixed` point data and the named groups follow the kept vertices."""
     path = Path(path)
-    if not path.is_file():
-        raise MeshFileError(f"{path} does not exist")
+    check_mesh_file(path)
     if _is_gmsh_v1(path):
         return PatientMeshFile(load_mesh(path))
     data = _meshio_read(path)
