@@ -257,7 +257,7 @@ def measure_live_latency(
     timeout_s: float = 180.0,
     single_process: bool = False,
     reference: ReplayErrors | None = None,
-) -> dict[str, float]:
+) -> dict:
     """Latency of the live pipeline on `bag` (cloud arrival -> estimate arrival downstream, ms).
 
     Returns steps, expected_steps, latency_ms_median / _p95 / _max, solve_time_ms_median,
@@ -270,8 +270,8 @@ def measure_live_latency(
     the first estimate, and how many of them were estimated), and latency_ms_max_after_start and
     degraded_after_start over those same clouds (a cloud that arrived while the first was still
     being estimated waited for the start-up too). With a `reference` (the recording's ground
-    truth and its offline replay) also the accuracy of the live estimates beside the replay's
-    (ReplayErrors.judge).
+    truth and its offline replay) also the accuracy and calibration of the live estimates beside
+    the replay's (ReplayErrors.judge).
     """
     with tempfile.TemporaryDirectory(prefix="meshfg-live-") as workdir:
         run = run_live_pipeline(bag, workdir, rate, overrides, timeout_s, single_process=single_process)
