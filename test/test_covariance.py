@@ -302,6 +302,30 @@ def test_forgetting_mean_starts_at_its_initial_value_and_follows_the_values():
         ForgettingMean(1.0, initial=1.0)
 
 
+def test_forgetting_mean_standard_error_is_the_weighted_scatter_over_the_effective_count():
+    """Values that do not scatter have no standard error; for independent values the mean's
+    scatter over many runs matches the standard error each run states."""
+    steady = ForgettingMean(0.7, initial=2.0)
+    for _ in range(5):
+        steady.add(2.0)
+    assert steady.standard_error() == pytest.approx(0.0, abs=1e-12)
+    one = ForgettingMean(0.5, initial=0.0)
+    one.add(3.0)  # weights 0.5 and 1: mean 2, weighted variance 2, effective count 1.8
+    assert one.standard_error() == pytest.approx(np.sqrt(2.0 / 1.8))
+    rng = np.random.default_rng(0)
+    means, errors = [], []
+    for _ in range(4000):
+        mean = ForgettingMean(0.7, initial=5.0)
+        for value in rng.normal(5.0, 2.0, 40):
+            last = mean.add(value)
+        means.append(last)
+        errors.append(mean.standard_error())
+    # the spread of the means against the stated error, whose variance is the weighted sample
+    # variance's: low by the factor 1 - 1 / (effective count)
+    effective = mean.weight**2 / mean.weight_squares
+    assert np.std(means) == pytest.approx(np.sqrt(np.mean(np.square(errors)) / (1.0 - 1.0 / effective)), rel=0.04)
+
+
 @pytest.mark.parametrize("dof", [1, 2, 3, 7.5])
 def test_chi_squared_quantile_and_density_are_scipy_stats_ones(dof):
     probability = np.linspace(0.001, 0.999, 999)

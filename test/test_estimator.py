@@ -10,7 +10,7 @@ import pytest
 
 from meshfg_ros.benchmarks.baselines import WhitenedProblem, freeze_associations, synthetic_sequence
 from meshfg_ros.core.estimation import estimator as estimator_module
-from meshfg_ros.core.estimation.covariance import DENSE_MAX_DOFS, MarginalCovariance
+from meshfg_ros.core.estimation.covariance import DENSE_MAX_DOFS, PRIOR_ERROR_MEMORY, ForgettingMean, MarginalCovariance
 from meshfg_ros.core.estimation.factor_graph import FactorGraph
 from meshfg_ros.core.estimation.estimator import (
     FACTOR_CONFIGURATIONS,
@@ -544,6 +544,29 @@ def test_the_prior_error_scale_learns_from_the_offsets_successive_clouds_share(m
     assert min(persisting[1:]) > 4.0 * max(abs(value) for value in alternating[1:])
     after_cut = persistent_estimates(_persistent(changing), cut_before=2)
     assert after_cut[2] is None and after_cut[1] is not None and after_cut[3] is not None
+
+
+def test_the_published_prior_error_scale_is_raised_by_the_scatter_of_the_clouds_estimates(monkeypatch):
+    """lambda^2 is published at the recent clouds' mean estimate plus one standard error of it:
+    steady estimates publish about their mean, estimates that scatter publish clearly above it."""
+    mesh, sequence = synthetic_sequence(target_vertices=400, points_per_step=800, steps=6, size=0.1,
+                                        noise_sigma=5e-4, prediction_error=2e-3, seed=4)
+
+    def published(estimates):
+        given = iter(estimates)
+        monkeypatch.setattr(estimator_module, "prior_error_scale", lambda *args: next(given))
+        estimator = SlidingWindowEstimator(mesh, EstimatorConfig(window_size=2))
+        for step in sequence:
+            estimator.update(step.stamp_ns, step.points, step.predicted)
+        return estimator.prior_error_scale
+
+    def mean(estimates):
+        memory = ForgettingMean(PRIOR_ERROR_MEMORY, initial=1.0)
+        return [memory.add(value) for value in estimates][-1]
+
+    steady, scattered = [2.0] * 6, [4.0, 0.0] * 3
+    assert mean(steady) < published(steady) < mean(steady) + 0.15
+    assert published(scattered) > mean(scattered) + 0.7
 
 
 def test_the_covariance_draws_go_through_the_factor_the_linear_solver_holds_for_the_newest_state():

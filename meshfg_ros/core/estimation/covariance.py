@@ -81,10 +81,15 @@ where the prior's shape says 4), and leaks that recur at the same places raise i
 therefore tighter, PERSISTENT_OFFSET_GATE). It raises the estimate where the drift shows along
 the normals but the noise estimate hides it (slab-inclusion). One cloud's estimate is noisy
 where the prediction's error is below the measurement noise (it often reaches the bound 0
-there), so the published lambda^2 is the mean of the recent updates' estimates, each
+there), so lambda^2 is learnt as the mean of the recent updates' estimates, each
 weighted by PRIOR_ERROR_MEMORY times the next one's weight, and of the model's own lambda^2 = 1,
 weighted as an estimate made before the first update: the prediction's error grows as the
-simulation drifts, and the mean follows within a few updates. A^-1's blocks at the rest shape
+simulation drifts, and the mean follows within a few updates. The published lambda^2 is that
+mean plus PRIOR_ERROR_STANDARD_ERRORS of its standard error (the estimates' scatter about it):
+where successive clouds' estimates scatter (the airway's slope estimate between 0.9 and 33 over
+ten clouds, while the error it should size grows steadily), a mean the scatter leaves low would
+publish an overconfident std, which misleads a planner more than a conservative one
+(docs/design-notes.md, "Published uncertainty"). A^-1's blocks at the rest shape
 are drawn once per estimator (again on the cut mesh after a cut), beside its set-up where there
 are two worker threads (estimator.py, `unit_prior_covariance`), and scaled with the simulation
 sigma of each update.
@@ -105,7 +110,7 @@ from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError
 from meshfg_ros.core.solvers.sparse_cholesky import SparseCholesky
 from meshfg_ros.core.estimation.weights import MIN_POINTS
 
-__all__ = ["DENSE_MAX_DOFS", "MARGINAL_SAMPLES", "MIN_SHARED_TRIANGLES", "PERSISTENT_OFFSET_GATE", "PRIOR_ERROR_MEMORY",
+__all__ = ["DENSE_MAX_DOFS", "MARGINAL_SAMPLES", "MIN_SHARED_TRIANGLES", "PERSISTENT_OFFSET_GATE", "PRIOR_ERROR_MEMORY", "PRIOR_ERROR_STANDARD_ERRORS",
            "PRIOR_VARIANCE_BINS", "SLOPE_STANDARD_ERRORS", "ForgettingMean", "MarginalCovariance", "TriangleOffsets",
            "chi_squared_quantile", "clipped_inverse", "persistent_offset_scale", "prior_error_scale",
            "published_covariance", "triangle_offsets"]
@@ -118,8 +123,10 @@ MARGINAL_SAMPLES = 16
 # standard errors taken off the slope.
 PRIOR_VARIANCE_BINS = 8
 SLOPE_STANDARD_ERRORS = 2.0
-# Weight of an update's lambda^2 estimate relative to the next one's (module doc).
+# Weight of an update's lambda^2 estimate relative to the next one's, and the standard errors of
+# their mean added to it in the published lambda^2 (module doc).
 PRIOR_ERROR_MEMORY = 0.7
+PRIOR_ERROR_STANDARD_ERRORS = 1.0
 # The persistent-offset estimate of lambda^2 (module doc): its gate, in robust spreads of the
 # signed distances (leaks recur at the same places and pass a wider one: docs/design-notes.md),
 # and the fewest triangles two clouds must share for it.
@@ -241,20 +248,33 @@ def _dense_inverse(matrix: scipy.sparse.csr_matrix) -> np.ndarray:
 
 class ForgettingMean:
     """The mean of `initial` (weight 1) and the values added, each weighted by `memory` times
-    the next one's weight: it starts at `initial` and follows the values within a few additions."""
+    the next one's weight: it starts at `initial` and follows the values within a few additions;
+    and its standard error, from the values' weighted scatter about it."""
 
     def __init__(self, memory: float, initial: float):
         if not 0.0 <= memory < 1.0:
             raise ValueError(f"memory must lie in [0, 1), got {memory}")
         self.memory = float(memory)
         self.total = float(initial)
+        self.squares = float(initial) ** 2
         self.weight = 1.0
+        self.weight_squares = 1.0
 
     def add(self, value: float) -> float:
         """Add `value`; returns the mean."""
         self.total = self.memory * self.total + float(value)
+        self.squares = self.memory * self.squares + float(value) ** 2
         self.weight = self.memory * self.weight + 1.0
+        self.weight_squares = self.memory**2 * self.weight_squares + 1.0
         return self.total / self.weight
+
+    def standard_error(self) -> float:
+        """The mean's standard error: the values' weighted variance about it over their
+        effective count (sum of the weights)^2 / (sum of their squares), as for independent
+        values."""
+        mean = self.total / self.weight
+        variance = max(self.squares / self.weight - mean**2, 0.0)
+        return float(np.sqrt(variance * self.weight_squares / self.weight**2))
 
 
 def prior_error_scale(distances: np.ndarray, prior_variance: np.ndarray, measurement_sigma: float,

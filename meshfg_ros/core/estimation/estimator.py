@@ -79,8 +79,8 @@ Design decisions (see also factors.py, factor_graph.py, levenberg_marquardt.py, 
   the newest state's marginal posterior at its last linearisation (given the window's other
   states, tied to it only by the weak temporal factors), mixed with the prior's covariance by the
   share of the correction published, with the prior's real error scale learnt from each cloud's
-  distances to the prediction and from the offsets two successive clouds share
-  (`_learn_prior_error_scale`).
+  distances to the prediction and from the offsets two successive clouds share, published at
+  its mean over the recent clouds plus one standard error of it (`_learn_prior_error_scale`).
 - Dynamic settings (`reconfigure`: the sigmas, the robust kernel's scale, the gate) apply from
   the next update on: the factors it adds use them, the factors already in the window keep
   theirs (as they keep the weights estimated when they were added).
@@ -101,6 +101,7 @@ import scipy.sparse
 import meshfg_ros.core.worker_threads as worker_threads
 from meshfg_ros.core.estimation.covariance import (
     PRIOR_ERROR_MEMORY,
+    PRIOR_ERROR_STANDARD_ERRORS,
     ForgettingMean,
     MarginalCovariance,
     TriangleOffsets,
@@ -437,8 +438,8 @@ class SlidingWindowEstimator:
             self._unit_prior_covariance: np.ndarray | Future = worker_threads.start_background(
                 _prior_blocks_at_rest, unit_information, initial_mesh.vertex_count, self.graph.free_vertices)
         self.marginals = MarginalCovariance()
-        # lambda^2: the prediction's real error over the prior's model of it, learnt from each
-        # update's innovation (core/estimation/covariance.py); 1 until the first.
+        # lambda^2 as published: the prediction's real error over the prior's model of it, learnt
+        # from each update's innovation (core/estimation/covariance.py); 1 until the first.
         self.prior_error_scale = 1.0
         self._prior_error_memory = ForgettingMean(PRIOR_ERROR_MEMORY, initial=self.prior_error_scale)
         # The last cloud's offsets from its predicted surface, per triangle (covariance.py,
@@ -769,7 +770,8 @@ class SlidingWindowEstimator:
         self._last_offsets = offsets
         scale = prior_error_scale(association.distance[found], variance, noise_sigma, GATE_SIGMAS, persistent)
         if scale is not None:
-            self.prior_error_scale = self._prior_error_memory.add(scale)
+            memory = self._prior_error_memory
+            self.prior_error_scale = memory.add(scale) + PRIOR_ERROR_STANDARD_ERRORS * memory.standard_error()
 
     def _state_factors(self, pending: PendingStep) -> list:
         """The physics prior and measurement factors of the pending state at the current weights: the
