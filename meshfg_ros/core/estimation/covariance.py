@@ -110,10 +110,10 @@ from meshfg_ros.core.solvers.sparse_cholesky import NotPositiveDefiniteError
 from meshfg_ros.core.solvers.sparse_cholesky import SparseCholesky
 from meshfg_ros.core.estimation.weights import MIN_POINTS
 
-__all__ = ["DENSE_MAX_DOFS", "MARGINAL_SAMPLES", "MIN_SHARED_TRIANGLES", "PERSISTENT_OFFSET_GATE", "PRIOR_ERROR_MEMORY", "PRIOR_ERROR_STANDARD_ERRORS",
-           "PRIOR_VARIANCE_BINS", "SLOPE_STANDARD_ERRORS", "ForgettingMean", "MarginalCovariance", "TriangleOffsets",
-           "chi_squared_quantile", "clipped_inverse", "persistent_offset_scale", "prior_error_scale",
-           "published_covariance", "triangle_offsets"]
+__all__ = ["DENSE_MAX_DOFS", "MARGINAL_SAMPLES", "MIN_SHARED_TRIANGLES", "PERSISTENT_OFFSET_GATE", "PRIOR_ERROR_MEMORY",
+           "PRIOR_ERROR_STANDARD_ERRORS", "PRIOR_VARIANCE_BINS", "SLOPE_STANDARD_ERRORS", "ForgettingMean",
+           "MarginalCovariance", "TriangleOffsets", "chi_squared_quantile", "clipped_inverse", "persistent_offset_scale",
+           "prior_error_scale", "published_covariance", "triangle_offsets"]
 
 # Up to this many unknowns the marginals are exact (a dense inverse takes a few milliseconds).
 DENSE_MAX_DOFS = 600
