@@ -482,10 +482,11 @@ def test_the_priors_marginal_is_drawn_beside_the_set_up_and_gives_the_same_covar
 def test_an_update_is_prepared_before_the_priors_marginal_is_drawn_and_learns_its_scale_at_that_noise(monkeypatch):
     """`prepare` does not wait for the prior's blocks (the draws are held here until it has
     returned); `solve` learns the prior's error scale with the covariance, from the innovation at
-    the measurement sigma that held before the update's cloud, although the update re-weights its
-    points with a new noise estimate from that cloud in between."""
+    the measurement sigma that held before the update's cloud, although an update re-weights its
+    points with a new noise estimate from that cloud in between. The first cloud, which no
+    earlier cloud's noise estimate precedes, gives none."""
     monkeypatch.setenv("MESHFG_WORKER_THREADS", "2")
-    mesh, sequence = synthetic_sequence(target_vertices=400, points_per_step=800, steps=1, size=0.1,
+    mesh, sequence = synthetic_sequence(target_vertices=400, points_per_step=800, steps=2, size=0.1,
                                         noise_sigma=5e-4, prediction_error=2e-3, seed=4)
     release = threading.Event()
     draw = estimator_module._prior_blocks_at_rest
@@ -511,16 +512,44 @@ def test_an_update_is_prepared_before_the_priors_marginal_is_drawn_and_learns_it
     sigma_at_prepare = estimator.noise.sigma
     result = estimator.solve(prepared[0])
     assert "re-weighted" in result.message and estimator.noise.sigma not in (sigma_before, sigma_at_prepare)
-    assert learnt_at == [sigma_before]
-    assert estimator.prior_error_scale != 1.0 and np.all(result.position_std[mesh.free_vertices] > 0)
+    assert learnt_at == [] and estimator.prior_error_scale == 1.0
+    assert np.all(result.position_std[mesh.free_vertices] > 0)
+    sigma_before = estimator.noise.sigma
+    pending = estimator.prepare(sequence[1].stamp_ns, sequence[1].points, sequence[1].predicted)
+    assert learnt_at == []
+    estimator.solve(pending)
+    assert learnt_at == [sigma_before] and estimator.prior_error_scale != 1.0
+
+
+def test_the_first_cloud_does_not_size_the_prior_error_against_the_nominal_noise():
+    """A datasheet sigma half the clouds' real noise makes the first cloud's distances look like
+    a large prediction error: with the noise estimated from the clouds (the default) the first
+    update publishes the model's lambda^2 = 1 and the second learns against the first's noise
+    estimate; with the nominal sigma fixed (estimate_weights false) it is trusted from the first
+    cloud on, and lambda^2 comes out many times larger."""
+    mesh, sequence = synthetic_sequence(target_vertices=400, points_per_step=800, steps=2, size=0.1,
+                                        noise_sigma=1e-3, prediction_error=2e-4, seed=4)
+
+    def scales(**settings):
+        estimator = SlidingWindowEstimator(mesh, EstimatorConfig(window_size=2, measurement_sigma=5e-4, **settings))
+        learnt = []
+        for step in sequence:
+            estimator.update(step.stamp_ns, step.points, step.predicted)
+            learnt.append(estimator.prior_error_scale)
+        return learnt
+
+    estimated = scales()
+    assert estimated[0] == 1.0 and estimated[1] < 3.0
+    nominal = scales(estimate_weights=False, simulation_sigma=5e-5)  # the prior a tenth of the sigma, as estimated
+    assert nominal[0] > 10.0 * estimated[1]
 
 
 def test_the_prior_error_scale_learns_from_the_offsets_successive_clouds_share(monkeypatch):
     """From its second cloud on, the estimator gives prior_error_scale the persistent-offset
     estimate (covariance.py, persistent_offset_scale) of the last two clouds: well above zero for
     a prediction error that persists (a missed load), near zero for one whose direction changes
-    from cloud to cloud (the noise is as large either way); none for the first cloud and for the
-    first after a cut (another surface)."""
+    from cloud to cloud (the noise is as large either way); none for the first after a cut
+    (another surface). The first cloud gives no estimate at all (no noise estimate precedes it)."""
     given = []
     scale = estimator_module.prior_error_scale
     monkeypatch.setattr(estimator_module, "prior_error_scale",
@@ -538,18 +567,19 @@ def test_the_prior_error_scale_learns_from_the_offsets_successive_clouds_share(m
             estimator.update(step.stamp_ns, step.points, step.predicted)
         return list(given)
 
-    persisting = persistent_estimates(_persistent(changing))
+    persisting = persistent_estimates(_persistent(changing))  # of clouds 2-4
     alternating = persistent_estimates(changing)
-    assert persisting[0] is None and alternating[0] is None
-    assert min(persisting[1:]) > 4.0 * max(abs(value) for value in alternating[1:])
+    assert len(persisting) == len(alternating) == len(changing) - 1
+    assert min(persisting) > 4.0 * max(abs(value) for value in alternating)
     after_cut = persistent_estimates(_persistent(changing), cut_before=2)
-    assert after_cut[2] is None and after_cut[1] is not None and after_cut[3] is not None
+    assert after_cut[1] is None and after_cut[0] is not None and after_cut[2] is not None
 
 
 def test_the_published_prior_error_scale_is_raised_by_the_scatter_of_the_clouds_estimates(monkeypatch):
     """lambda^2 is published at the recent clouds' mean estimate plus one standard error of it:
-    steady estimates publish about their mean, estimates that scatter publish clearly above it."""
-    mesh, sequence = synthetic_sequence(target_vertices=400, points_per_step=800, steps=6, size=0.1,
+    steady estimates publish about their mean, estimates that scatter publish clearly above it.
+    (Six estimates: the clouds after the first.)"""
+    mesh, sequence = synthetic_sequence(target_vertices=400, points_per_step=800, steps=7, size=0.1,
                                         noise_sigma=5e-4, prediction_error=2e-3, seed=4)
 
     def published(estimates):

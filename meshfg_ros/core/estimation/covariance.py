@@ -84,7 +84,11 @@ where the prediction's error is below the measurement noise (it often reaches th
 there), so lambda^2 is learnt as the mean of the recent updates' estimates, each
 weighted by PRIOR_ERROR_MEMORY times the next one's weight, and of the model's own lambda^2 = 1,
 weighted as an estimate made before the first update: the prediction's error grows as the
-simulation drifts, and the mean follows within a few updates. The published lambda^2 is that
+simulation drifts, and the mean follows within a few updates. Where the estimator estimates the
+noise from the clouds, the first cloud adds no estimate: no earlier cloud has estimated the noise
+its distances would be held against, and the nominal sigma, off by tens of per cent, puts that
+estimate far above the prediction's error (liver-push, seed 1: 3.5 where the prediction's error
+called for 0.004; `SlidingWindowEstimator.prepare`). The published lambda^2 is that
 mean plus PRIOR_ERROR_STANDARD_ERRORS of its standard error (the estimates' scatter about it):
 where successive clouds' estimates scatter (the airway's slope estimate between 0.9 and 33 over
 ten clouds, while the error it should size grows steadily), a mean the scatter leaves low would

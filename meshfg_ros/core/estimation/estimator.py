@@ -683,8 +683,13 @@ class SlidingWindowEstimator:
         if innovation.association is not None:
             pending.association = (predicted, innovation.association)
             # The prior's error scale is learnt from these distances against a noise estimate
-            # made without them: one made from them would explain their spread away.
-            pending.prior_error_sigmas = (self.noise.sigma, self.simulation_sigma)
+            # made without them: one made from them would explain their spread away. Before any
+            # cloud has estimated the noise (estimate_weights), there is none: the nominal sigma
+            # is often off by tens of per cent (the suite's clouds spread 0.8-2.2x theirs), which
+            # is many times the prior's share of the distances' variance; this cloud then gives
+            # the offsets the next one's estimate compares with, and no estimate of its own.
+            noise_known = not self.config.estimate_weights or np.isfinite(self.noise.spread)
+            pending.prior_error_sigmas = (self.noise.sigma if noise_known else None, self.simulation_sigma)
             self._estimate_noise_before_first_update(points, predicted, innovation.association, viewpoint)
         prediction = predicted
         if prediction is None:
@@ -750,12 +755,14 @@ class SlidingWindowEstimator:
             if self.noise.observe(local) <= REWEIGHT_CHANGE:
                 return
 
-    def _learn_prior_error_scale(self, predicted: np.ndarray, association, noise_sigma: float,
+    def _learn_prior_error_scale(self, predicted: np.ndarray, association, noise_sigma: float | None,
                                  simulation_sigma: float, points: np.ndarray) -> None:
         """lambda^2 from the cloud's distances to the predicted surface against the prior's
         variance along each point's normal (core/estimation/covariance.py), at the sigmas of the
         update's start, and from the offsets per triangle it shares with the last cloud's
-        (`points`: the cloud `association` is of); kept when too few points tell."""
+        (`points`: the cloud `association` is of); kept when too few points tell, or when there
+        is no noise estimate to hold the distances against (`noise_sigma` None: only the
+        cloud's offsets are kept, for the next cloud's estimate)."""
         if "simulation" not in self.enabled:
             return
         found = association.triangle >= 0
@@ -768,6 +775,8 @@ class SlidingWindowEstimator:
         offsets = triangle_offsets(signed, triangle, variance, self.mesh.surface_triangles)
         persistent = persistent_offset_scale(self._last_offsets, offsets)
         self._last_offsets = offsets
+        if noise_sigma is None:
+            return
         scale = prior_error_scale(association.distance[found], variance, noise_sigma, GATE_SIGMAS, persistent)
         if scale is not None:
             memory = self._prior_error_memory
