@@ -261,6 +261,25 @@ def test_calibration_targets_are_judged_on_every_scene():
             "larger, lowest 1.50 (a) (target > 1 on each of them, met)") in line
 
 
+def test_the_summary_counts_the_scene_and_set_pairs_in_band_overconfident_and_conservative():
+    """Each scene gives two pairs (all free and unobserved external vertices); a pair is
+    overconfident when its coverage is below the range or its mean NEES above it, conservative
+    when its coverage is above the range or its mean NEES below it, and in band otherwise; the
+    summary line prints the tally."""
+    rows = [calibration_row("a"), calibration_row("b", coverage=0.8, nees=3.0), calibration_row("c", nees=7.0),
+            calibration_row("d", coverage=0.999, nees=3.0), calibration_row("e", coverage=0.95, nees=0.5),
+            calibration_row("f", coverage=None)]
+    rows[0]["mean_nees_unobserved_external_pooled"] = 0.9  # a: all in band, unobserved conservative
+    assert accuracy.calibration_pairs(rows) == {"in_band": 1, "overconfident": 4, "conservative": 5, "without": 2}
+    result = accuracy.summary(rows)
+    assert result["calibration_pairs"] == accuracy.calibration_pairs(rows)
+    line = accuracy.format_table({"scenes": rows, "summary": result}).splitlines()[-1]
+    assert line.endswith("; scene-and-set pairs in band 1, overconfident 4, conservative 5, without figures 2 (of 12)")
+    # On the range's edges a pair is in band.
+    edges = [calibration_row("g", coverage=0.85, nees=6.0), calibration_row("h", coverage=0.995, nees=1.0)]
+    assert accuracy.calibration_pairs(edges) == {"in_band": 4, "overconfident": 0, "conservative": 0, "without": 0}
+
+
 def test_a_scenes_row_carries_the_calibration_of_its_replay(tmp_path):
     """The fake replay: every error 1 mm, every std 0.1 mm: NEES 100, no vertex covered, the
     same std observed and unobserved."""

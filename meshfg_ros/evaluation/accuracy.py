@@ -57,7 +57,7 @@ from meshfg_ros.synthetic.recordings import synthesize
 from meshfg_ros.topics import BODY_ACCELERATION_TOPIC, ESTIMATED_MESH_TOPIC, GROUND_TRUTH_TOPIC, STATUS_TOPIC
 
 __all__ = ["ALL_TARGETS", "BUNDLED_SCENES", "CALIBRATION_TARGETS", "SCENES", "STD_RATIO_TARGET", "SYNTHESISED_SCENES",
-           "TARGETS", "format_seeds_table", "format_table", "run_accuracy", "run_accuracy_seeds", "write_calibration_plot",
+           "TARGETS", "calibration_pairs", "format_seeds_table", "format_table", "run_accuracy", "run_accuracy_seeds", "write_calibration_plot",
            "write_plot", "write_seeds_plot"]
 
 BUNDLED_SCENES = ("cube-shear-spd", "cao-push", "liver-push")
@@ -86,8 +86,11 @@ STD_RATIO_TARGET = 1.0
 # Every target summary() judges (its "met" keys); cut_followed: on every scene each estimate has
 # exactly its step's elements (those of the truth: after a cut, the cut's) and none inverted.
 ALL_TARGETS = (*TARGETS, *CALIBRATION_TARGETS, "std_ratio_unobserved_observed", "cut_followed")
-# The vertex sets whose calibration each scene's row reports (evaluate.CALIBRATION_SETS).
+# The vertex sets whose calibration each scene's row reports (evaluate.CALIBRATION_SETS), each
+# with its coverage and mean NEES targets.
 _CALIBRATION_ROW_SETS = ("all", "unobserved_external")
+_SET_TARGETS = {"all": ("coverage_all", "mean_nees_all"),
+                "unobserved_external": ("coverage_unobserved", "mean_nees_unobserved")}
 
 
 def _statuses(replay: Path) -> list[StatusRecord]:
@@ -217,6 +220,28 @@ def _calibration_summary(rows: list[dict]) -> dict:
     return {**result, "met": met}
 
 
+def calibration_pairs(rows: list[dict]) -> dict:
+    """How the rows' scene-and-vertex-set pairs (_CALIBRATION_ROW_SETS) stand against
+    CALIBRATION_TARGETS: overconfident (coverage below its range or mean NEES above it; judged
+    first), conservative (coverage above its range or mean NEES below it), in band (both within
+    their ranges), or without a figure."""
+    counts = dict.fromkeys(("in_band", "overconfident", "conservative", "without"), 0)
+    for row in rows:
+        for coverage_target, nees_target in _SET_TARGETS.values():
+            (coverage_low, coverage_high), coverage_column = CALIBRATION_TARGETS[coverage_target]
+            (nees_low, nees_high), nees_column = CALIBRATION_TARGETS[nees_target]
+            coverage, nees = row.get(coverage_column), row.get(nees_column)
+            if coverage is None or nees is None:
+                counts["without"] += 1
+            elif coverage < coverage_low or nees > nees_high:
+                counts["overconfident"] += 1
+            elif coverage > coverage_high or nees < nees_low:
+                counts["conservative"] += 1
+            else:
+                counts["in_band"] += 1
+    return counts
+
+
 def summary(rows: list[dict]) -> dict:
     """Medians and extremes over the scenes, and which targets hold."""
     def values(key):
@@ -254,6 +279,7 @@ def summary(rows: list[dict]) -> dict:
     calibration = _calibration_summary(rows)
     result["met"].update(calibration.pop("met"))
     result.update(calibration)
+    result["calibration_pairs"] = calibration_pairs(rows)
     result["calibration_targets"] = {
         **{target: list(bounds) for target, (bounds, _) in CALIBRATION_TARGETS.items()},
         "std_ratio_unobserved_observed": {"above": STD_RATIO_TARGET, "where_error_ratio_above": STD_RATIO_TARGET},
@@ -432,8 +458,13 @@ def _calibration_line(s: dict, with_seed: bool) -> str:
                  f"{where(s.get('std_ratio_lowest_at'))}" + (f", {missing} scenes without" if missing else "")
                  + f" (target > {STD_RATIO_TARGET:g} on each of them, "
                  f"{verdict('std_ratio_unobserved_observed')})")
+    pairs = s.get("calibration_pairs")
+    tally = "" if pairs is None else (
+        f"; scene-and-set pairs in band {pairs['in_band']}, overconfident {pairs['overconfident']}, "
+        f"conservative {pairs['conservative']}" + (f", without figures {pairs['without']}" if pairs["without"] else "")
+        + f" (of {sum(pairs.values())})")
     return (f"calibration of the std pooled over steps {CALIBRATION_POOLED_FROM_STEP}-last, every scene: "
-            + ", ".join(parts))
+            + ", ".join(parts) + tally)
 
 
 def format_seeds_table(result: dict) -> str:
