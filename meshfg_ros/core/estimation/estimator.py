@@ -79,8 +79,9 @@ Design decisions (see also factors.py, factor_graph.py, levenberg_marquardt.py, 
   the newest state's marginal posterior at its last linearisation (given the window's other
   states, tied to it only by the weak temporal factors), mixed with the prior's covariance by the
   share of the correction published, with the prior's real error scale learnt from each cloud's
-  distances to the prediction and from the offsets two successive clouds share, published at
-  its mean over the recent clouds plus one standard error of it (`_learn_prior_error_scale`).
+  distances to the prediction (from the second cloud on where the noise is estimated from the
+  clouds) and from the offsets two successive clouds share, published at its mean over the
+  recent clouds plus one standard error of it (`_learn_prior_error_scale`).
 - Dynamic settings (`reconfigure`: the sigmas, the robust kernel's scale, the gate) apply from
   the next update on: the factors it adds use them, the factors already in the window keep
   theirs (as they keep the weights estimated when they were added).
