@@ -57,8 +57,8 @@ from meshfg_ros.synthetic.recordings import synthesize
 from meshfg_ros.topics import BODY_ACCELERATION_TOPIC, ESTIMATED_MESH_TOPIC, GROUND_TRUTH_TOPIC, STATUS_TOPIC
 
 __all__ = ["ALL_TARGETS", "BUNDLED_SCENES", "CALIBRATION_TARGETS", "SCENES", "STD_RATIO_TARGET", "SYNTHESISED_SCENES",
-           "TARGETS", "calibration_pairs", "format_seeds_table", "format_table", "run_accuracy", "run_accuracy_seeds", "write_calibration_plot",
-           "write_plot", "write_seeds_plot"]
+           "TARGETS", "calibration_pairs", "format_seeds_table", "format_table", "run_accuracy", "run_accuracy_seeds",
+           "write_calibration_plot", "write_plot", "write_seeds_plot"]
 
 BUNDLED_SCENES = ("cube-shear-spd", "cao-push", "liver-push")
 SYNTHESISED_SCENES = ("slab-inclusion", "dome-tilted", "liver-gravity", "kidney-drag", "flap-bend", "sheet-cut")
