@@ -39,9 +39,11 @@ def test_steps_and_bounds_and_too_few_points():
 
 def test_a_spread_beyond_the_bounds_is_flagged():
     noise = MeasurementNoise(1e-3, bounds=10.0)
-    assert not noise.spread_beyond_bounds  # nothing observed yet
+    assert not noise.spread_beyond_bounds and not noise.observed  # nothing observed yet
+    noise.observe(half_normal(2e-3, 10))  # too few points to tell: still the nominal sigma
+    assert not noise.observed and noise.sigma == 1e-3
     noise.observe(half_normal(2e-3, 1000))  # twice the nominal: a real sensor's spread
-    assert not noise.spread_beyond_bounds and noise.spread == pytest.approx(2e-3, rel=0.1)
+    assert noise.observed and not noise.spread_beyond_bounds and noise.spread == pytest.approx(2e-3, rel=0.1)
     noise.observe(half_normal(0.05e-3, 1000))  # a twentieth: a nominal sigma given 20x too large
     assert noise.spread_beyond_bounds and noise.spread == pytest.approx(0.05e-3, rel=0.1)
     noise.observe(half_normal(15e-3, 1000))  # fifteen times

@@ -88,9 +88,9 @@ STD_RATIO_TARGET = 1.0
 ALL_TARGETS = (*TARGETS, *CALIBRATION_TARGETS, "std_ratio_unobserved_observed", "cut_followed")
 # The vertex sets whose calibration each scene's row reports (evaluate.CALIBRATION_SETS), each
 # with its coverage and mean NEES targets.
-_CALIBRATION_ROW_SETS = ("all", "unobserved_external")
 _SET_TARGETS = {"all": ("coverage_all", "mean_nees_all"),
                 "unobserved_external": ("coverage_unobserved", "mean_nees_unobserved")}
+_CALIBRATION_ROW_SETS = tuple(_SET_TARGETS)
 
 
 def _statuses(replay: Path) -> list[StatusRecord]:

@@ -689,7 +689,7 @@ class SlidingWindowEstimator:
             # is often off by tens of per cent (the suite's clouds spread 0.8-2.2x theirs), which
             # is many times the prior's share of the distances' variance; this cloud then gives
             # the offsets the next one's estimate compares with, and no estimate of its own.
-            noise_known = not self.config.estimate_weights or np.isfinite(self.noise.spread)
+            noise_known = self.noise.observed or not self.config.estimate_weights
             pending.prior_error_sigmas = (self.noise.sigma if noise_known else None, self.simulation_sigma)
             self._estimate_noise_before_first_update(points, predicted, innovation.association, viewpoint)
         prediction = predicted
@@ -740,7 +740,7 @@ class SlidingWindowEstimator:
         first optimum keeps part of that misfit in its residuals, and neither spread tells the
         noise estimate it will give; the update then starts from the nominal sigma."""
         cfg = self.config
-        if (not cfg.estimate_weights or "measurement" not in self.enabled or np.isfinite(self.noise.spread)
+        if (not cfg.estimate_weights or "measurement" not in self.enabled or self.noise.observed
                 or points is None or not len(points)):
             return
         normals = self.mesh.triangle_normals(predicted)

@@ -64,10 +64,16 @@ class MeasurementNoise:
         self.spread = float("nan")  # m, the last observed robust spread
 
     @property
+    def observed(self) -> bool:
+        """Whether any cloud's spread has been observed (sigma is then an estimate, not the
+        nominal value)."""
+        return bool(np.isfinite(self.spread))
+
+    @property
     def spread_beyond_bounds(self) -> bool:
         """Whether the last observed spread lay outside the bounds about the nominal sigma."""
         low, high = self.nominal_sigma / self.bounds, self.nominal_sigma * self.bounds
-        return bool(np.isfinite(self.spread) and not low <= self.spread <= high)
+        return self.observed and not low <= self.spread <= high
 
     def observe(self, distances: np.ndarray) -> float:
         """Move sigma towards 1.4826 median(distances) [m]; returns the relative change (>= 0).
